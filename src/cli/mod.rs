@@ -1,0 +1,16 @@
+//! clap definitions and dispatch. One file per subcommand.
+use clap::{Parser, Subcommand};
+
+#[derive(Parser, Debug)]
+#[command(name = "b2dr", version, about = "Reactive closed-loop driving evaluation with a generative renderer")]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+pub enum Command {}
+
+pub fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {}
+}
