@@ -109,3 +109,4 @@ pub fn nmse(a: &[f32], b: &[f64]) -> f64 {
         num / den
     }
 }
+pub mod image;
