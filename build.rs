@@ -285,6 +285,12 @@ fn collect_entries(
         };
         let words =
             spv::write_vec(module, info, &opts, Some(&opts_ep)).map_err(|e| e.to_string())?;
+        // Feature flags from code lines only: header lines of other variants stay in the text as comments.
+        let code: String = text
+            .lines()
+            .filter(|l| !l.trim_start().starts_with("//"))
+            .collect::<Vec<_>>()
+            .join("\n");
         let id = if ep.name == "main" {
             vname.to_string()
         } else {
@@ -302,9 +308,9 @@ fn collect_entries(
             workgroup: ep.workgroup_size,
             params,
             params_size,
-            f16: text.contains("enable f16;"),
-            subgroup: text.contains("subgroup"),
-            coop: text.contains("wgpu_cooperative_matrix"),
+            f16: code.contains("enable f16;"),
+            subgroup: code.contains("subgroup"),
+            coop: code.contains("wgpu_cooperative_matrix"),
         });
     }
     Ok(())

@@ -52,10 +52,25 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
     let var_ = reduce_sum(q, l) / f32(p.len);
     let rstd = inverseSqrt(var_ + p.eps);
     let cbase = (seg % p.segs_per_item) * p.ch_per_seg;
-    for (var i = l; i < p.len; i += 256u) {
-        let c = cbase + i / p.inner;
-        var v = ((f32(x[base + i]) - x0) - mean) * rstd * f32(gamma[c]) + f32(beta[c]);
-        if (p.silu == 1u) { v = silu(v); }
-        y[base + i] = ST(v);
+    if (p.inner == 1u) {
+        // layer norm: one affine parameter per element
+        for (var i = l; i < p.len; i += 256u) {
+            var v = ((f32(x[base + i]) - x0) - mean) * rstd * f32(gamma[cbase + i]) + f32(beta[cbase + i]);
+            if (p.silu == 1u) { v = silu(v); }
+            y[base + i] = ST(v);
+        }
+    } else {
+        // group norm: loop per channel so gamma/beta are uniform and no per-element integer division is needed
+        // (llvmpipe has no vector integer divide). Iterations: ch_per_seg * ceil(inner / 256).
+        for (var c = 0u; c < p.ch_per_seg; c++) {
+            let g = rstd * f32(gamma[cbase + c]);
+            let b = f32(beta[cbase + c]) - mean * g;
+            let cb = base + c * p.inner;
+            for (var j = l; j < p.inner; j += 256u) {
+                var v = (f32(x[cb + j]) - x0) * g + b;
+                if (p.silu == 1u) { v = silu(v); }
+                y[cb + j] = ST(v);
+            }
+        }
     }
 }

@@ -2,6 +2,7 @@
 //! picks the pipeline variant, computes the grid, pushes the parameters and records one or more dispatches into
 //! a [`Recorder`]. Outputs are caller-allocated so whole models can be planned once and replayed.
 //! Plain CPU f64 references for every op live in [`reference`].
+pub mod bench;
 pub mod blur;
 pub mod elementwise;
 pub mod embedding;
