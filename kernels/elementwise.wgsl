@@ -15,6 +15,7 @@ struct BinaryParams {
 struct ScaleAddParams { n: u32, alpha: f32, beta: f32 }
 struct GegluParams { rows: u32, d: u32 }
 struct ConcatParams { n: u32, c1: u32, c2: u32, hw: u32 }
+struct TransposeParams { n: u32, r: u32, c: u32 }
 
 @group(0) @binding(0) var<storage, read> a: array<ST>;
 @group(0) @binding(1) var<storage, read> b: array<ST>;
@@ -26,6 +27,7 @@ var<immediate> bp: BinaryParams;
 var<immediate> sp: ScaleAddParams;
 var<immediate> gp: GegluParams;
 var<immediate> cp: ConcatParams;
+var<immediate> tp: TransposeParams;
 
 // x: (n) -> out1: (n); op 0 = silu, 1 = gelu(erf)
 @compute @workgroup_size(256)
@@ -90,4 +92,15 @@ fn concat(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
     } else {
         out[i] = b[(nb * cp.c2 + ch - cp.c1) * cp.hw + p];
     }
+}
+
+// a: (B, R, C) -> out1: (B, C, R). One output element per invocation: writes contiguous, reads strided.
+@compute @workgroup_size(256)
+fn transpose(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let i = flat_index(wid, nwg, lid);
+    if (i >= tp.n) { return; }
+    let r = i % tp.r;
+    let c = (i / tp.r) % tp.c;
+    let b = i / (tp.r * tp.c);
+    out1[i] = a[(b * tp.r + r) * tp.c + c];
 }

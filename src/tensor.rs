@@ -154,6 +154,29 @@ impl Tensor {
         &self.buf
     }
 
+    /// A tensor stored at the start of an existing buffer (at least as large as the tensor). Used by planners
+    /// that reuse activation buffers across layers.
+    pub fn on_buffer(buf: Arc<Buffer>, shape: &[usize], dtype: DType) -> Result<Self> {
+        ensure!(
+            !shape.is_empty() && shape.iter().all(|&d| d > 0),
+            "tensor on {:?}: empty shape {shape:?}",
+            buf.name()
+        );
+        let bytes = (shape.iter().product::<usize>() * dtype.size()) as u64;
+        ensure!(
+            bytes <= buf.size(),
+            "tensor {shape:?} {} needs {bytes} bytes, buffer {:?} has {}",
+            dtype.name(),
+            buf.name(),
+            buf.size()
+        );
+        Ok(Self {
+            shape: shape.to_vec(),
+            dtype,
+            buf,
+        })
+    }
+
     /// The same storage viewed with another shape of equal element count.
     pub fn reshape(&self, shape: &[usize]) -> Result<Self> {
         let n: usize = shape.iter().product();

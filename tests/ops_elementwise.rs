@@ -210,3 +210,31 @@ fn bad_inputs_are_errors_naming_the_op() {
     drop(rec);
     assert_no_validation_errors();
 }
+
+#[test]
+fn transpose_is_exact() {
+    let Some(ctx) = ctx() else { return };
+    for dtype in [DType::F32, DType::F16] {
+        for (b, rr, c) in [(2usize, 320usize, 1400usize), (1, 7, 13), (3, 1, 5)] {
+            let x = uniform(b * rr * c, 1.0, 8);
+            let tx = upload(&ctx, &[b, rr, c], dtype, &x);
+            let out = empty(&ctx, &[b, c, rr], dtype);
+            run(&ctx, |rec| ew::transpose(rec, &tx, &out));
+            let xs = stored(&x, dtype);
+            let mut want = vec![0.0; xs.len()];
+            for n in 0..b {
+                for i in 0..rr {
+                    for j in 0..c {
+                        want[(n * c + j) * rr + i] = xs[(n * rr + i) * c + j];
+                    }
+                }
+            }
+            assert_eq!(
+                nmse(&out.to_f32(&ctx).unwrap(), &want),
+                0.0,
+                "transpose {b}x{rr}x{c} {dtype:?}"
+            );
+        }
+    }
+    assert_no_validation_errors();
+}

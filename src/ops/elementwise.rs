@@ -3,7 +3,7 @@ use anyhow::{ensure, Result};
 
 use super::{expect_shape, grid_1d, pick, same_dtype, Recorder};
 use crate::kernels::params::{
-    BinaryParams, ConcatParams, GegluParams, ScaleAddParams, UnaryParams,
+    BinaryParams, ConcatParams, GegluParams, ScaleAddParams, TransposeParams, UnaryParams,
 };
 use crate::kernels::KernelId as K;
 use crate::tensor::Tensor;
@@ -195,5 +195,26 @@ pub fn concat_channels(rec: &mut Recorder, a: &Tensor, b: &Tensor, out: &Tensor)
         bytemuck::bytes_of(&p),
         grid_1d("concat", out.numel())?,
         "concat",
+    )
+}
+
+/// x: (B, R, C) -> out: (B, C, R) (batched matrix transpose; NCHW <-> token-major (N, HW, C) conversions).
+pub fn transpose(rec: &mut Recorder, x: &Tensor, out: &Tensor) -> Result<()> {
+    let d = same_dtype("transpose", &[x, out])?;
+    let s = x.shape();
+    ensure!(s.len() == 3, "transpose: x must be (B, R, C), got {s:?}");
+    expect_shape("transpose", "out", out, &[s[0], s[2], s[1]])?;
+    let p = TransposeParams {
+        n: x.numel() as u32,
+        r: s[1] as u32,
+        c: s[2] as u32,
+    };
+    let k = pick(d, K::ElementwiseF32Transpose, K::ElementwiseF16Transpose);
+    rec.dispatch(
+        k,
+        &[x.buffer(), out.buffer()],
+        bytemuck::bytes_of(&p),
+        grid_1d("transpose", x.numel())?,
+        "transpose",
     )
 }
