@@ -1,0 +1,100 @@
+//! diffusers ControlNetModel: the UNet encoder half + mid block, a conditioning embedding added after conv_in,
+//! zero-initialised 1x1 convs on the 12 skips and the mid output, scaled by conditioning_scale.
+use anyhow::{ensure, Result};
+
+use super::config::ControlNetConfig;
+use super::device::{DeviceWeights, Fwd};
+use super::layers::Conv;
+use super::unet::{EncoderHalf, Encoded};
+use crate::ops::elementwise as ew;
+use crate::tensor::Tensor;
+
+pub struct ControlNet {
+    pub cfg: ControlNetConfig,
+    enc: EncoderHalf,
+    cond_in: Conv,
+    cond_blocks: Vec<Conv>,
+    cond_out: Conv,
+    down_zero: Vec<Conv>,
+    mid_zero: Conv,
+}
+
+/// ControlNet outputs: 12 down residuals and the mid residual (already scaled).
+pub struct ControlOut {
+    pub down: Vec<Tensor>,
+    pub mid: Tensor,
+}
+
+impl ControlNet {
+    pub fn load(dw: &DeviceWeights, cfg: &ControlNetConfig) -> Result<Self> {
+        let enc = EncoderHalf::load(dw, &cfg.enc)?;
+        let n = cfg.conditioning_embedding_out_channels.len();
+        let mut cond_blocks = vec![];
+        for k in 0..2 * (n - 1) {
+            // blocks alternate conv c -> c (stride 1) and conv c -> c' (stride 2)
+            cond_blocks.push(Conv::same3(dw, &format!("controlnet_cond_embedding.blocks.{k}"), 1 + k % 2)?);
+        }
+        let nskips = 1 + cfg.enc.down_blocks.len() * cfg.enc.layers_per_block + cfg.enc.down_blocks.len() - 1;
+        let down_zero = (0..nskips)
+            .map(|k| Conv::one(dw, &format!("controlnet_down_blocks.{k}")))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self {
+            cfg: cfg.clone(),
+            enc,
+            cond_in: Conv::same3(dw, "controlnet_cond_embedding.conv_in", 1)?,
+            cond_blocks,
+            cond_out: Conv::same3(dw, "controlnet_cond_embedding.conv_out", 1)?,
+            down_zero,
+            mid_zero: Conv::one(dw, "controlnet_mid_block")?,
+        })
+    }
+
+    fn silu(f: &mut Fwd, x: Tensor) -> Result<Tensor> {
+        let y = f.ws.alloc(x.shape())?;
+        ew::silu(f.rec, &x, &y)?;
+        f.ws.release(x);
+        Ok(y)
+    }
+
+    /// sample: (N, Cin, H, W), t: (N) f32, context: (N, L, Dc), cond: (N, Cc, 8H, 8W) -> residuals
+    pub fn forward(&self, f: &mut Fwd, sample: &Tensor, t: &Tensor, context: &Tensor, cond: &Tensor, scale: f32) -> Result<ControlOut> {
+        let (s, c) = (sample.shape(), cond.shape());
+        ensure!(
+            c.len() == 4 && c[0] == s[0] && c[1] == self.cfg.conditioning_channels,
+            "controlnet: controlnet_cond {c:?} must be ({}, {}, H, W)",
+            s[0],
+            self.cfg.conditioning_channels
+        );
+        let e0 = self.cond_in.forward(f, cond)?;
+        let mut e = Self::silu(f, e0)?;
+        for b in &self.cond_blocks {
+            let y = b.forward(f, &e)?;
+            f.ws.release(e);
+            e = Self::silu(f, y)?;
+        }
+        let emb = self.cond_out.forward(f, &e)?;
+        f.ws.release(e);
+        ensure!(
+            emb.shape()[2..] == s[2..],
+            "controlnet: conditioning image {c:?} embeds to {:?}, which does not match the latent {s:?} (it must be 8x the latent size)",
+            emb.shape()
+        );
+        let Encoded { x, skips, silu_temb } = self.enc.forward(f, sample, t, context, Some(&emb))?;
+        f.ws.release(emb);
+        f.ws.release(silu_temb);
+        let mut down = vec![];
+        for (z, sk) in self.down_zero.iter().zip(&skips) {
+            let r = z.forward(f, sk)?;
+            let y = f.ws.alloc(r.shape())?;
+            ew::scale_add(f.rec, scale, &r, 0.0, &r, &y)?;
+            f.ws.release(r);
+            down.push(y);
+        }
+        let m = self.mid_zero.forward(f, &x)?;
+        let mid = f.ws.alloc(m.shape())?;
+        ew::scale_add(f.rec, scale, &m, 0.0, &m, &mid)?;
+        f.ws.release(m);
+        f.ws.release(x);
+        Ok(ControlOut { down, mid })
+    }
+}

@@ -1,0 +1,119 @@
+//! Basic layers on the ops: Conv2d, Linear, GroupNorm, LayerNorm, loaded by diffusers name.
+use anyhow::{Context as _, Result};
+
+use super::device::{DeviceWeights, Fwd};
+use crate::ops::{conv2d, matmul, norm};
+use crate::tensor::Tensor;
+
+/// torch.nn.Conv2d with symmetric or explicit padding.
+pub struct Conv {
+    pub w: Tensor,
+    pub b: Option<Tensor>,
+    pub stride: usize,
+    pub pad: [usize; 4],
+    name: String,
+}
+
+impl Conv {
+    /// `name.weight` (O, C, KH, KW) and optional `name.bias`; padding (top, bottom, left, right).
+    pub fn load(dw: &DeviceWeights, name: &str, stride: usize, pad: [usize; 4]) -> Result<Self> {
+        let w = dw.get(&format!("{name}.weight"))?.clone();
+        let b = dw.get(&format!("{name}.bias")).ok().cloned();
+        Ok(Self { w, b, stride, pad, name: name.to_string() })
+    }
+
+    /// 3x3, padding 1.
+    pub fn same3(dw: &DeviceWeights, name: &str, stride: usize) -> Result<Self> {
+        Self::load(dw, name, stride, [1; 4])
+    }
+
+    /// 1x1, no padding.
+    pub fn one(dw: &DeviceWeights, name: &str) -> Result<Self> {
+        Self::load(dw, name, 1, [0; 4])
+    }
+
+    /// x: (N, C, H, W) -> (N, O, OH, OW)
+    pub fn forward(&self, f: &mut Fwd, x: &Tensor) -> Result<Tensor> {
+        let (s, ws) = (x.shape(), self.w.shape());
+        let oh = (s[2] + self.pad[0] + self.pad[1] - ws[2]) / self.stride + 1;
+        let ow = (s[3] + self.pad[2] + self.pad[3] - ws[3]) / self.stride + 1;
+        let out = f.ws.alloc(&[s[0], ws[0], oh, ow])?;
+        conv2d::conv2d(f.rec, x, &self.w, self.b.as_ref(), self.stride, self.pad, &out)
+            .with_context(|| format!("conv {}", self.name))?;
+        Ok(out)
+    }
+}
+
+/// torch.nn.Linear: weight (out, in), optional bias.
+pub struct Linear {
+    pub w: Tensor,
+    pub b: Option<Tensor>,
+    name: String,
+}
+
+impl Linear {
+    pub fn load(dw: &DeviceWeights, name: &str) -> Result<Self> {
+        let w = dw.get(&format!("{name}.weight"))?.clone();
+        let b = dw.get(&format!("{name}.bias")).ok().cloned();
+        Ok(Self { w, b, name: name.to_string() })
+    }
+
+    /// x: (.., in) -> (.., out)
+    pub fn forward(&self, f: &mut Fwd, x: &Tensor) -> Result<Tensor> {
+        let mut s = x.shape().to_vec();
+        *s.last_mut().expect("non-empty") = self.w.shape()[0];
+        let out = f.ws.alloc(&s)?;
+        matmul::linear(f.rec, x, &self.w, self.b.as_ref(), &out).with_context(|| format!("linear {}", self.name))?;
+        Ok(out)
+    }
+}
+
+/// torch.nn.GroupNorm (+ optional fused SiLU).
+pub struct GroupNorm {
+    pub gamma: Tensor,
+    pub beta: Tensor,
+    pub groups: usize,
+    pub eps: f32,
+}
+
+impl GroupNorm {
+    pub fn load(dw: &DeviceWeights, name: &str, groups: usize, eps: f64) -> Result<Self> {
+        Ok(Self {
+            gamma: dw.get(&format!("{name}.weight"))?.clone(),
+            beta: dw.get(&format!("{name}.bias"))?.clone(),
+            groups,
+            eps: eps as f32,
+        })
+    }
+
+    /// x: (N, C, H, W) -> (N, C, H, W)
+    pub fn forward(&self, f: &mut Fwd, x: &Tensor, silu: bool) -> Result<Tensor> {
+        let out = f.ws.alloc(x.shape())?;
+        norm::group_norm(f.rec, x, self.groups, &self.gamma, &self.beta, self.eps, silu, &out)?;
+        Ok(out)
+    }
+}
+
+/// torch.nn.LayerNorm over the last dimension.
+pub struct LayerNorm {
+    pub gamma: Tensor,
+    pub beta: Tensor,
+    pub eps: f32,
+}
+
+impl LayerNorm {
+    pub fn load(dw: &DeviceWeights, name: &str, eps: f64) -> Result<Self> {
+        Ok(Self {
+            gamma: dw.get(&format!("{name}.weight"))?.clone(),
+            beta: dw.get(&format!("{name}.bias"))?.clone(),
+            eps: eps as f32,
+        })
+    }
+
+    /// x: (.., D) -> (.., D)
+    pub fn forward(&self, f: &mut Fwd, x: &Tensor) -> Result<Tensor> {
+        let out = f.ws.alloc(x.shape())?;
+        norm::layer_norm(f.rec, x, &self.gamma, &self.beta, self.eps, &out)?;
+        Ok(out)
+    }
+}

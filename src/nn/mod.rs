@@ -1,0 +1,12 @@
+//! Model components of the SD1.5 family (UNet2DConditionModel, ControlNetModel, AutoencoderKL): their
+//! diffusers configs ([`config`]), host-side weights ([`weights`]), and the device modules (named after the
+//! diffusers modules) that record their forward passes with the ops.
+pub mod config;
+pub mod controlnet;
+pub mod device;
+pub mod layers;
+pub mod resnet;
+pub mod transformer;
+pub mod unet;
+pub mod vae;
+pub mod weights;

@@ -1,0 +1,181 @@
+//! diffusers Transformer2DModel (SD1.5: GN eps 1e-6, conv 1x1 proj_in/proj_out, one BasicTransformerBlock with
+//! self-attention, cross-attention and a GEGLU feed-forward) and the VAE's single-head mid-block attention.
+use anyhow::Result;
+
+use super::device::{DeviceWeights, Fwd};
+use super::layers::{Conv, GroupNorm, LayerNorm, Linear};
+use crate::ops::{attention, elementwise as ew};
+use crate::tensor::Tensor;
+
+/// diffusers Attention (q/k/v projections, multi-head attention, output projection).
+struct Attn {
+    q: Linear,
+    k: Linear,
+    v: Linear,
+    out: Linear,
+    heads: usize,
+}
+
+impl Attn {
+    fn load(dw: &DeviceWeights, name: &str, heads: usize) -> Result<Self> {
+        Ok(Self {
+            q: Linear::load(dw, &format!("{name}.to_q"))?,
+            k: Linear::load(dw, &format!("{name}.to_k"))?,
+            v: Linear::load(dw, &format!("{name}.to_v"))?,
+            out: Linear::load(dw, &format!("{name}.to_out.0"))?,
+            heads,
+        })
+    }
+
+    /// x: (B, L, D), ctx: (B, Lk, Dc) or None (self-attention) -> (B, L, D)
+    fn forward(&self, f: &mut Fwd, x: &Tensor, ctx: Option<&Tensor>) -> Result<Tensor> {
+        let c = ctx.unwrap_or(x);
+        let q = self.q.forward(f, x)?;
+        let k = self.k.forward(f, c)?;
+        let v = self.v.forward(f, c)?;
+        let o = f.ws.alloc(q.shape())?;
+        attention::attention(f.rec, &q, &k, &v, &o, self.heads, None)?;
+        for t in [q, k, v] {
+            f.ws.release(t);
+        }
+        let r = self.out.forward(f, &o)?;
+        f.ws.release(o);
+        Ok(r)
+    }
+}
+
+/// a + b into a new tensor; releases both.
+fn add_release(f: &mut Fwd, a: Tensor, b: Tensor) -> Result<Tensor> {
+    let out = f.ws.alloc(a.shape())?;
+    ew::add(f.rec, &a, &b, &out)?;
+    f.ws.release(a);
+    f.ws.release(b);
+    Ok(out)
+}
+
+/// (N, C, H, W) -> tokens (N, HW, C)
+pub(crate) fn to_tokens(f: &mut Fwd, x: &Tensor) -> Result<Tensor> {
+    let s = x.shape();
+    let t = f.ws.alloc(&[s[0], s[2] * s[3], s[1]])?;
+    ew::transpose(f.rec, &x.reshape(&[s[0], s[1], s[2] * s[3]])?, &t)?;
+    Ok(t)
+}
+
+/// tokens (N, HW, C) -> (N, C, H, W)
+pub(crate) fn from_tokens(f: &mut Fwd, t: &Tensor, h: usize, w: usize) -> Result<Tensor> {
+    let s = t.shape();
+    let x = f.ws.alloc(&[s[0], s[2], h, w])?;
+    ew::transpose(f.rec, t, &x.reshape(&[s[0], s[2], s[1]])?)?;
+    Ok(x)
+}
+
+struct Block {
+    norm1: LayerNorm,
+    attn1: Attn,
+    norm2: LayerNorm,
+    attn2: Attn,
+    norm3: LayerNorm,
+    ff_in: Linear,
+    ff_out: Linear,
+}
+
+pub struct Transformer2D {
+    norm: GroupNorm,
+    proj_in: Conv,
+    blocks: Vec<Block>,
+    proj_out: Conv,
+}
+
+impl Transformer2D {
+    pub fn load(dw: &DeviceWeights, name: &str, groups: usize, heads: usize) -> Result<Self> {
+        let mut blocks = vec![];
+        let mut i = 0;
+        while dw.has(&format!("{name}.transformer_blocks.{i}.norm1.weight")) {
+            let b = format!("{name}.transformer_blocks.{i}");
+            blocks.push(Block {
+                norm1: LayerNorm::load(dw, &format!("{b}.norm1"), 1e-5)?,
+                attn1: Attn::load(dw, &format!("{b}.attn1"), heads)?,
+                norm2: LayerNorm::load(dw, &format!("{b}.norm2"), 1e-5)?,
+                attn2: Attn::load(dw, &format!("{b}.attn2"), heads)?,
+                norm3: LayerNorm::load(dw, &format!("{b}.norm3"), 1e-5)?,
+                ff_in: Linear::load(dw, &format!("{b}.ff.net.0.proj"))?,
+                ff_out: Linear::load(dw, &format!("{b}.ff.net.2"))?,
+            });
+            i += 1;
+        }
+        anyhow::ensure!(!blocks.is_empty(), "{name}: no transformer_blocks found");
+        Ok(Self {
+            norm: GroupNorm::load(dw, &format!("{name}.norm"), groups, 1e-6)?,
+            proj_in: Conv::one(dw, &format!("{name}.proj_in"))?,
+            blocks,
+            proj_out: Conv::one(dw, &format!("{name}.proj_out"))?,
+        })
+    }
+
+    /// x: (N, C, H, W), context: (N, 77, Dc) -> (N, C, H, W)
+    pub fn forward(&self, f: &mut Fwd, x: &Tensor, context: &Tensor) -> Result<Tensor> {
+        let (h, w) = (x.shape()[2], x.shape()[3]);
+        let n = self.norm.forward(f, x, false)?;
+        let p = self.proj_in.forward(f, &n)?;
+        f.ws.release(n);
+        let mut t = to_tokens(f, &p)?;
+        f.ws.release(p);
+        for b in &self.blocks {
+            let n1 = b.norm1.forward(f, &t)?;
+            let a1 = b.attn1.forward(f, &n1, None)?;
+            f.ws.release(n1);
+            t = add_release(f, a1, t)?;
+            let n2 = b.norm2.forward(f, &t)?;
+            let a2 = b.attn2.forward(f, &n2, Some(context))?;
+            f.ws.release(n2);
+            t = add_release(f, a2, t)?;
+            let n3 = b.norm3.forward(f, &t)?;
+            let g = b.ff_in.forward(f, &n3)?;
+            f.ws.release(n3);
+            let mut gs = g.shape().to_vec();
+            *gs.last_mut().expect("dims") /= 2;
+            let gg = f.ws.alloc(&gs)?;
+            ew::geglu(f.rec, &g, &gg)?;
+            f.ws.release(g);
+            let ff = b.ff_out.forward(f, &gg)?;
+            f.ws.release(gg);
+            t = add_release(f, ff, t)?;
+        }
+        let y = from_tokens(f, &t, h, w)?;
+        f.ws.release(t);
+        let o = self.proj_out.forward(f, &y)?;
+        f.ws.release(y);
+        let out = f.ws.alloc(x.shape())?;
+        ew::add(f.rec, &o, x, &out)?;
+        f.ws.release(o);
+        Ok(out)
+    }
+}
+
+/// The VAE mid-block attention: GN (eps 1e-6), single head over the spatial tokens, residual.
+pub struct VaeAttention {
+    norm: GroupNorm,
+    attn: Attn,
+}
+
+impl VaeAttention {
+    pub fn load(dw: &DeviceWeights, name: &str, groups: usize) -> Result<Self> {
+        Ok(Self { norm: GroupNorm::load(dw, &format!("{name}.group_norm"), groups, 1e-6)?, attn: Attn::load(dw, name, 1)? })
+    }
+
+    /// x: (N, C, H, W) -> (N, C, H, W)
+    pub fn forward(&self, f: &mut Fwd, x: &Tensor) -> Result<Tensor> {
+        let (h, w) = (x.shape()[2], x.shape()[3]);
+        let n = self.norm.forward(f, x, false)?;
+        let t = to_tokens(f, &n)?;
+        f.ws.release(n);
+        let a = self.attn.forward(f, &t, None)?;
+        f.ws.release(t);
+        let y = from_tokens(f, &a, h, w)?;
+        f.ws.release(a);
+        let out = f.ws.alloc(x.shape())?;
+        ew::add(f.rec, &y, x, &out)?;
+        f.ws.release(y);
+        Ok(out)
+    }
+}
