@@ -26,6 +26,7 @@ pub mod kernels;
 pub mod metrics;
 pub mod ops;
 pub mod projection;
+pub mod sampling;
 pub mod scene;
 pub mod sim;
 pub mod tensor;
