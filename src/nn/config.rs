@@ -352,7 +352,12 @@ fn parse_encoder(k: &mut Keys) -> Result<EncoderConfig> {
         "diffusers uses attention_head_dim as the head count",
     )?;
     let num_heads = k.per_block("attention_head_dim", 8, block_out_channels.len())?;
+    let n = block_out_channels.len();
     for (i, (c, h)) in block_out_channels.iter().zip(&num_heads).enumerate() {
+        // Only blocks with attention use the head count (the mid block uses the last one).
+        if down_blocks[i] == DownBlock::Plain && i + 1 != n {
+            continue;
+        }
         ensure!(
             c % h == 0,
             "{} config: key `attention_head_dim` (head count {h}) does not divide block {i}'s {c} channels",

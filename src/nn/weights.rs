@@ -9,8 +9,11 @@
 //! truncated file is an error naming the tensor. Old VAE checkpoints that name the mid-block attention
 //! `query/key/value/proj_attn` are renamed to `to_q/to_k/to_v/to_out.0` (diffusers does the same on load).
 //!
-//! [`Weights::random`] makes deterministic weights from a seed: each tensor is drawn from its own ChaCha8
-//! stream keyed by (seed, FNV-1a hash of its name), so a tensor's values do not depend on the others.
+//! [`Weights::random`] makes deterministic weights from a seed: each tensor is drawn from its own
+//! counter-based SplitMix64 stream keyed by `seed ^ fnv1a64(name)`, so a tensor's values do not depend on
+//! the others, and the generator is simple enough for tools/make_golden.py to reproduce bit for bit
+//! (the b2dr-tiny goldens use this instead of storing 70 MB of weights; the golden stores per-tensor
+//! [`Weights::fingerprint`]s so both sides provably use the same values).
 //! Weights and biases are uniform in `±1/sqrt(fan_in)` (PyTorch's default bound); norm scales are
 //! `1 + U(±0.1)` and norm shifts `U(±0.1)`. Everything is random, including the convs diffusers
 //! zero-initialises in a ControlNet (`controlnet_cond_embedding.conv_out`, `controlnet_down_blocks.*`,
@@ -19,8 +22,6 @@
 use super::config::{ControlNetConfig, DownBlock, EncoderConfig, UNetConfig, UpBlock, VaeConfig};
 use anyhow::{anyhow, bail, ensure, Context, Result};
 use half::{bf16, f16};
-use rand::{Rng, SeedableRng};
-use rand_chacha::ChaCha8Rng;
 use serde_json::{json, Map, Value};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
@@ -528,20 +529,23 @@ impl Weights {
             .ok_or_else(|| anyhow!("missing tensor `{name}`"))
     }
 
-    /// Deterministic random weights for the expected list (see the module docs for the distribution).
+    /// Deterministic random weights for the expected list (see the module docs for the distribution and
+    /// the generator, which `tools/make_golden.py` reproduces bit for bit).
     pub fn random(expected: &[Spec], seed: u64) -> Self {
         let shapes: BTreeMap<&str, &Vec<usize>> =
             expected.iter().map(|(n, s)| (n.as_str(), s)).collect();
         let mut tensors = BTreeMap::new();
         for (name, shape) in expected {
-            let mut rng = ChaCha8Rng::seed_from_u64(seed ^ fnv1a(name));
+            let key = seed ^ fnv1a(name);
             let count: usize = shape.iter().product();
-            let is_norm = is_norm_param(name);
-            let data: Vec<f32> = if is_norm {
-                let base = if name.ends_with(".weight") { 1.0 } else { 0.0 };
-                (0..count)
-                    .map(|_| base + rng.gen_range(-0.1f32..0.1))
-                    .collect()
+            let u = (0..count as u64).map(|i| uniform_pm1(key, i));
+            let data: Vec<f32> = if is_norm_param(name) {
+                let base = if name.ends_with(".weight") {
+                    1.0f32
+                } else {
+                    0.0
+                };
+                u.map(|x| base + 0.1f32 * x).collect()
             } else {
                 let weight_shape = if name.ends_with(".bias") {
                     shapes
@@ -554,8 +558,8 @@ impl Weights {
                     .map(|s| s.iter().skip(1).product())
                     .unwrap_or(1)
                     .max(1);
-                let bound = 1.0 / (fan_in as f32).sqrt();
-                (0..count).map(|_| rng.gen_range(-bound..bound)).collect()
+                let bound = 1.0f32 / (fan_in as f32).sqrt();
+                u.map(|x| x * bound).collect()
             };
             tensors.insert(
                 name.clone(),
@@ -567,6 +571,14 @@ impl Weights {
             );
         }
         Self { tensors }
+    }
+
+    /// Order-sensitive fingerprint of a tensor's exact f32 bits: `sum_i bits(v_i) * (i + 1)` mod 2^64
+    /// (the golden files store it for generated weights).
+    pub fn fingerprint(t: &HostTensor) -> u64 {
+        t.data.iter().enumerate().fold(0u64, |acc, (i, v)| {
+            acc.wrapping_add((v.to_bits() as u64).wrapping_mul(i as u64 + 1))
+        })
     }
 
     /// Serialises to safetensors bytes (F32 or F16), tensors sorted by name.
@@ -619,6 +631,17 @@ fn is_norm_param(name: &str) -> bool {
     let module = name.rsplit_once('.').map(|(m, _)| m).unwrap_or(name);
     let last = module.rsplit('.').next().unwrap_or(module);
     last.starts_with("norm") || last == "conv_norm_out" || last == "group_norm"
+}
+
+/// Element `i` of the counter-based stream `key`: SplitMix64 of `key + (i + 1) * gamma`, top 24 bits mapped
+/// to `[-1, 1)` exactly (`2 u - 1`, `u = k / 2^24`).
+fn uniform_pm1(key: u64, i: u64) -> f32 {
+    let mut z = key.wrapping_add((i + 1).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^= z >> 31;
+    let u = (z >> 40) as f32 / 16_777_216.0;
+    2.0 * u - 1.0
 }
 
 /// 64-bit FNV-1a (stable across platforms and Rust versions, unlike `DefaultHasher`).
