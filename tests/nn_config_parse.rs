@@ -96,6 +96,8 @@ fn golden_configs_parse_and_tiny_matches_builtin() {
     );
 }
 
+type Edit = Box<dyn FnOnce(&mut Value)>;
+
 fn unet_err(edit: impl FnOnce(&mut Value)) -> String {
     let mut v = sd15_unet_json();
     edit(&mut v);
@@ -107,7 +109,7 @@ fn unet_err(edit: impl FnOnce(&mut Value)) -> String {
 
 #[test]
 fn bad_unet_configs_name_the_key() {
-    let cases: Vec<(&str, Box<dyn FnOnce(&mut Value)>)> = vec![
+    let cases: Vec<(&str, Edit)> = vec![
         ("act_fn", Box::new(|v| v["act_fn"] = json!("gelu"))),
         (
             "down_block_types",

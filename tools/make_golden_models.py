@@ -274,6 +274,8 @@ def make_loop(models, out_dir):
             eps = models["unet"](xin, ts, ctx, down_block_additional_residuals=down,
                                  mid_block_additional_residual=mid).sample
             eu, ec = eps.chunk(2)
+            t[f"out.eps_uncond_{i}"] = eu.clone()
+            t[f"out.eps_cond_{i}"] = ec.clone()
             x = sched.step(eu + scale * (ec - eu), ts, x).prev_sample
             t[f"out.latent_{i}"] = x.clone()
         vae = models["vae"]
