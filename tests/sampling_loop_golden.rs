@@ -14,7 +14,8 @@ use common::*;
 fn loop_file() -> (serde_json::Value, Weights) {
     let g = load_json("models.json");
     let f = g["loop"]["file"].as_str().unwrap().to_string();
-    let bytes = std::fs::read(golden_dir().join(&f)).unwrap_or_else(|e| panic!("{f}: {e}; {REGENERATE}"));
+    let bytes =
+        std::fs::read(golden_dir().join(&f)).unwrap_or_else(|e| panic!("{f}: {e}; {REGENERATE}"));
     (g, Weights::from_bytes_unchecked(&bytes, &f).unwrap())
 }
 
@@ -30,12 +31,25 @@ fn guided_unipc_loop_matches_diffusers() {
     let mut s = CpuSampler::new(w.get("in.x_T").unwrap().data.clone());
     let mut worst: f64 = 0.0;
     for (i, step) in plan.steps.iter().enumerate() {
-        s.set(Buf::EpsUncond, w.get(&format!("out.eps_uncond_{i}")).unwrap().data.clone()).unwrap();
-        s.set(Buf::EpsCond, w.get(&format!("out.eps_cond_{i}")).unwrap().data.clone()).unwrap();
+        s.set(
+            Buf::EpsUncond,
+            w.get(&format!("out.eps_uncond_{i}")).unwrap().data.clone(),
+        )
+        .unwrap();
+        s.set(
+            Buf::EpsCond,
+            w.get(&format!("out.eps_cond_{i}")).unwrap().data.clone(),
+        )
+        .unwrap();
         s.apply(step).unwrap();
         let want = &w.get(&format!("out.latent_{i}")).unwrap().data;
         worst = worst.max(nmse(s.sample(), want));
-        assert_close(&format!("guided loop latent after step {i}"), s.sample(), want, 1e-5);
+        assert_close(
+            &format!("guided loop latent after step {i}"),
+            s.sample(),
+            want,
+            1e-5,
+        );
     }
     println!("guided UniPC loop: worst per-step nMSE {worst:.3e}");
 }
@@ -62,13 +76,14 @@ fn golden_exr_holds_the_decoded_image() {
     assert_eq!((size.height(), size.width()), (h, wd));
     let px = &read.layer_data.channel_data.pixels;
     let mut max_err: f32 = 0.0;
-    for c in 0..3 {
-        for y in 0..h {
-            for x in 0..wd {
-                let want = img.data[(c * h + y) * wd + x];
-                max_err = max_err.max((px[y * wd + x][c] - want).abs());
-            }
+    for (i, p) in px.iter().enumerate() {
+        for (c, got) in p.iter().enumerate() {
+            let want = img.data[c * h * wd + i];
+            max_err = max_err.max((got - want).abs());
         }
     }
-    assert!(max_err <= 1e-6, "EXR differs from the stored image by {max_err}; {REGENERATE}");
+    assert!(
+        max_err <= 1e-6,
+        "EXR differs from the stored image by {max_err}; {REGENERATE}"
+    );
 }
