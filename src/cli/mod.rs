@@ -2,11 +2,7 @@
 use clap::{Parser, Subcommand};
 
 #[derive(Parser, Debug)]
-#[command(
-    name = "b2dr",
-    version,
-    about = "Reactive closed-loop driving evaluation with a generative renderer"
-)]
+#[command(name = "b2dr", version, about = "Reactive closed-loop driving evaluation with a generative renderer")]
 pub struct Cli {
     #[command(subcommand)]
     pub command: Command,
