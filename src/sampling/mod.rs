@@ -19,6 +19,7 @@
 //! deviations, all in degenerate cases where diffusers returns NaN or raises, are documented in
 //! [`unipc`] and [`ddim`].
 
+pub mod config;
 pub mod cpu;
 pub mod ddim;
 pub mod schedule;

@@ -375,6 +375,23 @@ mod tests {
     }
 
     #[test]
+    fn guidance_30_over_100_steps_has_finite_coefficients() {
+        let p = plan(&NoiseSchedule::sd15(), &UniPcConfig::default(), 100)
+            .unwrap()
+            .with_guidance(30.0);
+        for op in p.steps.iter().flat_map(|s| &s.ops) {
+            if let Op::LinComb { terms, .. } = op {
+                assert!(
+                    terms
+                        .iter()
+                        .all(|t| t.coeff.is_finite() && t.coeff.abs() < 1e4),
+                    "{terms:?}"
+                );
+            }
+        }
+    }
+
+    #[test]
     fn orders_follow_diffusers() {
         let p = plan(&NoiseSchedule::sd15(), &UniPcConfig::default(), 20).unwrap();
         let orders: Vec<(usize, usize)> = p
