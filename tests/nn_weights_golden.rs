@@ -104,6 +104,29 @@ fn seeded_generator_matches_the_goldens_bit_for_bit() {
 }
 
 #[test]
+fn golden_weight_helper_covers_every_set() {
+    let g = load_json("models.json");
+    for (set, e) in g["sets"].as_object().unwrap() {
+        for kind in e["configs"].as_object().unwrap().keys() {
+            assert!(!golden_weights(&g, set, kind).tensors.is_empty());
+        }
+    }
+    let c = golden_case("case_tiny_7x13.safetensors");
+    let moments = c.get("out.vae_encoder.moments").unwrap();
+    let mean = c.get("out.vae_encoder.mean").unwrap();
+    // mean = first `latent_channels` channels of the moments, per batch item
+    let (b, ch2, hw) = (
+        moments.shape[0],
+        moments.shape[1],
+        moments.shape[2] * moments.shape[3],
+    );
+    for n in 0..b {
+        let m = &moments.data[n * ch2 * hw..n * ch2 * hw + ch2 / 2 * hw];
+        assert_eq!(m, &mean.data[n * ch2 / 2 * hw..(n + 1) * ch2 / 2 * hw]);
+    }
+}
+
+#[test]
 fn case_files_read_in_f16_and_f32() {
     let g = load_json("models.json");
     for case in g["cases"].as_array().unwrap() {

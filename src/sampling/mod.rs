@@ -135,6 +135,20 @@ impl SamplerPlan {
         v
     }
 
+    /// The largest number of terms of one op (sizes the scale-and-add kernel's parameter block; UniPC
+    /// order 2: 4, or 4 with guidance folded in).
+    pub fn max_terms(&self) -> usize {
+        self.steps
+            .iter()
+            .flat_map(|s| &s.ops)
+            .map(|op| match op {
+                Op::LinComb { terms, .. } => terms.len(),
+                Op::Clamp { .. } => 1,
+            })
+            .max()
+            .unwrap_or(0)
+    }
+
     /// Whether a step reads [`Buf::Noise`].
     pub fn needs_noise(&self) -> bool {
         self.buffers().contains(&Buf::Noise)

@@ -404,5 +404,7 @@ mod tests {
         assert_eq!(orders[2], (2, 2));
         assert_eq!(orders[19], (1, 2));
         assert_eq!(p.buffers().len(), 1 + 1 + 3 + 2);
+        assert_eq!(p.max_terms(), 4);
+        assert_eq!(p.with_guidance(7.5).max_terms(), 4);
     }
 }

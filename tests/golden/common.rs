@@ -81,3 +81,46 @@ pub fn assert_close(what: &str, got: &[f32], want: &[f32], tol: f64) {
         "{what}: normalised MSE {e:.3e} > {tol:.1e} against diffusers' golden; {REGENERATE}"
     );
 }
+
+/// The weights a golden model set uses for one component (`kind`: unet, controlnet, vae): the stored F32
+/// file, or b2dr's seeded generator (checked against the stored fingerprints).
+pub fn golden_weights(models: &Value, set: &str, kind: &str) -> b2dr::nn::weights::Weights {
+    use b2dr::nn::config::{ControlNetConfig, UNetConfig, VaeConfig};
+    use b2dr::nn::weights::{expected_controlnet, expected_unet, expected_vae, Weights};
+    let e = &models["sets"][set];
+    let cfg = e["configs"][kind].clone();
+    let exp = match kind {
+        "unet" => expected_unet(&UNetConfig::from_json(cfg).expect("golden unet config")),
+        "controlnet" => expected_controlnet(
+            &ControlNetConfig::from_json(cfg).expect("golden controlnet config"),
+        ),
+        "vae" => expected_vae(&VaeConfig::from_json(cfg).expect("golden vae config")),
+        other => panic!("unknown component {other}"),
+    };
+    let w = &e["weights"][kind];
+    if let Some(f) = w["file"].as_str() {
+        return Weights::load(&golden_dir().join(f), &exp)
+            .unwrap_or_else(|e| panic!("{f}: {e:#}; {REGENERATE}"));
+    }
+    let weights = Weights::random(&exp, w["seed"].as_u64().expect("golden weights: seed"));
+    for (name, t) in &weights.tensors {
+        let want: u64 = w["fingerprints"][name]
+            .as_str()
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(0);
+        assert_eq!(
+            Weights::fingerprint(t),
+            want,
+            "{set} {kind} `{name}` differs from the golden; {REGENERATE}"
+        );
+    }
+    weights
+}
+
+/// A golden case file (inputs `in.*`, diffusers outputs `out.*`) by file name, e.g. `case_tiny_28x50.safetensors`.
+pub fn golden_case(file: &str) -> b2dr::nn::weights::Weights {
+    let bytes = std::fs::read(golden_dir().join(file))
+        .unwrap_or_else(|e| panic!("{file}: {e}; {REGENERATE}"));
+    b2dr::nn::weights::Weights::from_bytes_unchecked(&bytes, file)
+        .unwrap_or_else(|e| panic!("{e:#}; {REGENERATE}"))
+}
