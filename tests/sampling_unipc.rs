@@ -255,3 +255,33 @@ fn guidance_folded_into_plan_matches_host_guidance() {
         nmse(a.sample(), b.sample())
     );
 }
+
+/// Other diffusers settings (order 1 and 3, bh1, disabled correctors, no lower-order final, leading and
+/// trailing spacing, v-prediction), each read through `sampling::config::from_diffusers_json` from the
+/// config diffusers ran with.
+#[test]
+fn unipc_variants_match_diffusers() {
+    let g = golden();
+    let x_t = f32s(&g["synthetic"]["x_T"]);
+    let noise = f32s(&g["synthetic"]["noise"]);
+    let variants = g["unipc"]["variants"].as_object().unwrap();
+    assert!(variants.len() >= 9);
+    for (name, v) in variants {
+        let s = b2dr::sampling::config::from_diffusers_json(&v["config"]).unwrap();
+        let plan = unipc::plan(&s.schedule, &s.unipc, 20).unwrap();
+        assert_eq!(
+            plan.timesteps,
+            i64s(&v["timesteps"]),
+            "UniPC {name} timesteps; {REGENERATE}"
+        );
+        let ours = run_loop(&plan, x_t.clone(), synthetic(&noise)).unwrap();
+        let mut worst: f64 = 0.0;
+        for (i, (a, b)) in ours.iter().zip(v["loop20"].as_array().unwrap()).enumerate() {
+            assert!(!b.is_null(), "diffusers produced NaN in {name} step {i}");
+            let b = f32s(b);
+            worst = worst.max(nmse(a, &b));
+            assert_close(&format!("UniPC {name} step {i}"), a, &b, 1e-5);
+        }
+        println!("UniPC {name}: worst per-step nMSE {worst:.3e}");
+    }
+}

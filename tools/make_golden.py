@@ -153,6 +153,26 @@ def make_sampling():
     first_nan = finite.index(False) if False in finite else None
     u["loop1000"] = {"first_nonfinite_step": first_nan, "latents_every_10": {
         str(i): l1000[i] for i in range(0, 1000, 10) if finite[i]}}
+    # Other UniPC settings (20-step synthetic loop each); NaN steps (diffusers' degenerate cases) are None.
+    variants = {
+        "order1": dict(solver_order=1),
+        "order3": dict(solver_order=3),
+        "bh1_sigma_min": dict(solver_type="bh1", final_sigmas_type="sigma_min"),
+        "bh1_order3_sigma_min": dict(solver_type="bh1", solver_order=3, final_sigmas_type="sigma_min"),
+        "disable_corrector_0_1_2": dict(disable_corrector=[0, 1, 2]),
+        "no_lower_order_final_sigma_min": dict(lower_order_final=False, final_sigmas_type="sigma_min"),
+        "leading_offset1": dict(timestep_spacing="leading", steps_offset=1),
+        "trailing": dict(timestep_spacing="trailing"),
+        "v_prediction": dict(prediction_type="v_prediction"),
+    }
+    u["variants"] = {}
+    for name, extra in variants.items():
+        cfg = dict(uni_cfg, **extra)
+        lat = run_loop(UniPCMultistepScheduler(**cfg), 20, x_t, noise)
+        s = UniPCMultistepScheduler(**cfg)
+        s.set_timesteps(20)
+        u["variants"][name] = {"config": cfg, "timesteps": [int(t) for t in s.timesteps],
+                               "loop20": [l if all(math.isfinite(v) for v in l) else None for l in lat]}
     doc["unipc"] = u
 
     d = {"variants": {}}
