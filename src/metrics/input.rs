@@ -190,4 +190,51 @@ pub trait MapQuery {
     fn distance_to_drivable_area(&self, p: DVec2) -> f64;
     /// True if `p` lies in an intersection polygon.
     fn in_intersection(&self, p: DVec2) -> bool;
+    /// True if `p` lies in the polygon of roadblock `roadblock` (a lane group when `is_connector` is false,
+    /// a lane group connector when true), as named by [`LaneView::roadblock`].
+    fn roadblock_contains(&self, roadblock: u64, is_connector: bool, p: DVec2) -> bool;
+}
+
+impl EgoStep {
+    /// nuPlan `dynamic_car_state.speed`: magnitude of the rear-axle velocity.
+    pub fn speed(&self) -> f64 {
+        self.velocity.length()
+    }
+
+    /// Box centre (nuPlan `ego_state.center`): the rear axle moved `cog_position_from_rear_axle` forward.
+    pub fn center(&self, dims: &EgoDims) -> DVec2 {
+        self.position
+            + DVec2::new(self.heading.cos(), self.heading.sin()) * dims.cog_position_from_rear_axle
+    }
+
+    /// Ego footprint (nuPlan `car_footprint.oriented_box`).
+    pub fn footprint(&self, dims: &EgoDims) -> crate::metrics::geometry::OrientedBox {
+        crate::metrics::geometry::OrientedBox::new(
+            self.center(dims),
+            self.heading,
+            dims.length(),
+            dims.width,
+        )
+    }
+}
+
+impl ObjectState {
+    /// Oriented box of the object.
+    pub fn footprint(&self) -> crate::metrics::geometry::OrientedBox {
+        crate::metrics::geometry::OrientedBox::new(
+            self.center,
+            self.heading,
+            self.length,
+            self.width,
+        )
+    }
+
+    /// nuPlan `velocity.magnitude()` for agents, 0 for static objects.
+    pub fn speed(&self) -> f64 {
+        if self.is_agent {
+            self.velocity.length()
+        } else {
+            0.0
+        }
+    }
 }
