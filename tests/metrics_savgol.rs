@@ -20,7 +20,8 @@ struct Golden {
 
 #[test]
 fn savgol_matches_scipy() {
-    let g: Golden = serde_json::from_str(include_str!("fixtures/nuplan/savgol_golden.json")).unwrap();
+    let g: Golden =
+        serde_json::from_str(include_str!("fixtures/nuplan/savgol_golden.json")).unwrap();
     for c in &g.cases {
         let y = savgol_filter(&g.x, c.window, c.poly, c.deriv, c.delta).unwrap();
         let scale = c.y.iter().fold(1.0f64, |m, v| m.max(v.abs()));
