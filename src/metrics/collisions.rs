@@ -189,9 +189,39 @@ impl Default for TtcParams {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct TtcResult {
     /// TTC per step (`f64::INFINITY` when none within the horizon; serialised as null).
+    #[serde(with = "inf_as_null_vec")]
     pub ttc: Vec<f64>,
+    #[serde(with = "inf_as_null")]
     pub min_ttc: f64,
     pub score: f64,
+}
+
+/// JSON has no infinity: serialise it as null and read null back as infinity.
+mod inf_as_null {
+    use serde::{Deserialize, Deserializer, Serializer};
+    pub fn serialize<S: Serializer>(v: &f64, s: S) -> Result<S::Ok, S::Error> {
+        if v.is_finite() {
+            s.serialize_some(v)
+        } else {
+            s.serialize_none()
+        }
+    }
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+        Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::INFINITY))
+    }
+}
+
+mod inf_as_null_vec {
+    use serde::{Deserialize, Deserializer, Serializer};
+    pub fn serialize<S: Serializer>(v: &[f64], s: S) -> Result<S::Ok, S::Error> {
+        s.collect_seq(v.iter().map(|x| x.is_finite().then_some(*x)))
+    }
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<f64>, D::Error> {
+        Ok(Vec::<Option<f64>>::deserialize(d)?
+            .into_iter()
+            .map(|x| x.unwrap_or(f64::INFINITY))
+            .collect())
+    }
 }
 
 /// `_get_elongated_box_length`.
