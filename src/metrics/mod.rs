@@ -20,6 +20,7 @@ pub mod map_metrics;
 pub mod route;
 pub mod savgol;
 pub mod score;
+pub mod synthetic;
 pub mod vecmap;
 
 pub use input::{
