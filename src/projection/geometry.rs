@@ -98,8 +98,13 @@ pub enum MapClass {
 }
 
 impl MapClass {
-    pub const ALL: [MapClass; 5] =
-        [MapClass::DrivableArea, MapClass::Lane, MapClass::Crosswalk, MapClass::LaneDivider, MapClass::RoadBoundary];
+    pub const ALL: [MapClass; 5] = [
+        MapClass::DrivableArea,
+        MapClass::Lane,
+        MapClass::Crosswalk,
+        MapClass::LaneDivider,
+        MapClass::RoadBoundary,
+    ];
 
     pub fn name(self) -> &'static str {
         match self {
@@ -142,12 +147,30 @@ pub struct Box3d {
 
 /// Box corner order (nuScenes `Box.corners()`): 0..4 the front face (+length/2), 4..8 the rear face;
 /// within a face: (+w,+h), (-w,+h), (-w,-h), (+w,-h) with w along +y (left) and h along +z (up).
-pub const BOX_EDGES: [(usize, usize); 12] =
-    [(0, 1), (1, 2), (2, 3), (3, 0), (4, 5), (5, 6), (6, 7), (7, 4), (0, 4), (1, 5), (2, 6), (3, 7)];
+pub const BOX_EDGES: [(usize, usize); 12] = [
+    (0, 1),
+    (1, 2),
+    (2, 3),
+    (3, 0),
+    (4, 5),
+    (5, 6),
+    (6, 7),
+    (7, 4),
+    (0, 4),
+    (1, 5),
+    (2, 6),
+    (3, 7),
+];
 
 /// The six faces of a box as corner indices (see [`BOX_EDGES`] for the order).
-pub const BOX_FACES: [[usize; 4]; 6] =
-    [[0, 1, 2, 3], [4, 5, 6, 7], [0, 1, 5, 4], [1, 2, 6, 5], [2, 3, 7, 6], [3, 0, 4, 7]];
+pub const BOX_FACES: [[usize; 4]; 6] = [
+    [0, 1, 2, 3],
+    [4, 5, 6, 7],
+    [0, 1, 5, 4],
+    [1, 2, 6, 5],
+    [2, 3, 7, 6],
+    [3, 0, 4, 7],
+];
 
 impl Box3d {
     /// The 8 corners in the global frame, in the order of [`BOX_EDGES`].
@@ -169,7 +192,10 @@ pub enum MapGeometry {
     /// An open polyline (drawn as a thick line).
     Polyline(Vec<DVec3>),
     /// A polygon: exterior ring plus holes (any orientation; filled with the even-odd rule).
-    Polygon { exterior: Vec<DVec3>, holes: Vec<Vec<DVec3>> },
+    Polygon {
+        exterior: Vec<DVec3>,
+        holes: Vec<Vec<DVec3>>,
+    },
 }
 
 /// One map element with its class.
@@ -245,7 +271,11 @@ pub struct ProjectionConfig {
 
 impl Default for ProjectionConfig {
     fn default() -> Self {
-        ProjectionConfig { near: 0.1, range: 80.0, line_width_px: 2.0 }
+        ProjectionConfig {
+            near: 0.1,
+            range: 80.0,
+            line_width_px: 2.0,
+        }
     }
 }
 
@@ -269,8 +299,16 @@ impl CameraProjector {
     /// `ego2global`: the ego pose at this camera's exposure time. `width x height`: the image size to project to
     /// (the native size or a render size; intrinsics are rescaled accordingly).
     pub fn new(camera: &Camera, ego2global: &DMat4, width: u32, height: u32) -> Result<Self> {
-        ensure!(width > 0 && height > 0, "camera {}: image size {width}x{height} must be positive", camera.name);
-        ensure!(camera.width > 0 && camera.height > 0, "camera {}: native size must be positive", camera.name);
+        ensure!(
+            width > 0 && height > 0,
+            "camera {}: image size {width}x{height} must be positive",
+            camera.name
+        );
+        ensure!(
+            camera.width > 0 && camera.height > 0,
+            "camera {}: native size must be positive",
+            camera.name
+        );
         let k = camera.intrinsic_scaled(width, height);
         ensure!(
             k.x_axis.x > 0.0 && k.y_axis.y > 0.0 && k.z_axis.z == 1.0 && k.x_axis.y == 0.0 && k.x_axis.z == 0.0,
@@ -278,7 +316,11 @@ impl CameraProjector {
             camera.name
         );
         let cam2global = DAffine3::from_mat4(*ego2global * camera.cam2ego);
-        ensure!(cam2global.matrix3.determinant().abs() > 1e-9, "camera {}: singular pose", camera.name);
+        ensure!(
+            cam2global.matrix3.determinant().abs() > 1e-9,
+            "camera {}: singular pose",
+            camera.name
+        );
         let world2cam = cam2global.inverse();
         let (fx, s, cx, fy, cy) = (k.x_axis.x, k.y_axis.x, k.z_axis.x, k.y_axis.y, k.z_axis.y);
         // u = (fx x + s y)/z + cx in [-0.5, W - 0.5]  <=>  fx x + s y + (cx + 0.5) z >= 0 and
@@ -322,7 +364,10 @@ impl CameraProjector {
 
     /// Whether a pixel lies in the image (`-0.5 <= u < W - 0.5`, same for v).
     pub fn in_image(&self, px: DVec2) -> bool {
-        px.x >= -0.5 && px.y >= -0.5 && px.x < self.width as f64 - 0.5 && px.y < self.height as f64 - 0.5
+        px.x >= -0.5
+            && px.y >= -0.5
+            && px.x < self.width as f64 - 0.5
+            && px.y < self.height as f64 - 0.5
     }
 
     /// True when every point of `pts` (camera frame) is outside one same plane of the frustum (near plane
@@ -336,7 +381,9 @@ impl CameraProjector {
                 return true;
             }
         }
-        self.planes.iter().any(|n| pts.iter().all(|p| n.dot(*p) < 0.0))
+        self.planes
+            .iter()
+            .any(|n| pts.iter().all(|p| n.dot(*p) < 0.0))
     }
 
     /// Camera-frame corners of `b`, or `None` when the box is culled (centre beyond `cfg.range` from the camera,
@@ -358,7 +405,13 @@ pub fn clip_polygon_z(poly: &[DVec3], plane: f64, keep_greater: bool, out: &mut 
     if n == 0 {
         return;
     }
-    let d = |p: &DVec3| if keep_greater { p.z - plane } else { plane - p.z };
+    let d = |p: &DVec3| {
+        if keep_greater {
+            p.z - plane
+        } else {
+            plane - p.z
+        }
+    };
     let mut prev = poly[n - 1];
     let mut dp = d(&prev);
     for &cur in poly {
@@ -420,9 +473,21 @@ mod tests {
 
     #[test]
     fn segment_clip_keeps_front_part() {
-        let (a, b) = clip_segment_z(DVec3::new(0.0, 0.0, -1.0), DVec3::new(0.0, 0.0, 3.0), 1.0, 100.0).unwrap();
+        let (a, b) = clip_segment_z(
+            DVec3::new(0.0, 0.0, -1.0),
+            DVec3::new(0.0, 0.0, 3.0),
+            1.0,
+            100.0,
+        )
+        .unwrap();
         assert!((a.z - 1.0).abs() < 1e-12 && (b.z - 3.0).abs() < 1e-12);
-        assert!(clip_segment_z(DVec3::new(0.0, 0.0, -1.0), DVec3::new(1.0, 0.0, 0.5), 1.0, 100.0).is_none());
+        assert!(clip_segment_z(
+            DVec3::new(0.0, 0.0, -1.0),
+            DVec3::new(1.0, 0.0, 0.5),
+            1.0,
+            100.0
+        )
+        .is_none());
     }
 
     #[test]
@@ -442,7 +507,10 @@ mod tests {
     #[test]
     fn class_parsing() {
         assert_eq!(BoxClass::parse("vehicle.car"), Some(BoxClass::Car));
-        assert_eq!(BoxClass::parse("human.pedestrian.adult"), Some(BoxClass::Pedestrian));
+        assert_eq!(
+            BoxClass::parse("human.pedestrian.adult"),
+            Some(BoxClass::Pedestrian)
+        );
         assert_eq!(BoxClass::parse("traffic_cone"), Some(BoxClass::TrafficCone));
         assert_eq!(BoxClass::parse("animal"), None);
         assert_eq!(channel_name(10), "drivable_area");

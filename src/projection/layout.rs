@@ -7,8 +7,8 @@
 use glam::{DVec2, DVec3};
 
 use super::geometry::{
-    clip_polygon_z, clip_segment_z, Box3d, CameraProjector, MapGeometry, MapLayer, ProjectionConfig, BOX_EDGES,
-    BOX_FACES, NUM_MASK_CHANNELS,
+    clip_polygon_z, clip_segment_z, Box3d, CameraProjector, MapGeometry, MapLayer,
+    ProjectionConfig, BOX_EDGES, BOX_FACES, NUM_MASK_CHANNELS,
 };
 use super::raster::{convex_hull, Rasterizer};
 use crate::projection::geometry::BoxClass;
@@ -23,7 +23,11 @@ pub struct LayoutMasks {
 
 impl LayoutMasks {
     pub fn new(width: usize, height: usize) -> Self {
-        LayoutMasks { width, height, data: vec![0; NUM_MASK_CHANNELS * width * height] }
+        LayoutMasks {
+            width,
+            height,
+            data: vec![0; NUM_MASK_CHANNELS * width * height],
+        }
     }
 
     /// Channel `c`: `(H, W)`.
@@ -82,13 +86,25 @@ impl LayoutRenderer {
         cfg: &ProjectionConfig,
         out: &mut LayoutMasks,
     ) -> usize {
-        debug_assert_eq!((proj.width as usize, proj.height as usize), (out.width, out.height));
-        debug_assert_eq!((out.width, out.height), (self.raster.width(), self.raster.height()));
+        debug_assert_eq!(
+            (proj.width as usize, proj.height as usize),
+            (out.width, out.height)
+        );
+        debug_assert_eq!(
+            (out.width, out.height),
+            (self.raster.width(), self.raster.height())
+        );
         out.clear();
         let nbox = BoxClass::ALL.len();
         for i in 0..map.len() {
             let e = &map.elements()[i];
-            self.draw_map_element(proj, &e.geometry, map.bounds(i), cfg, out.channel_mut(nbox + e.class.index()));
+            self.draw_map_element(
+                proj,
+                &e.geometry,
+                map.bounds(i),
+                cfg,
+                out.channel_mut(nbox + e.class.index()),
+            );
         }
         let mut drawn = 0;
         for b in boxes {
@@ -101,7 +117,13 @@ impl LayoutRenderer {
     }
 
     /// Fills a (non-culled) box given by its camera-frame corners into `mask: (H, W)`.
-    pub fn fill_box(&mut self, proj: &CameraProjector, cs: &[DVec3; 8], near: f64, mask: &mut [u8]) -> usize {
+    pub fn fill_box(
+        &mut self,
+        proj: &CameraProjector,
+        cs: &[DVec3; 8],
+        near: f64,
+        mask: &mut [u8],
+    ) -> usize {
         self.pts.clear();
         if cs.iter().all(|p| p.z >= near) {
             for p in cs {
@@ -154,8 +176,10 @@ impl LayoutRenderer {
                         continue;
                     }
                     if let Some((a, b)) = clip_segment_z(s[0], s[1], cfg.near, cfg.range) {
-                        let (pa, pb) = (proj.pixel_of_camera_point(a), proj.pixel_of_camera_point(b));
-                        self.raster.draw_segment(px32(pa), px32(pb), cfg.line_width_px, mask);
+                        let (pa, pb) =
+                            (proj.pixel_of_camera_point(a), proj.pixel_of_camera_point(b));
+                        self.raster
+                            .draw_segment(px32(pa), px32(pb), cfg.line_width_px, mask);
                     }
                 }
             }
@@ -184,7 +208,11 @@ fn px32(p: DVec2) -> [f32; 2] {
 
 /// The 12 edges of a box as pixel segments, each clipped against the near plane (edges entirely behind it are
 /// left out). `None` when the box is culled (range or frustum).
-pub fn box_wireframe(proj: &CameraProjector, b: &Box3d, cfg: &ProjectionConfig) -> Option<Vec<(DVec2, DVec2)>> {
+pub fn box_wireframe(
+    proj: &CameraProjector,
+    b: &Box3d,
+    cfg: &ProjectionConfig,
+) -> Option<Vec<(DVec2, DVec2)>> {
     let cs = proj.box_corners_camera(b, cfg)?;
     let mut out = Vec::with_capacity(12);
     for (i, j) in BOX_EDGES {

@@ -23,8 +23,8 @@ pub mod raster;
 pub mod retrieval;
 
 pub use geometry::{
-    channel_name, Box3d, BoxClass, CameraProjector, MapClass, MapElement, MapGeometry, MapLayer, ProjectionConfig,
-    NUM_MASK_CHANNELS,
+    channel_name, Box3d, BoxClass, CameraProjector, MapClass, MapElement, MapGeometry, MapLayer,
+    ProjectionConfig, NUM_MASK_CHANNELS,
 };
 pub use keyframe::KeyFrame;
 pub use layout::{box_wireframe, LayoutMasks, LayoutRenderer};

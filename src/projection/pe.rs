@@ -63,7 +63,9 @@ pub const LATENT_BLOCK_SIZES: [(usize, usize); 4] = [(28, 50), (14, 25), (7, 13)
 pub fn depth_bins(cfg: &PeConfig) -> Vec<f64> {
     let n = cfg.depth_num as f64;
     let bin = (cfg.position_range[3] - cfg.depth_start) / (n * (n + 1.0));
-    (0..cfg.depth_num).map(|i| cfg.depth_start + bin * (i as f64) * (i as f64 + 1.0)).collect()
+    (0..cfg.depth_num)
+        .map(|i| cfg.depth_start + bin * (i as f64) * (i as f64 + 1.0))
+        .collect()
 }
 
 /// mmdet's `inverse_sigmoid(x, eps)`.
@@ -91,10 +93,19 @@ pub fn position_encoding(
     w: usize,
     cfg: &PeConfig,
 ) -> Result<Vec<f32>> {
-    ensure!(h > 0 && w > 0 && img_w > 0 && img_h > 0, "position_encoding: empty size img {img_w}x{img_h} feat {h}x{w}");
-    ensure!(k.determinant().abs() > 1e-12, "position_encoding: singular intrinsics");
+    ensure!(
+        h > 0 && w > 0 && img_w > 0 && img_h > 0,
+        "position_encoding: empty size img {img_w}x{img_h} feat {h}x{w}"
+    );
+    ensure!(
+        k.determinant().abs() > 1e-12,
+        "position_encoding: singular intrinsics"
+    );
     let r = &cfg.position_range;
-    ensure!(r[3] > r[0] && r[4] > r[1] && r[5] > r[2], "position_encoding: empty position range {r:?}");
+    ensure!(
+        r[3] > r[0] && r[4] > r[1] && r[5] > r[2],
+        "position_encoding: empty position range {r:?}"
+    );
     let kinv = k.inverse();
     let depths = depth_bins(cfg);
     let (sx, sy) = (img_w as f64 / w as f64, img_h as f64 / h as f64);
@@ -147,7 +158,8 @@ pub fn position_encodings_for_blocks(
     latent_block_sizes(render_w as usize, render_h as usize)
         .into_iter()
         .map(|(h, w)| {
-            let pe = position_encoding(&k, render_w as usize, render_h as usize, cam2cur, h, w, cfg)?;
+            let pe =
+                position_encoding(&k, render_w as usize, render_h as usize, cam2cur, h, w, cfg)?;
             Ok(BlockPe { h, w, pe })
         })
         .collect()

@@ -23,7 +23,13 @@ pub struct Rasterizer {
 impl Rasterizer {
     /// A rasteriser for `width x height` masks.
     pub fn new(width: usize, height: usize) -> Self {
-        Rasterizer { width, height, rows: vec![Vec::new(); height], row_min: usize::MAX, row_max: 0 }
+        Rasterizer {
+            width,
+            height,
+            rows: vec![Vec::new(); height],
+            row_min: usize::MAX,
+            row_max: 0,
+        }
     }
 
     pub fn width(&self) -> usize {
@@ -47,7 +53,9 @@ impl Rasterizer {
 
     /// Adds one edge of the current polygon: records its crossings with the pixel-centre rows it spans.
     pub fn add_edge(&mut self, a: [f32; 2], b: [f32; 2]) {
-        if self.height == 0 || !(a[1].is_finite() && b[1].is_finite() && a[0].is_finite() && b[0].is_finite()) {
+        if self.height == 0
+            || !(a[1].is_finite() && b[1].is_finite() && a[0].is_finite() && b[0].is_finite())
+        {
             return;
         }
         let (p, q) = if a[1] <= b[1] { (a, b) } else { (b, a) };
@@ -117,7 +125,11 @@ impl Rasterizer {
         let (dx, dy) = (b[0] - a[0], b[1] - a[1]);
         let len = (dx * dx + dy * dy).sqrt();
         let h = 0.5 * width_px.max(0.0);
-        let (tx, ty) = if len > 1e-6 { (dx / len * h, dy / len * h) } else { (h, 0.0) };
+        let (tx, ty) = if len > 1e-6 {
+            (dx / len * h, dy / len * h)
+        } else {
+            (h, 0.0)
+        };
         let (nx, ny) = (-ty, tx);
         let quad = [
             [a[0] - tx + nx, a[1] - ty + ny],
@@ -139,7 +151,9 @@ pub fn convex_hull(pts: &mut [[f32; 2]], out: &mut Vec<[f32; 2]>) {
         return;
     }
     pts.sort_unstable_by(|a, b| a[0].total_cmp(&b[0]).then(a[1].total_cmp(&b[1])));
-    let cross = |o: [f32; 2], a: [f32; 2], b: [f32; 2]| (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0]);
+    let cross = |o: [f32; 2], a: [f32; 2], b: [f32; 2]| {
+        (a[0] - o[0]) * (b[1] - o[1]) - (a[1] - o[1]) * (b[0] - o[0])
+    };
     for &p in pts.iter() {
         while out.len() >= 2 && cross(out[out.len() - 2], out[out.len() - 1], p) <= 0.0 {
             out.pop();
@@ -186,7 +200,14 @@ mod tests {
 
     #[test]
     fn hull_of_square_with_inner_points() {
-        let mut pts = vec![[0.0, 0.0], [1.0, 0.0], [0.5, 0.5], [1.0, 1.0], [0.0, 1.0], [0.2, 0.7]];
+        let mut pts = vec![
+            [0.0, 0.0],
+            [1.0, 0.0],
+            [0.5, 0.5],
+            [1.0, 1.0],
+            [0.0, 1.0],
+            [0.2, 0.7],
+        ];
         let mut h = Vec::new();
         convex_hull(&mut pts, &mut h);
         assert_eq!(h.len(), 4);

@@ -49,14 +49,27 @@ fn along_distances<'a>(
     let v = heading_2d(ego2global);
     frames.iter().enumerate().filter_map(move |(f, fr)| {
         let v = v?;
-        let (i, img) = fr.images.iter().enumerate().find(|(_, im)| im.camera == camera)?;
+        let (i, img) = fr
+            .images
+            .iter()
+            .enumerate()
+            .find(|(_, im)| im.camera == camera)?;
         let c = img.ego2global.w_axis.truncate().truncate();
         Some((f, i, (c - origin).dot(v)))
     })
 }
 
-fn make_ref(frames: &[RecordedFrame], cur_inv: &DMat4, (f, i, along): (usize, usize, f64)) -> Reference {
-    Reference { frame: f, image: i, along, ref2cur: *cur_inv * frames[f].images[i].ego2global }
+fn make_ref(
+    frames: &[RecordedFrame],
+    cur_inv: &DMat4,
+    (f, i, along): (usize, usize, f64),
+) -> Reference {
+    Reference {
+        frame: f,
+        image: i,
+        along,
+        ref2cur: *cur_inv * frames[f].images[i].ego2global,
+    }
 }
 
 /// Nearest recorded image of `camera` ahead of and behind the ego pose `ego2global` (see the module docs).
@@ -71,11 +84,15 @@ pub fn retrieve(frames: &[RecordedFrame], camera: &str, ego2global: &DMat4) -> R
         }
     }
     let inv = ego2global.inverse();
-    References { front: front.map(|c| make_ref(frames, &inv, c)), rear: rear.map(|c| make_ref(frames, &inv, c)) }
+    References {
+        front: front.map(|c| make_ref(frames, &inv, c)),
+        rear: rear.map(|c| make_ref(frames, &inv, c)),
+    }
 }
 
 /// Distance intervals (metres, `[lo, hi)`) and their probabilities for training-time reference sampling.
-pub const TRAINING_INTERVALS: [(f64, f64, f64); 3] = [(2.0, 5.0, 0.1), (5.0, 10.0, 0.3), (10.0, 15.0, 0.6)];
+pub const TRAINING_INTERVALS: [(f64, f64, f64); 3] =
+    [(2.0, 5.0, 0.1), (5.0, 10.0, 0.3), (10.0, 15.0, 0.6)];
 
 /// Hierarchical sampling of training references for frame `train` of the log (spec 3f). For each side
 /// independently: an interval is drawn with probabilities 0.1 / 0.3 / 0.6 among the intervals that hold at least
@@ -87,16 +104,33 @@ pub fn sample_training_references<R: Rng>(
     train: usize,
     rng: &mut R,
 ) -> References {
-    let Some(pose) = frames.get(train).and_then(|f| f.image(camera)).map(|i| i.ego2global) else {
+    let Some(pose) = frames
+        .get(train)
+        .and_then(|f| f.image(camera))
+        .map(|i| i.ego2global)
+    else {
         return References::default();
     };
-    let cands: Vec<(usize, usize, f64)> = along_distances(frames, camera, &pose).filter(|c| c.0 != train).collect();
+    let cands: Vec<(usize, usize, f64)> = along_distances(frames, camera, &pose)
+        .filter(|c| c.0 != train)
+        .collect();
     let inv = pose.inverse();
     let mut pick = |ahead: bool| -> Option<Reference> {
-        let side: Vec<&Cand> = cands.iter().filter(|c| (c.2 > 0.0) == ahead && c.2 != 0.0).collect();
+        let side: Vec<&Cand> = cands
+            .iter()
+            .filter(|c| (c.2 > 0.0) == ahead && c.2 != 0.0)
+            .collect();
         let buckets: Vec<(f64, Vec<&Cand>)> = TRAINING_INTERVALS
             .iter()
-            .map(|&(lo, hi, p)| (p, side.iter().copied().filter(|c| c.2.abs() >= lo && c.2.abs() < hi).collect()))
+            .map(|&(lo, hi, p)| {
+                (
+                    p,
+                    side.iter()
+                        .copied()
+                        .filter(|c| c.2.abs() >= lo && c.2.abs() < hi)
+                        .collect(),
+                )
+            })
             .filter(|(_, v): &(f64, Vec<_>)| !v.is_empty())
             .collect();
         let total: f64 = buckets.iter().map(|b| b.0).sum();

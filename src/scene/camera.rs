@@ -68,7 +68,11 @@ impl Camera {
         DMat3::from_cols(
             DVec3::new(k.x_axis.x * sx, k.x_axis.y * sy, k.x_axis.z),
             DVec3::new(k.y_axis.x * sx, k.y_axis.y * sy, k.y_axis.z),
-            DVec3::new((k.z_axis.x + 0.5) * sx - 0.5, (k.z_axis.y + 0.5) * sy - 0.5, k.z_axis.z),
+            DVec3::new(
+                (k.z_axis.x + 0.5) * sx - 0.5,
+                (k.z_axis.y + 0.5) * sy - 0.5,
+                k.z_axis.z,
+            ),
         )
     }
 
