@@ -4,7 +4,8 @@ use b2dr::projection::geometry::{MapClass, MapElement, MapGeometry, BOX_EDGES};
 use b2dr::projection::pe::{depth_bins, inverse_sigmoid, position_encoding, PeConfig, PixelGrid};
 use b2dr::projection::retrieval::{retrieve, sample_training_references};
 use b2dr::projection::{
-    box_wireframe, Box3d, BoxClass, CameraProjector, LayoutMasks, LayoutRenderer, MapLayer, ProjectionConfig,
+    box_wireframe, Box3d, BoxClass, CameraProjector, LayoutMasks, LayoutRenderer, MapLayer,
+    ProjectionConfig,
 };
 use b2dr::scene::camera::{Camera, CameraImage, RecordedFrame};
 use glam::{DMat3, DMat4, DQuat, DVec3};
@@ -22,7 +23,11 @@ fn front_camera(f: f64, w: u32, h: u32, pos: DVec3) -> Camera {
     let (cx, cy) = (w as f64 / 2.0 - 0.5, h as f64 / 2.0 - 0.5);
     Camera {
         name: "CAM_FRONT".into(),
-        intrinsic: DMat3::from_cols(DVec3::new(f, 0.0, 0.0), DVec3::new(0.0, f, 0.0), DVec3::new(cx, cy, 1.0)),
+        intrinsic: DMat3::from_cols(
+            DVec3::new(f, 0.0, 0.0),
+            DVec3::new(0.0, f, 0.0),
+            DVec3::new(cx, cy, 1.0),
+        ),
         cam2ego,
         width: w,
         height: h,
@@ -46,10 +51,15 @@ fn known_points_project_to_known_pixels() {
     // ego point (11, 1, 2.0): camera (-1, -0.5, 10) -> u = 799.5 - 100, v = 449.5 - 50
     let g = e2g.transform_point3(DVec3::new(11.0, 1.0, 2.0));
     let (px, d) = p.project(g).unwrap();
-    assert!((px.x - 699.5).abs() < 1e-9 && (px.y - 399.5).abs() < 1e-9, "{px:?}");
+    assert!(
+        (px.x - 699.5).abs() < 1e-9 && (px.y - 399.5).abs() < 1e-9,
+        "{px:?}"
+    );
     assert!((d - 10.0).abs() < 1e-12);
     // behind the camera: no projection
-    assert!(p.project(e2g.transform_point3(DVec3::new(-5.0, 0.0, 1.5))).is_none());
+    assert!(p
+        .project(e2g.transform_point3(DVec3::new(-5.0, 0.0, 1.5)))
+        .is_none());
     // the camera centre is where the pose puts it
     assert!((p.position - e2g.transform_point3(DVec3::new(1.0, 0.0, 1.5))).length() < 1e-12);
 }
@@ -61,8 +71,16 @@ fn box_half_behind_camera_is_clipped_not_wrapped() {
     let cam = front_camera(f, 1600, 900, DVec3::ZERO);
     let p = CameraProjector::new(&cam, &DMat4::IDENTITY, 1600, 900).unwrap();
     // camera-frame box x in [1, 3] (ego y in [-3, -1]), y in [-1, 1], z in [-2, 2]: half behind the camera.
-    let b = Box3d { class: BoxClass::Car, center: DVec3::new(0.0, -2.0, 0.0), size: DVec3::new(4.0, 2.0, 2.0), yaw: 0.0 };
-    let cfg = ProjectionConfig { near: 0.1, ..Default::default() };
+    let b = Box3d {
+        class: BoxClass::Car,
+        center: DVec3::new(0.0, -2.0, 0.0),
+        size: DVec3::new(4.0, 2.0, 2.0),
+        yaw: 0.0,
+    };
+    let cfg = ProjectionConfig {
+        near: 0.1,
+        ..Default::default()
+    };
     let mut r = LayoutRenderer::new(1600, 900);
     let mut m = LayoutMasks::new(1600, 900);
     assert_eq!(r.render(&p, &[b], &MapLayer::default(), &cfg, &mut m), 1);
@@ -70,7 +88,10 @@ fn box_half_behind_camera_is_clipped_not_wrapped() {
     // Silhouette of the clipped solid: X = x/z >= 0.5 and |Y| <= min(X, 10) (X, Y normalised coordinates), so in
     // pixels t = u - cx in [200, 800], |v - cy| <= min(t, 450) inside the image: area 477,500 px.
     let n = count(car);
-    assert!((n as f64 - 477_500.0).abs() / 477_500.0 < 0.01, "covered {n}");
+    assert!(
+        (n as f64 - 477_500.0).abs() / 477_500.0 < 0.01,
+        "covered {n}"
+    );
     // nothing on the mirrored side (a wrapped projection of the corners behind the camera would land there)
     for v in 0..900 {
         for u in 0..(799 + 199) {
@@ -81,7 +102,10 @@ fn box_half_behind_camera_is_clipped_not_wrapped() {
     let segs = box_wireframe(&p, &b, &cfg).unwrap();
     assert!(segs.len() >= 8 && segs.len() < BOX_EDGES.len() + 1);
     for (a, c) in segs {
-        assert!(a.x >= 799.5 + 0.5 * f - 1e-6 && c.x >= 799.5 + 0.5 * f - 1e-6, "{a:?} {c:?}");
+        assert!(
+            a.x >= 799.5 + 0.5 * f - 1e-6 && c.x >= 799.5 + 0.5 * f - 1e-6,
+            "{a:?} {c:?}"
+        );
     }
 }
 
@@ -97,16 +121,40 @@ fn culling_by_frustum_and_range() {
         size: DVec3::new(0.7, 0.7, 1.8),
         yaw: 0.0,
     };
-    assert!(p.box_corners_camera(&at(20.0, 0.0), &cfg).is_some(), "in view");
-    assert!(p.box_corners_camera(&at(-10.0, 0.0), &cfg).is_none(), "behind");
-    assert!(p.box_corners_camera(&at(5.0, 30.0), &cfg).is_none(), "left of the frustum");
-    assert!(p.box_corners_camera(&at(90.0, 0.0), &cfg).is_none(), "beyond range");
-    assert!(p.box_corners_camera(&at(79.0, 0.0), &cfg).is_some(), "just within range");
-    let far = ProjectionConfig { range: 100.0, ..cfg };
-    assert!(p.box_corners_camera(&at(90.0, 0.0), &far).is_some(), "range is configurable");
+    assert!(
+        p.box_corners_camera(&at(20.0, 0.0), &cfg).is_some(),
+        "in view"
+    );
+    assert!(
+        p.box_corners_camera(&at(-10.0, 0.0), &cfg).is_none(),
+        "behind"
+    );
+    assert!(
+        p.box_corners_camera(&at(5.0, 30.0), &cfg).is_none(),
+        "left of the frustum"
+    );
+    assert!(
+        p.box_corners_camera(&at(90.0, 0.0), &cfg).is_none(),
+        "beyond range"
+    );
+    assert!(
+        p.box_corners_camera(&at(79.0, 0.0), &cfg).is_some(),
+        "just within range"
+    );
+    let far = ProjectionConfig {
+        range: 100.0,
+        ..cfg
+    };
+    assert!(
+        p.box_corners_camera(&at(90.0, 0.0), &far).is_some(),
+        "range is configurable"
+    );
     // half-FOV of this camera is atan(800/1000) = 38.7 deg: a box straddling the edge is kept
     let edge = 20.0 * (800.0f64 / 1000.0);
-    assert!(p.box_corners_camera(&at(21.5, edge + 0.2), &cfg).is_some(), "straddles the left edge");
+    assert!(
+        p.box_corners_camera(&at(21.5, edge + 0.2), &cfg).is_some(),
+        "straddles the left edge"
+    );
     let mut r = LayoutRenderer::new(400, 224);
     let mut m = LayoutMasks::new(400, 224);
     let boxes = [at(20.0, 0.0), at(-10.0, 0.0), at(5.0, 30.0), at(90.0, 0.0)];
@@ -118,22 +166,48 @@ fn box_mask_covers_expected_pixel_count() {
     // face-on box centred on the optical axis: its silhouette is the near face, 2 m x 1.5 m at 10 m.
     let cam = front_camera(1000.0, 1600, 900, DVec3::ZERO);
     let p = CameraProjector::new(&cam, &DMat4::IDENTITY, 1600, 900).unwrap();
-    let b = Box3d { class: BoxClass::Truck, center: DVec3::new(12.0, 0.0, 0.0), size: DVec3::new(4.0, 2.0, 1.5), yaw: 0.0 };
+    let b = Box3d {
+        class: BoxClass::Truck,
+        center: DVec3::new(12.0, 0.0, 0.0),
+        size: DVec3::new(4.0, 2.0, 1.5),
+        yaw: 0.0,
+    };
     let mut r = LayoutRenderer::new(1600, 900);
     let mut m = LayoutMasks::new(1600, 900);
-    r.render(&p, &[b], &MapLayer::default(), &ProjectionConfig::default(), &mut m);
+    r.render(
+        &p,
+        &[b],
+        &MapLayer::default(),
+        &ProjectionConfig::default(),
+        &mut m,
+    );
     let n = count(m.channel(BoxClass::Truck.index()));
-    assert!((n as f64 - 30_000.0).abs() / 30_000.0 < 0.01, "covered {n}, expected 200 x 150");
+    assert!(
+        (n as f64 - 30_000.0).abs() / 30_000.0 < 0.01,
+        "covered {n}, expected 200 x 150"
+    );
     assert_eq!(count(m.channel(BoxClass::Car.index())), 0);
     // the same box at render resolution 400x224: (1000 * 0.25 * 0.2) x (1000 * 224/900 * 0.15) px
     let p = CameraProjector::new(&cam, &DMat4::IDENTITY, 400, 224).unwrap();
     let mut r = LayoutRenderer::new(400, 224);
     let mut m = LayoutMasks::new(400, 224);
-    let big = Box3d { size: DVec3::new(4.0, 6.0, 4.0), ..b };
-    r.render(&p, &[big], &MapLayer::default(), &ProjectionConfig::default(), &mut m);
+    let big = Box3d {
+        size: DVec3::new(4.0, 6.0, 4.0),
+        ..b
+    };
+    r.render(
+        &p,
+        &[big],
+        &MapLayer::default(),
+        &ProjectionConfig::default(),
+        &mut m,
+    );
     let expect = (250.0 * 0.6) * (1000.0 * 224.0 / 900.0 * 0.4);
     let n = count(m.channel(BoxClass::Truck.index())) as f64;
-    assert!((n - expect).abs() / expect < 0.01, "covered {n}, expected {expect}");
+    assert!(
+        (n - expect).abs() / expect < 0.01,
+        "covered {n}, expected {expect}"
+    );
 }
 
 #[test]
@@ -151,7 +225,10 @@ fn map_polygons_and_polylines() {
             },
         },
         // a divider on the left, also starting behind the camera
-        MapElement { class: MapClass::LaneDivider, geometry: MapGeometry::Polyline(vec![q(-20.0, 2.0), q(60.0, 2.0)]) },
+        MapElement {
+            class: MapClass::LaneDivider,
+            geometry: MapGeometry::Polyline(vec![q(-20.0, 2.0), q(60.0, 2.0)]),
+        },
         // a crosswalk far beyond the range: culled
         MapElement {
             class: MapClass::Crosswalk,
@@ -173,7 +250,10 @@ fn map_polygons_and_polylines() {
     for v in 0..224 {
         for u in 0..400 {
             if da[v * 400 + u] != 0 {
-                assert!(v as f64 >= v_far - 1.0, "drivable pixel above the 80 m line at ({u}, {v})");
+                assert!(
+                    v as f64 >= v_far - 1.0,
+                    "drivable pixel above the 80 m line at ({u}, {v})"
+                );
             }
         }
     }
@@ -230,11 +310,19 @@ fn intrinsics_rescaling_matches_torch_resize() {
     assert!((k.z_axis.y - ((491.51 + 0.5) * sy - 0.5)).abs() < 1e-12);
     let r = cam.rescaled(400, 224);
     assert_eq!((r.width, r.height), (400, 224));
-    assert!(cam.intrinsic_scaled(1600, 900).abs_diff_eq(cam.intrinsic, 1e-9), "identity at the native size");
+    assert!(
+        cam.intrinsic_scaled(1600, 900)
+            .abs_diff_eq(cam.intrinsic, 1e-9),
+        "identity at the native size"
+    );
 
     // Ramp images whose value is the native coordinate (pixel centre i at coordinate i), resized with PyTorch's
     // bilinear rule: sampling the resized ramp at the rescaled projection must give back the native projection.
-    for &(nw, nh, rw, rh) in &[(1600usize, 900usize, 400usize, 224usize), (1920, 1080, 400, 224), (640, 480, 1280, 960)] {
+    for &(nw, nh, rw, rh) in &[
+        (1600usize, 900usize, 400usize, 224usize),
+        (1920, 1080, 400, 224),
+        (640, 480, 1280, 960),
+    ] {
         let mut c = cam.clone();
         c.width = nw as u32;
         c.height = nh as u32;
@@ -254,7 +342,11 @@ fn intrinsics_rescaling_matches_torch_resize() {
             let (ur, _) = pr.project(g).unwrap();
             assert!(ur.x > 1.0 && ur.x < rw as f64 - 2.0 && ur.y > 1.0 && ur.y < rh as f64 - 2.0);
             let (bu, bv) = (sample_linear(&ramp_u, ur.x), sample_linear(&ramp_v, ur.y));
-            assert!((bu - un.x).abs() < 1e-9 && (bv - un.y).abs() < 1e-9, "{nw}->{rw}: {bu} vs {}", un.x);
+            assert!(
+                (bu - un.x).abs() < 1e-9 && (bv - un.y).abs() < 1e-9,
+                "{nw}->{rw}: {bu} vs {}",
+                un.x
+            );
         }
     }
 }
@@ -269,13 +361,22 @@ fn log_along(points: &[(f64, f64)], yaw: f64) -> Vec<RecordedFrame> {
                 timestamp_us: i as i64 * 100_000,
                 ego2global: e2g,
                 images: vec![
-                    CameraImage { camera: "CAM_BACK".into(), path: format!("b{i}.jpg"), timestamp_us: 0, ego2global: e2g },
+                    CameraImage {
+                        camera: "CAM_BACK".into(),
+                        path: format!("b{i}.jpg"),
+                        timestamp_us: 0,
+                        ego2global: e2g,
+                    },
                     CameraImage {
                         camera: "CAM_FRONT".into(),
                         path: format!("f{i}.jpg"),
                         timestamp_us: 0,
                         // the front camera fires 10 ms later: 5 cm further along
-                        ego2global: pose(yaw, DVec3::new(x, y, 0.0) + DQuat::from_rotation_z(yaw) * DVec3::new(0.05, 0.0, 0.0)),
+                        ego2global: pose(
+                            yaw,
+                            DVec3::new(x, y, 0.0)
+                                + DQuat::from_rotation_z(yaw) * DVec3::new(0.05, 0.0, 0.0),
+                        ),
                     },
                 ],
             }
@@ -287,7 +388,9 @@ fn log_along(points: &[(f64, f64)], yaw: f64) -> Vec<RecordedFrame> {
 fn retrieval_front_rear_and_missing_side() {
     let yaw = 1.0f64;
     let dir = DVec3::new(yaw.cos(), yaw.sin(), 0.0);
-    let pts: Vec<(f64, f64)> = (0..21).map(|i| (dir.x * i as f64, dir.y * i as f64)).collect();
+    let pts: Vec<(f64, f64)> = (0..21)
+        .map(|i| (dir.x * i as f64, dir.y * i as f64))
+        .collect();
     // shuffle the order: retrieval must not rely on it
     let mut frames = log_along(&pts, yaw);
     frames.reverse();
@@ -296,7 +399,12 @@ fn retrieval_front_rear_and_missing_side() {
     let (f, b) = (r.front.unwrap(), r.rear.unwrap());
     assert_eq!(frames[f.frame].images[f.image].path, "f11.jpg");
     assert_eq!(frames[b.frame].images[b.image].path, "f10.jpg");
-    assert!((f.along - 0.75).abs() < 1e-9 && (b.along + 0.25).abs() < 1e-9, "{} {}", f.along, b.along);
+    assert!(
+        (f.along - 0.75).abs() < 1e-9 && (b.along + 0.25).abs() < 1e-9,
+        "{} {}",
+        f.along,
+        b.along
+    );
     // relative pose: the front reference ego sits 0.75 m ahead and 0.5 m to the right of the current ego
     let t = f.ref2cur.w_axis.truncate();
     assert!((t - DVec3::new(0.75, -0.5, 0.0)).length() < 1e-9, "{t:?}");
@@ -306,9 +414,16 @@ fn retrieval_front_rear_and_missing_side() {
     // beyond the end of the log: nothing ahead
     let r = retrieve(&frames, "CAM_FRONT", &pose(yaw, dir * 25.0));
     assert!(r.front.is_none());
-    assert_eq!(frames[r.rear.as_ref().unwrap().frame].images[0].path, "b20.jpg");
+    assert_eq!(
+        frames[r.rear.as_ref().unwrap().frame].images[0].path,
+        "b20.jpg"
+    );
     // turned around: what was ahead is now behind
-    let r = retrieve(&frames, "CAM_FRONT", &pose(yaw + std::f64::consts::PI, dir * 10.3));
+    let r = retrieve(
+        &frames,
+        "CAM_FRONT",
+        &pose(yaw + std::f64::consts::PI, dir * 10.3),
+    );
     assert_eq!(frames[r.front.unwrap().frame].images[1].path, "f10.jpg");
     // unknown camera / empty log: nothing on either side
     assert_eq!(retrieve(&frames, "CAM_X", &ego), Default::default());
@@ -329,7 +444,13 @@ fn hierarchical_training_sampling() {
             let d = rf.along.abs();
             assert!((2.0..15.0).contains(&d), "distance {d}");
             assert_eq!(rf.along > 0.0, side == 0);
-            hist[side][if d < 5.0 { 0 } else if d < 10.0 { 1 } else { 2 }] += 1;
+            hist[side][if d < 5.0 {
+                0
+            } else if d < 10.0 {
+                1
+            } else {
+                2
+            }] += 1;
         }
     }
     for h in hist {
@@ -339,8 +460,18 @@ fn hierarchical_training_sampling() {
         }
     }
     // seeded: same seed, same draws
-    let a = sample_training_references(&frames, "CAM_FRONT", train, &mut ChaCha8Rng::seed_from_u64(3));
-    let b = sample_training_references(&frames, "CAM_FRONT", train, &mut ChaCha8Rng::seed_from_u64(3));
+    let a = sample_training_references(
+        &frames,
+        "CAM_FRONT",
+        train,
+        &mut ChaCha8Rng::seed_from_u64(3),
+    );
+    let b = sample_training_references(
+        &frames,
+        "CAM_FRONT",
+        train,
+        &mut ChaCha8Rng::seed_from_u64(3),
+    );
     assert_eq!(a, b);
     // at the end of the log nothing ahead; only 3 m of log behind -> only the first interval
     let end = sample_training_references(&frames, "CAM_FRONT", 160, &mut rng);
@@ -355,11 +486,17 @@ fn position_encoding_matches_direct_computation() {
     cam.intrinsic.z_axis = DVec3::new(816.3, 491.5, 1.0);
     // a reference image taken 6 m ahead and slightly turned, seen from the current ego
     let cur = pose(0.2, DVec3::new(5.0, 3.0, 0.0));
-    let refp = pose(0.25, DVec3::new(5.0 + 6.0 * 0.2f64.cos(), 3.0 + 6.0 * 0.2f64.sin(), 0.1));
+    let refp = pose(
+        0.25,
+        DVec3::new(5.0 + 6.0 * 0.2f64.cos(), 3.0 + 6.0 * 0.2f64.sin(), 0.1),
+    );
     let c2c = b2dr::projection::pe::cam2cur(&cam, &refp, &cur);
     let (h, w) = (7, 13);
     for grid in [PixelGrid::Centre, PixelGrid::PetrCorner] {
-        let cfg = PeConfig { grid, ..Default::default() };
+        let cfg = PeConfig {
+            grid,
+            ..Default::default()
+        };
         let k = cam.intrinsic_scaled(400, 224);
         let pe = position_encoding(&k, 400, 224, &c2c, h, w, &cfg).unwrap();
         assert_eq!(pe.len(), 64 * 3 * h * w);
@@ -373,8 +510,13 @@ fn position_encoding_matches_direct_computation() {
             for y in 0..h {
                 for x in 0..w {
                     let (u, v) = match grid {
-                        PixelGrid::Centre => ((x as f64 + 0.5) * 400.0 / w as f64 - 0.5, (y as f64 + 0.5) * 224.0 / h as f64 - 0.5),
-                        PixelGrid::PetrCorner => (x as f64 * 400.0 / w as f64, y as f64 * 224.0 / h as f64),
+                        PixelGrid::Centre => (
+                            (x as f64 + 0.5) * 400.0 / w as f64 - 0.5,
+                            (y as f64 + 0.5) * 224.0 / h as f64 - 0.5,
+                        ),
+                        PixelGrid::PetrCorner => {
+                            (x as f64 * 400.0 / w as f64, y as f64 * 224.0 / h as f64)
+                        }
                     };
                     let pc = [(u - cx) / fx * d, (v - cy) / fy * d, d];
                     for a in 0..3 {
