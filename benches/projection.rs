@@ -64,7 +64,7 @@ fn scene() -> (Vec<Box3d>, MapLayer) {
                 class,
                 center: DVec3::new(x, y, size.z / 2.0),
                 size,
-                yaw: rng.gen_range(-3.14..3.14),
+                yaw: rng.gen_range(-std::f64::consts::PI..std::f64::consts::PI),
             }
         })
         .collect();

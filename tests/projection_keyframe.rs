@@ -240,9 +240,7 @@ fn malformed_frames_give_file_and_field() {
             "boxes[0].size_lwh",
         ),
         (
-            format!(
-                r#"{{"ego2global": [[2,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]], "cameras": {{}}, "boxes": []}}"#
-            ),
+            r#"{"ego2global": [[2,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]], "cameras": {}, "boxes": []}"#.to_string(),
             "ego2global",
         ),
     ];

@@ -215,8 +215,8 @@ fn blend_masks(photo: &mut RgbImage, m: &LayoutMasks) {
             for c in (0..NUM_MASK_CHANNELS).rev() {
                 if m.channel(c)[my * m.width + mx] != 0 {
                     let a = if c >= 10 { 0.3 } else { 0.4 };
-                    for k in 0..3 {
-                        px.0[k] = (px.0[k] as f64 * (1.0 - a) + COLOURS[c][k] as f64 * a) as u8;
+                    for (v, col) in px.0.iter_mut().zip(COLOURS[c]) {
+                        *v = (*v as f64 * (1.0 - a) + col as f64 * a) as u8;
                     }
                 }
             }
