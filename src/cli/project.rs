@@ -84,6 +84,12 @@ pub fn run(args: ProjectArgs) -> Result<()> {
         args.range > 0.0 && args.range.is_finite(),
         "--range must be positive"
     );
+    if let Some(w) = args.overlay_width {
+        anyhow::ensure!(
+            (1..=8192).contains(&w),
+            "--overlay-width {w}: must be in 1..=8192"
+        );
+    }
     let mut frame = KeyFrame::load(&args.frame)?;
     if args.box_z == "top" {
         frame.boxes_z_from_top();
@@ -227,6 +233,33 @@ fn blend_masks(photo: &mut RgbImage, m: &LayoutMasks) {
 /// A 3-pixel-wide line (pixel centres at integer coordinates), clipped to the image by skipping off-image samples.
 fn draw_line(img: &mut RgbImage, a: DVec2, b: DVec2, c: [u8; 3]) {
     let (w, h) = (img.width() as i64, img.height() as i64);
+    // Liang-Barsky against the image rectangle (plus the pen's margin): near-clipped edges can end ~1e5 px away
+    let (lo, hi) = (
+        DVec2::splat(-2.0),
+        DVec2::new(w as f64 + 1.0, h as f64 + 1.0),
+    );
+    let d = b - a;
+    let (mut t0, mut t1) = (0.0f64, 1.0f64);
+    for (p, q) in [
+        (-d.x, a.x - lo.x),
+        (d.x, hi.x - a.x),
+        (-d.y, a.y - lo.y),
+        (d.y, hi.y - a.y),
+    ] {
+        if p == 0.0 {
+            if q < 0.0 {
+                return;
+            }
+        } else if p < 0.0 {
+            t0 = t0.max(q / p);
+        } else {
+            t1 = t1.min(q / p);
+        }
+    }
+    if t0 > t1 {
+        return;
+    }
+    let (a, b) = (a + d * t0, a + d * t1);
     let n = ((b - a).abs().max_element().ceil() as i64).clamp(1, 20_000);
     for k in 0..=n {
         let p = a.lerp(b, k as f64 / n as f64);
