@@ -408,6 +408,11 @@ fn retrieval_front_rear_and_missing_side() {
     // relative pose: the front reference ego sits 0.75 m ahead and 0.5 m to the right of the current ego
     let t = f.ref2cur.w_axis.truncate();
     assert!((t - DVec3::new(0.75, -0.5, 0.0)).length() < 1e-9, "{t:?}");
+    // the reference's camera -> current ego equals the position-encoding helper's
+    let cam = front_camera(1000.0, 1600, 900, DVec3::new(1.7, 0.0, 1.5));
+    let via_pe =
+        b2dr::projection::pe::cam2cur(&cam, &frames[f.frame].images[f.image].ego2global, &ego);
+    assert!(f.cam2cur(&cam).abs_diff_eq(via_pe, 1e-9));
     let rb = retrieve(&frames, "CAM_BACK", &ego);
     let rf = rb.front.unwrap();
     assert_eq!(frames[rf.frame].images[rf.image].path, "b11.jpg");

@@ -10,11 +10,12 @@ use serde::Deserialize;
 use super::geometry::{mat3_from_rows, mat4_from_rows, Box3d, BoxClass};
 use crate::scene::camera::{Camera, CameraImage};
 
+/// Top-level fields, kept as JSON values so each is decoded with its own name in the error.
 #[derive(Deserialize)]
 struct RawFrame {
-    ego2global: [[f64; 4]; 4],
+    ego2global: serde_json::Value,
     cameras: serde_json::Map<String, serde_json::Value>,
-    boxes: Vec<RawBox>,
+    boxes: Vec<serde_json::Value>,
 }
 
 #[derive(Deserialize)]
@@ -77,7 +78,9 @@ impl KeyFrame {
         let raw: RawFrame =
             serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
         let ctx = |field: String| format!("{}: {field}", path.display());
-        let ego2global = mat4_from_rows(&raw.ego2global);
+        let e2g_rows: [[f64; 4]; 4] =
+            serde_json::from_value(raw.ego2global).with_context(|| ctx("ego2global".into()))?;
+        let ego2global = mat4_from_rows(&e2g_rows);
         check_pose(&ego2global, &ctx("ego2global".into()))?;
         let mut cameras = Vec::new();
         for (name, v) in &raw.cameras {
@@ -117,7 +120,9 @@ impl KeyFrame {
         ensure!(!cameras.is_empty(), "{}: no cameras", ctx("cameras".into()));
         cameras.sort_by(|a, b| a.0.name.cmp(&b.0.name));
         let mut boxes = Vec::with_capacity(raw.boxes.len());
-        for (i, b) in raw.boxes.iter().enumerate() {
+        for (i, b) in raw.boxes.into_iter().enumerate() {
+            let b: RawBox =
+                serde_json::from_value(b).with_context(|| ctx(format!("boxes[{i}]")))?;
             let Some(class) = BoxClass::parse(&b.category) else {
                 bail!(
                     "{}: unknown category {:?}",

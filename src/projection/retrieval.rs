@@ -26,6 +26,13 @@ pub struct Reference {
     pub ref2cur: DMat4,
 }
 
+impl Reference {
+    /// Camera -> current ego for this reference image (the `cam2cur` of its position encodings).
+    pub fn cam2cur(&self, camera: &crate::scene::camera::Camera) -> DMat4 {
+        self.ref2cur * camera.cam2ego
+    }
+}
+
 /// The two references of one camera; `None` on a side where the log has no image.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct References {
