@@ -206,6 +206,29 @@ fn cam_front_boxes_and_masks() {
     );
 }
 
+/// Diagnostic (prints, never fails): median height of vehicle box bottoms above the ego ground plane, read as the
+/// format documents (z = gravity centre) and as the box top (see docs/projection.md, "Known issue").
+#[test]
+fn box_bottom_heights_diagnostic() {
+    let Some(path) = frame_path() else { return };
+    let mut frame = KeyFrame::load(&path).unwrap();
+    let median_bottom = |f: &KeyFrame| {
+        let g2e = f.ego2global.inverse();
+        let mut z: Vec<f64> = f
+            .boxes
+            .iter()
+            .filter(|b| matches!(b.class, BoxClass::Car | BoxClass::Truck | BoxClass::Bus))
+            .map(|b| g2e.transform_point3(b.center).z - 0.5 * b.size.z)
+            .collect();
+        z.sort_by(f64::total_cmp);
+        z[z.len() / 2]
+    };
+    let documented = median_bottom(&frame);
+    frame.boxes_z_from_top();
+    let as_top = median_bottom(&frame);
+    eprintln!("median vehicle bottom above ego ground: {documented:.2} m as documented, {as_top:.2} m read as box top");
+}
+
 #[test]
 fn malformed_frames_give_file_and_field() {
     let dir = std::env::temp_dir().join(format!("b2dr_proj_bad_{}", std::process::id()));
