@@ -1,6 +1,8 @@
 //! clap definitions and dispatch. One file per subcommand.
 use clap::{Parser, Subcommand};
 
+mod bench;
+mod info;
 mod project;
 
 #[derive(Parser, Debug)]
@@ -10,18 +12,56 @@ mod project;
     about = "Reactive closed-loop driving evaluation with a generative renderer"
 )]
 pub struct Cli {
+    /// Vulkan device: index or name substring (default: B2DR_DEVICE, else discrete > integrated > CPU).
+    #[arg(long, global = true)]
+    pub device: Option<String>,
+    /// llvmpipe/lavapipe worker threads (sets LP_NUM_THREADS before the device is created).
+    #[arg(long, global = true)]
+    pub lp_threads: Option<u32>,
     #[command(subcommand)]
     pub command: Command,
 }
 
 #[derive(Subcommand, Debug)]
 pub enum Command {
+    /// Print the Vulkan devices, the chosen one and the features b2dr uses.
+    Info,
+    /// Benchmarks.
+    #[command(subcommand)]
+    Bench(BenchCmd),
     /// Project a keyframe's boxes (and a map) into its cameras: masks, overlays, projection.json.
     Project(project::ProjectArgs),
 }
 
+#[derive(Subcommand, Debug)]
+pub enum BenchCmd {
+    /// Time every op case (ms, GFLOP/s, GB/s) on the chosen device.
+    Ops {
+        /// One JSON object keyed by case name.
+        #[arg(long)]
+        json: bool,
+        /// Only cases whose name contains this.
+        #[arg(long)]
+        filter: Option<String>,
+        /// Minimum timed seconds per case.
+        #[arg(long, default_value_t = 1.0)]
+        min_time: f64,
+    },
+}
+
 pub fn run(cli: Cli) -> anyhow::Result<()> {
+    if let Some(t) = cli.lp_threads {
+        anyhow::ensure!(t >= 1, "--lp-threads must be >= 1");
+        // SAFETY: single-threaded at this point (before any Vulkan or worker thread exists).
+        unsafe { std::env::set_var("LP_NUM_THREADS", t.to_string()) };
+    }
     match cli.command {
+        Command::Info => info::run(cli.device),
+        Command::Bench(BenchCmd::Ops {
+            json,
+            filter,
+            min_time,
+        }) => bench::run_ops(cli.device, json, filter, min_time),
         Command::Project(a) => project::run(a),
     }
 }

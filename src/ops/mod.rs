@@ -1,1 +1,59 @@
+//! Op launchers, one file per kernel family (mirroring `kernels/`). Each launcher checks shapes and dtypes,
+//! picks the pipeline variant, computes the grid, pushes the parameters and records one or more dispatches into
+//! a [`Recorder`]. Outputs are caller-allocated so whole models can be planned once and replayed.
+//! Plain CPU f64 references for every op live in [`reference`].
+pub mod bench;
+pub mod blur;
+pub mod elementwise;
+pub mod embedding;
+pub mod norm;
+pub mod reference;
+pub mod resample;
 
+use anyhow::{ensure, Result};
+
+use crate::kernels::KernelId;
+use crate::tensor::{DType, Tensor};
+pub use crate::vk::Recorder;
+
+/// Work-group count for `n` invocations at 256 per group, folded into (x, y) with x <= 65535.
+pub(crate) fn grid_1d(op: &str, n: usize) -> Result<[u32; 3]> {
+    let groups = n.div_ceil(256);
+    ensure!(
+        groups <= 65535 * 65535,
+        "{op}: {n} elements is too many for one dispatch"
+    );
+    let x = groups.min(65535);
+    Ok([x as u32, groups.div_ceil(x) as u32, 1])
+}
+
+/// Checks that all tensors share one dtype and returns it.
+pub(crate) fn same_dtype(op: &str, ts: &[&Tensor]) -> Result<DType> {
+    let d = ts[0].dtype();
+    for t in ts {
+        ensure!(
+            t.dtype() == d,
+            "{op}: dtype mismatch: {:?}",
+            ts.iter().map(|t| t.dtype().name()).collect::<Vec<_>>()
+        );
+    }
+    Ok(d)
+}
+
+/// Picks the f32 or f16 variant.
+pub(crate) fn pick(d: DType, f32_id: KernelId, f16_id: KernelId) -> KernelId {
+    match d {
+        DType::F32 => f32_id,
+        DType::F16 => f16_id,
+    }
+}
+
+/// Requires an exact shape.
+pub(crate) fn expect_shape(op: &str, what: &str, t: &Tensor, shape: &[usize]) -> Result<()> {
+    ensure!(
+        t.shape() == shape,
+        "{op}: {what} has shape {:?}, expected {shape:?}",
+        t.shape()
+    );
+    Ok(())
+}

@@ -1,0 +1,23 @@
+// ---- common.wgsl: helpers appended to every kernel by build.rs ----
+
+// Linear invocation index of a 1D-folded grid: groups run (x, y) with x <= 65535; wg = 256 invocations.
+fn flat_index(wid: vec3<u32>, nwg: vec3<u32>, lid: vec3<u32>) -> u32 {
+    return (wid.y * nwg.x + wid.x) * 256u + lid.x;
+}
+
+// erf(x), Abramowitz & Stegun 7.1.26 refined: max abs error 1.5e-7.
+fn erf_f32(x: f32) -> f32 {
+    let s = sign(x);
+    let a = abs(x);
+    let t = 1.0 / (1.0 + 0.3275911 * a);
+    let y = 1.0 - (((((1.061405429 * t - 1.453152027) * t) + 1.421413741) * t - 0.284496736) * t + 0.254829592) * t * exp(-a * a);
+    return s * y;
+}
+
+fn gelu_erf(x: f32) -> f32 {
+    return 0.5 * x * (1.0 + erf_f32(x * 0.70710678118654752));
+}
+
+fn silu(x: f32) -> f32 {
+    return x / (1.0 + exp(-x));
+}

@@ -1,0 +1,106 @@
+//! variant f32: alias ST = f32;
+//! variant f16: enable f16; alias ST = f16;
+// Elementwise ops. Storage type ST, arithmetic in f32. One element per invocation: addresses are contiguous
+// across neighbouring invocations, which llvmpipe turns into vector loads.
+
+struct UnaryParams { n: u32, op: u32 }
+struct BinaryParams {
+    op: u32,
+    n: u32,
+    // output shape (d0, d1, d2, d3), right-aligned; element strides of a and b (0 where broadcast)
+    d1: u32, d2: u32, d3: u32,
+    sa0: u32, sa1: u32, sa2: u32, sa3: u32,
+    sb0: u32, sb1: u32, sb2: u32, sb3: u32,
+}
+struct ScaleAddParams { n: u32, alpha: f32, beta: f32 }
+struct GegluParams { rows: u32, d: u32 }
+struct ConcatParams { n: u32, c1: u32, c2: u32, hw: u32 }
+struct TransposeParams { n: u32, r: u32, c: u32 }
+
+@group(0) @binding(0) var<storage, read> a: array<ST>;
+@group(0) @binding(1) var<storage, read> b: array<ST>;
+@group(0) @binding(2) var<storage, read_write> out: array<ST>;
+@group(0) @binding(1) var<storage, read_write> out1: array<ST>;
+
+var<immediate> up: UnaryParams;
+var<immediate> bp: BinaryParams;
+var<immediate> sp: ScaleAddParams;
+var<immediate> gp: GegluParams;
+var<immediate> cp: ConcatParams;
+var<immediate> tp: TransposeParams;
+
+// x: (n) -> out1: (n); op 0 = silu, 1 = gelu(erf)
+@compute @workgroup_size(256)
+fn unary(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let i = flat_index(wid, nwg, lid);
+    if (i >= up.n) { return; }
+    let x = f32(a[i]);
+    var y: f32;
+    if (up.op == 0u) { y = silu(x); } else { y = gelu_erf(x); }
+    out1[i] = ST(y);
+}
+
+// a: broadcast to out shape, b: broadcast to out shape -> out: (d0, d1, d2, d3); op 0 = add, 1 = mul
+@compute @workgroup_size(256)
+fn binary(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let i = flat_index(wid, nwg, lid);
+    if (i >= bp.n) { return; }
+    let i3 = i % bp.d3;
+    let r3 = i / bp.d3;
+    let i2 = r3 % bp.d2;
+    let r2 = r3 / bp.d2;
+    let i1 = r2 % bp.d1;
+    let i0 = r2 / bp.d1;
+    let x = f32(a[i0 * bp.sa0 + i1 * bp.sa1 + i2 * bp.sa2 + i3 * bp.sa3]);
+    let y = f32(b[i0 * bp.sb0 + i1 * bp.sb1 + i2 * bp.sb2 + i3 * bp.sb3]);
+    var z: f32;
+    if (bp.op == 0u) { z = x + y; } else { z = x * y; }
+    out[i] = ST(z);
+}
+
+// out = alpha * a + beta * b, all (n)
+@compute @workgroup_size(256)
+fn scale_add(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let i = flat_index(wid, nwg, lid);
+    if (i >= sp.n) { return; }
+    out[i] = ST(sp.alpha * f32(a[i]) + sp.beta * f32(b[i]));
+}
+
+// a: (rows, 2d) = [value | gate] -> out1: (rows, d) = value * gelu(gate)   (diffusers GEGLU)
+@compute @workgroup_size(256)
+fn geglu(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let i = flat_index(wid, nwg, lid);
+    if (i >= gp.rows * gp.d) { return; }
+    let r = i / gp.d;
+    let c = i % gp.d;
+    let v = f32(a[r * 2u * gp.d + c]);
+    let g = f32(a[r * 2u * gp.d + gp.d + c]);
+    out1[i] = ST(v * gelu_erf(g));
+}
+
+// a: (N, c1, hw), b: (N, c2, hw) -> out: (N, c1 + c2, hw)
+@compute @workgroup_size(256)
+fn concat(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let i = flat_index(wid, nwg, lid);
+    if (i >= cp.n) { return; }
+    let c = cp.c1 + cp.c2;
+    let p = i % cp.hw;
+    let ch = (i / cp.hw) % c;
+    let nb = i / (cp.hw * c);
+    if (ch < cp.c1) {
+        out[i] = a[(nb * cp.c1 + ch) * cp.hw + p];
+    } else {
+        out[i] = b[(nb * cp.c2 + ch - cp.c1) * cp.hw + p];
+    }
+}
+
+// a: (B, R, C) -> out1: (B, C, R). One output element per invocation: writes contiguous, reads strided.
+@compute @workgroup_size(256)
+fn transpose(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let i = flat_index(wid, nwg, lid);
+    if (i >= tp.n) { return; }
+    let r = i % tp.r;
+    let c = (i / tp.r) % tp.c;
+    let b = i / (tp.r * tp.c);
+    out1[i] = a[(b * tp.r + r) * tp.c + c];
+}

@@ -1,0 +1,54 @@
+//! `b2dr bench ops [--json] [--filter S]`: times every op case on the chosen device.
+use std::collections::BTreeMap;
+
+use anyhow::{bail, Result};
+use b2dr::ops::bench;
+use b2dr::vk::{Context, ContextOptions};
+
+pub fn run_ops(
+    device: Option<String>,
+    json: bool,
+    filter: Option<String>,
+    min_time_s: f64,
+) -> Result<()> {
+    let ctx = Context::new(&ContextOptions {
+        device,
+        validation: None,
+    })?;
+    let cases: Vec<_> = bench::cases()
+        .into_iter()
+        .filter(|c| filter.as_deref().is_none_or(|f| c.name.contains(f)))
+        .collect();
+    if cases.is_empty() {
+        bail!("no benchmark case matches {:?}", filter.unwrap_or_default());
+    }
+    if !json {
+        eprintln!("device: {} ({})", ctx.info().name, ctx.info().kind);
+        println!(
+            "{:<40} {:>10} {:>10} {:>9} {:>6}",
+            "case", "ms", "GFLOP/s", "GB/s", "iters"
+        );
+    }
+    let mut out = BTreeMap::new();
+    for c in &cases {
+        if !json {
+            eprint!("  running {} ...\r", c.name);
+        }
+        let r = bench::run_case(&ctx, c, 2, 3, min_time_s)?;
+        if json {
+            out.insert(
+                r.name.clone(),
+                serde_json::json!({"ms": r.ms, "gflops": r.gflops, "gbs": r.gbs, "iters": r.iters}),
+            );
+        } else {
+            println!(
+                "{:<40} {:>10.3} {:>10.2} {:>9.2} {:>6}",
+                r.name, r.ms, r.gflops, r.gbs, r.iters
+            );
+        }
+    }
+    if json {
+        println!("{}", serde_json::to_string_pretty(&out)?);
+    }
+    Ok(())
+}

@@ -1,0 +1,59 @@
+//! `b2dr info`: Vulkan devices, the chosen one and the features b2dr uses.
+use anyhow::Result;
+use b2dr::kernels::KERNELS;
+use b2dr::vk::{Context, ContextOptions};
+
+pub fn run(device: Option<String>) -> Result<()> {
+    let devices = Context::list_devices()?;
+    println!("Vulkan devices:");
+    for d in &devices {
+        println!(
+            "  [{}] {} ({}, Vulkan {})",
+            d.index, d.name, d.kind, d.api_version
+        );
+    }
+    let ctx = Context::new(&ContextOptions {
+        device,
+        validation: None,
+    })?;
+    let i = ctx.info();
+    let yes = |b: bool| if b { "yes" } else { "no" };
+    println!("chosen: [{}] {} ({})", i.index, i.name, i.kind);
+    println!("  f16 storage + arithmetic:   {}", yes(i.f16));
+    println!(
+        "  subgroups (size {}):         {}",
+        i.subgroup_size,
+        yes(i.subgroup)
+    );
+    println!(
+        "  cooperative matrix:         {}",
+        yes(i.cooperative_matrix)
+    );
+    println!(
+        "  max storage buffer range:   {} MiB",
+        i.max_storage_buffer_range >> 20
+    );
+    println!(
+        "  shared memory per group:    {} KiB",
+        i.max_shared_memory >> 10
+    );
+    println!("  timestamps:                 {}", yes(i.timestamps));
+    println!(
+        "  validation layer:           {}",
+        if ctx.validation_enabled() {
+            "on"
+        } else {
+            "off (B2DR_VALIDATION=1 enables it)"
+        }
+    );
+    let runnable = b2dr::kernels::ALL_KERNELS
+        .iter()
+        .filter(|k| ctx.supports(**k))
+        .count();
+    println!(
+        "kernels: {} compiled, {} runnable on this device",
+        KERNELS.len(),
+        runnable
+    );
+    Ok(())
+}

@@ -1,0 +1,106 @@
+//! Normalisation launchers: group norm (optionally fused SiLU) and layer norm.
+use anyhow::{ensure, Result};
+
+use super::{expect_shape, pick, same_dtype, Recorder};
+use crate::kernels::params::NormParams;
+use crate::kernels::KernelId as K;
+use crate::tensor::Tensor;
+
+#[allow(clippy::too_many_arguments)]
+fn norm(
+    rec: &mut Recorder,
+    op: &str,
+    x: &Tensor,
+    gamma: &Tensor,
+    beta: &Tensor,
+    out: &Tensor,
+    segs: usize,
+    p: NormParams,
+) -> Result<()> {
+    let d = same_dtype(op, &[x, gamma, beta, out])?;
+    expect_shape(op, "out", out, x.shape())?;
+    ensure!(
+        p.eps.is_finite() && p.eps >= 0.0,
+        "{op}: eps {} must be finite and >= 0",
+        p.eps
+    );
+    let gx = segs.min(65535);
+    let grid = [gx as u32, segs.div_ceil(gx) as u32, 1];
+    ensure!(
+        segs.div_ceil(gx) <= 65535,
+        "{op}: {segs} segments is too many"
+    );
+    ensure!(
+        segs % gx == 0 || grid[1] == 1,
+        "{op}: {segs} segments cannot be tiled over the grid"
+    );
+    let k = pick(d, K::NormF32, K::NormF16);
+    rec.dispatch(
+        k,
+        &[x.buffer(), gamma.buffer(), beta.buffer(), out.buffer()],
+        bytemuck::bytes_of(&p),
+        grid,
+        op,
+    )
+}
+
+/// x: (N, C, H, W), gamma/beta: (C) -> out: (N, C, H, W); PyTorch GroupNorm (biased variance), then SiLU if
+/// `silu`.
+pub fn group_norm(
+    rec: &mut Recorder,
+    x: &Tensor,
+    groups: usize,
+    gamma: &Tensor,
+    beta: &Tensor,
+    eps: f32,
+    silu: bool,
+    out: &Tensor,
+) -> Result<()> {
+    let s = x.shape();
+    ensure!(
+        s.len() == 4,
+        "group_norm: x must be (N, C, H, W), got {s:?}"
+    );
+    ensure!(
+        groups > 0 && s[1] % groups == 0,
+        "group_norm: {groups} groups do not divide {} channels of {s:?}",
+        s[1]
+    );
+    expect_shape("group_norm", "gamma", gamma, &[s[1]])?;
+    expect_shape("group_norm", "beta", beta, &[s[1]])?;
+    let cpg = s[1] / groups;
+    let hw = s[2] * s[3];
+    let p = NormParams {
+        len: (cpg * hw) as u32,
+        segs_per_item: groups as u32,
+        ch_per_seg: cpg as u32,
+        inner: hw as u32,
+        eps,
+        silu: silu as u32,
+    };
+    norm(rec, "group_norm", x, gamma, beta, out, s[0] * groups, p)
+}
+
+/// x: (.., D), gamma/beta: (D) -> out: (.., D); PyTorch LayerNorm over the last dimension.
+pub fn layer_norm(
+    rec: &mut Recorder,
+    x: &Tensor,
+    gamma: &Tensor,
+    beta: &Tensor,
+    eps: f32,
+    out: &Tensor,
+) -> Result<()> {
+    let s = x.shape();
+    let d = *s.last().unwrap_or(&0);
+    expect_shape("layer_norm", "gamma", gamma, &[d])?;
+    expect_shape("layer_norm", "beta", beta, &[d])?;
+    let p = NormParams {
+        len: d as u32,
+        segs_per_item: 1,
+        ch_per_seg: d as u32,
+        inner: 1,
+        eps,
+        silu: 0,
+    };
+    norm(rec, "layer_norm", x, gamma, beta, out, x.numel() / d, p)
+}

@@ -1,0 +1,195 @@
+//! Device buffers: a buffer owns its gpu-allocator allocation; upload/download go through the mapping when the
+//! memory is host-visible and coherent (lavapipe, integrated GPUs), else through a staging buffer.
+use std::sync::Arc;
+
+use anyhow::{ensure, Context as _, Result};
+use ash::vk;
+use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
+use gpu_allocator::MemoryLocation;
+
+use super::{vk_err, Context, Inner};
+
+/// A storage buffer with its memory.
+pub struct Buffer {
+    pub(crate) ctx: Arc<Inner>,
+    pub(crate) raw: vk::Buffer,
+    alloc: Option<Allocation>,
+    size: u64,
+    name: String,
+}
+
+impl std::fmt::Debug for Buffer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "Buffer({:?}, {} bytes)", self.name, self.size)
+    }
+}
+
+impl Buffer {
+    /// Creates a device-local storage buffer of `size` bytes (at least 4).
+    pub fn new(ctx: &Context, size: u64, name: &str) -> Result<Self> {
+        Self::with_location(ctx, size, name, MemoryLocation::GpuOnly)
+    }
+
+    fn with_location(ctx: &Context, size: u64, name: &str, loc: MemoryLocation) -> Result<Self> {
+        ensure!(
+            size > 0,
+            "buffer {name:?}: size 0 (empty tensors are not allowed)"
+        );
+        let range = ctx.inner.info.max_storage_buffer_range;
+        ensure!(
+            loc != MemoryLocation::GpuOnly || size <= range,
+            "buffer {name:?}: {size} bytes exceeds the device's maxStorageBufferRange ({range} bytes); \
+             split the batch or use a smaller resolution"
+        );
+        let size = size.next_multiple_of(4);
+        let d = &ctx.inner.device;
+        let bci = vk::BufferCreateInfo::default().size(size).usage(
+            vk::BufferUsageFlags::STORAGE_BUFFER
+                | vk::BufferUsageFlags::TRANSFER_SRC
+                | vk::BufferUsageFlags::TRANSFER_DST,
+        );
+        // SAFETY: valid device and create info.
+        let raw = unsafe { d.create_buffer(&bci, None) }.map_err(vk_err("vkCreateBuffer"))?;
+        // SAFETY: raw is a fresh buffer of this device.
+        let req = unsafe { d.get_buffer_memory_requirements(raw) };
+        let alloc = {
+            let mut a = ctx.inner.allocator.lock().expect("allocator lock");
+            a.as_mut()
+                .expect("allocator alive")
+                .allocate(&AllocationCreateDesc {
+                    name,
+                    requirements: req,
+                    location: loc,
+                    linear: true,
+                    allocation_scheme: AllocationScheme::GpuAllocatorManaged,
+                })
+        };
+        let alloc = match alloc {
+            Ok(a) => a,
+            Err(e) => {
+                // SAFETY: the buffer is unused.
+                unsafe { d.destroy_buffer(raw, None) };
+                return Err(e)
+                    .with_context(|| format!("allocating {size} bytes for buffer {name:?}"));
+            }
+        };
+        // SAFETY: memory and offset come from the allocation made for this buffer's requirements.
+        unsafe { d.bind_buffer_memory(raw, alloc.memory(), alloc.offset()) }
+            .map_err(vk_err("vkBindBufferMemory"))?;
+        ctx.set_name(raw, name);
+        Ok(Self {
+            ctx: ctx.inner.clone(),
+            raw,
+            alloc: Some(alloc),
+            size,
+            name: name.to_string(),
+        })
+    }
+
+    pub fn size(&self) -> u64 {
+        self.size
+    }
+
+    pub fn name(&self) -> &str {
+        &self.name
+    }
+
+    fn host_coherent(&self) -> bool {
+        let a = self.alloc.as_ref().expect("allocation alive");
+        a.mapped_ptr().is_some()
+            && a.memory_properties()
+                .contains(vk::MemoryPropertyFlags::HOST_COHERENT)
+    }
+
+    /// Writes `data` at byte `offset`. The caller must ensure no GPU work is using the buffer.
+    pub fn write(&self, ctx: &Context, offset: u64, data: &[u8]) -> Result<()> {
+        ensure!(
+            offset + data.len() as u64 <= self.size,
+            "buffer {:?}: write past the end",
+            self.name
+        );
+        if self.host_coherent() {
+            self.write_mapped(offset, data);
+            return Ok(());
+        }
+        let staging = Buffer::with_location(
+            ctx,
+            data.len() as u64,
+            "staging-upload",
+            MemoryLocation::CpuToGpu,
+        )?;
+        staging.write_mapped(0, data);
+        let mut rec = ctx.recorder()?;
+        rec.copy(&staging, 0, self, offset, data.len() as u64);
+        rec.finish()?.submit_wait()?;
+        Ok(())
+    }
+
+    fn write_mapped(&self, offset: u64, data: &[u8]) {
+        let p = self
+            .alloc
+            .as_ref()
+            .and_then(|a| a.mapped_ptr())
+            .expect("mapped");
+        // SAFETY: the mapping covers `size` bytes and the range was checked; the GPU is not using the buffer
+        // (caller contract), and host-coherent or staging memory needs no flush.
+        unsafe {
+            std::ptr::copy_nonoverlapping(
+                data.as_ptr(),
+                (p.as_ptr() as *mut u8).add(offset as usize),
+                data.len(),
+            )
+        };
+    }
+
+    /// Reads `len` bytes at byte `offset`. The caller must ensure GPU writes to the buffer have completed.
+    pub fn read(&self, ctx: &Context, offset: u64, len: u64) -> Result<Vec<u8>> {
+        ensure!(
+            offset + len <= self.size,
+            "buffer {:?}: read past the end",
+            self.name
+        );
+        if self.host_coherent() {
+            let s = self
+                .alloc
+                .as_ref()
+                .and_then(|a| a.mapped_slice())
+                .expect("mapped");
+            return Ok(s[offset as usize..(offset + len) as usize].to_vec());
+        }
+        let staging =
+            Buffer::with_location(ctx, len, "staging-download", MemoryLocation::GpuToCpu)?;
+        let mut rec = ctx.recorder()?;
+        rec.copy(self, offset, &staging, 0, len);
+        rec.finish()?.submit_wait()?;
+        let a = staging.alloc.as_ref().expect("alloc");
+        if !a
+            .memory_properties()
+            .contains(vk::MemoryPropertyFlags::HOST_COHERENT)
+        {
+            let range = vk::MappedMemoryRange::default()
+                // SAFETY: memory handle of a live allocation.
+                .memory(unsafe { a.memory() })
+                .offset(0)
+                .size(vk::WHOLE_SIZE);
+            // SAFETY: the range lies in mapped memory of this allocation.
+            unsafe { ctx.inner.device.invalidate_mapped_memory_ranges(&[range]) }
+                .map_err(vk_err("vkInvalidateMappedMemoryRanges"))?;
+        }
+        Ok(a.mapped_slice().expect("mapped")[..len as usize].to_vec())
+    }
+}
+
+impl Drop for Buffer {
+    fn drop(&mut self) {
+        if let Some(a) = self.alloc.take() {
+            if let Ok(mut al) = self.ctx.allocator.lock() {
+                if let Some(al) = al.as_mut() {
+                    let _ = al.free(a);
+                }
+            }
+        }
+        // SAFETY: recordings keep an Arc of every buffer they use, so no pending GPU work references it.
+        unsafe { self.ctx.device.destroy_buffer(self.raw, None) };
+    }
+}
