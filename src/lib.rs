@@ -24,8 +24,10 @@
 //! fence. Nothing is shared between threads without the device's queue mutex.
 pub mod kernels;
 pub mod metrics;
+pub mod nn;
 pub mod ops;
 pub mod projection;
+pub mod sampling;
 pub mod scene;
 pub mod sim;
 pub mod tensor;

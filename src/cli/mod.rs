@@ -3,6 +3,7 @@ use clap::{Parser, Subcommand};
 
 mod bench;
 mod info;
+mod project;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -28,6 +29,8 @@ pub enum Command {
     /// Benchmarks.
     #[command(subcommand)]
     Bench(BenchCmd),
+    /// Project a keyframe's boxes (and a map) into its cameras: masks, overlays, projection.json.
+    Project(project::ProjectArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -59,5 +62,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             filter,
             min_time,
         }) => bench::run_ops(cli.device, json, filter, min_time),
+        Command::Project(a) => project::run(a),
     }
 }

@@ -51,3 +51,53 @@ impl Camera {
         self.cam2ego.w_axis.truncate()
     }
 }
+
+impl Camera {
+    /// Intrinsics rescaled to an image resized from the native `width x height` to `new_width x new_height`.
+    ///
+    /// Convention (pixel centres, matching PyTorch `interpolate(..., align_corners=False)` for bilinear and
+    /// bicubic): image coordinates put the centre of pixel index `i` at `u = i` (OpenCV / nuScenes), and a resize
+    /// by `sx = new_width / width` maps `u' = (u + 0.5) * sx - 0.5` (same for `v` with `sy`). Hence
+    /// `fx' = fx sx`, `skew' = skew sx`, `cx' = (cx + 0.5) sx - 0.5`, `fy' = fy sy`, `cy' = (cy + 0.5) sy - 0.5`.
+    /// The naive `u' = u sx` is off by `0.5 (1 - sx)` px (0.375 px at 1600 -> 400).
+    pub fn intrinsic_scaled(&self, new_width: u32, new_height: u32) -> DMat3 {
+        let sx = new_width as f64 / self.width.max(1) as f64;
+        let sy = new_height as f64 / self.height.max(1) as f64;
+        let k = self.intrinsic;
+        // glam is column-major: x_axis = (fx, 0, 0), y_axis = (skew, fy, 0), z_axis = (cx, cy, 1).
+        DMat3::from_cols(
+            DVec3::new(k.x_axis.x * sx, k.x_axis.y * sy, k.x_axis.z),
+            DVec3::new(k.y_axis.x * sx, k.y_axis.y * sy, k.y_axis.z),
+            DVec3::new(
+                (k.z_axis.x + 0.5) * sx - 0.5,
+                (k.z_axis.y + 0.5) * sy - 0.5,
+                k.z_axis.z,
+            ),
+        )
+    }
+
+    /// The same camera seen through an image resized to `new_width x new_height` (see [`Camera::intrinsic_scaled`]).
+    pub fn rescaled(&self, new_width: u32, new_height: u32) -> Camera {
+        Camera {
+            name: self.name.clone(),
+            intrinsic: self.intrinsic_scaled(new_width, new_height),
+            cam2ego: self.cam2ego,
+            width: new_width,
+            height: new_height,
+        }
+    }
+}
+
+impl RecordedFrame {
+    /// The image of camera `name` in this frame, if recorded.
+    pub fn image(&self, name: &str) -> Option<&CameraImage> {
+        self.images.iter().find(|i| i.camera == name)
+    }
+}
+
+impl CameraRig {
+    /// The camera called `name`, if the rig has one.
+    pub fn camera(&self, name: &str) -> Option<&Camera> {
+        self.cameras.iter().find(|c| c.name == name)
+    }
+}

@@ -1,0 +1,276 @@
+//! `b2dr project`: projects a keyframe's boxes (and optionally a drivable-area map) into each camera; writes
+//! per-class masks at render resolution, an overlay on the real image, and `projection.json` (native pixels).
+use std::path::PathBuf;
+
+use anyhow::{bail, Context, Result};
+use b2dr::projection::keyframe::drivable_area_from_geojson;
+use b2dr::projection::{
+    box_wireframe, channel_name, CameraProjector, KeyFrame, LayoutMasks, LayoutRenderer, MapLayer,
+    ProjectionConfig, NUM_MASK_CHANNELS,
+};
+use glam::DVec2;
+use image::{Rgb, RgbImage};
+use serde_json::json;
+
+#[derive(clap::Args, Debug)]
+pub struct ProjectArgs {
+    /// Keyframe JSON (format of nuscenes-mini/keyframe-scene-0061/frame.json); images are read next to it.
+    #[arg(long)]
+    pub frame: PathBuf,
+    /// Output directory (created).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Mask resolution WIDTHxHEIGHT.
+    #[arg(long, default_value = "400x224")]
+    pub size: String,
+    /// Culling range in metres.
+    #[arg(long, default_value_t = 80.0)]
+    pub range: f64,
+    /// Optional drivable-area GeoJSON (global frame) drawn as the drivable_area channel.
+    #[arg(long)]
+    pub map: Option<PathBuf>,
+    /// Width of the overlay images (default: the camera's native width).
+    #[arg(long)]
+    pub overlay_width: Option<u32>,
+    /// How to read `boxes[].center[2]`: `center` (the format's gravity centre) or `top` (the box's top face; what
+    /// the shared keyframe-scene-0061/frame.json actually holds, see docs/projection.md).
+    #[arg(long, default_value = "center", value_parser = ["center", "top"])]
+    pub box_z: String,
+    /// Write the overlays as PNG (overlay.png) instead of JPEG (overlay.jpg).
+    #[arg(long)]
+    pub overlay_png: bool,
+}
+
+fn parse_size(s: &str) -> Result<(u32, u32)> {
+    let (w, h) = s
+        .split_once('x')
+        .with_context(|| format!("--size {s:?}: expected WIDTHxHEIGHT"))?;
+    let w: u32 = w
+        .trim()
+        .parse()
+        .with_context(|| format!("--size {s:?}: width"))?;
+    let h: u32 = h
+        .trim()
+        .parse()
+        .with_context(|| format!("--size {s:?}: height"))?;
+    if w == 0 || h == 0 || w > 8192 || h > 8192 {
+        bail!("--size {s:?}: each side must be in 1..=8192");
+    }
+    Ok((w, h))
+}
+
+/// Class colours for overlays: boxes first, then map classes (same order as the mask channels).
+const COLOURS: [[u8; 3]; NUM_MASK_CHANNELS] = [
+    [255, 158, 0],
+    [255, 99, 71],
+    [255, 69, 0],
+    [255, 140, 0],
+    [233, 150, 70],
+    [0, 0, 230],
+    [255, 61, 99],
+    [220, 20, 60],
+    [47, 79, 79],
+    [112, 128, 144],
+    [60, 180, 75],
+    [0, 200, 200],
+    [255, 255, 255],
+    [255, 255, 0],
+    [200, 0, 200],
+];
+
+pub fn run(args: ProjectArgs) -> Result<()> {
+    let (rw, rh) = parse_size(&args.size)?;
+    anyhow::ensure!(
+        args.range > 0.0 && args.range.is_finite(),
+        "--range must be positive"
+    );
+    if let Some(w) = args.overlay_width {
+        anyhow::ensure!(
+            (1..=8192).contains(&w),
+            "--overlay-width {w}: must be in 1..=8192"
+        );
+    }
+    let mut frame = KeyFrame::load(&args.frame)?;
+    if args.box_z == "top" {
+        frame.boxes_z_from_top();
+    }
+    let cfg = ProjectionConfig {
+        range: args.range,
+        ..ProjectionConfig::default()
+    };
+    let map = match &args.map {
+        Some(p) => MapLayer::new(drivable_area_from_geojson(p, frame.ego2global.w_axis.z)?),
+        None => MapLayer::default(),
+    };
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let mut renderer = LayoutRenderer::new(rw as usize, rh as usize);
+    let mut masks = LayoutMasks::new(rw as usize, rh as usize);
+    let mut cams_json = serde_json::Map::new();
+    for (cam, img) in &frame.cameras {
+        let dir = args.out.join(&cam.name);
+        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+        let render = CameraProjector::new(cam, &img.ego2global, rw, rh)?;
+        renderer.render(&render, &frame.boxes, &map, &cfg, &mut masks);
+        for c in 0..NUM_MASK_CHANNELS {
+            let data: Vec<u8> = masks.channel(c).iter().map(|&v| v * 255).collect();
+            let p = dir.join(format!("{}.png", channel_name(c)));
+            image::GrayImage::from_raw(rw, rh, data)
+                .context("mask buffer size")?
+                .save(&p)
+                .with_context(|| format!("writing {}", p.display()))?;
+        }
+
+        let native = CameraProjector::new(cam, &img.ego2global, cam.width, cam.height)?;
+        let mut entries = Vec::new();
+        let mut wires = Vec::new();
+        for (i, b) in frame.boxes.iter().enumerate() {
+            let Some((center, depth)) = native.project(b.center) else {
+                continue;
+            };
+            let corners: Vec<serde_json::Value> = b
+                .corners()
+                .iter()
+                .map(|p| match native.project(*p) {
+                    Some((q, _)) => json!([q.x, q.y]),
+                    None => serde_json::Value::Null,
+                })
+                .collect();
+            let wf = box_wireframe(&native, b, &cfg);
+            let in_view = wf
+                .as_ref()
+                .is_some_and(|segs| segs.iter().any(|s| segment_hits_image(&native, s)));
+            if let Some(segs) = wf {
+                wires.push((b.class.index(), segs));
+            }
+            entries.push(json!({
+                "box": i, "class": b.class.name(), "center_px": [center.x, center.y], "depth": depth,
+                "corners_px": corners, "in_view": in_view,
+            }));
+        }
+        cams_json.insert(cam.name.clone(), serde_json::Value::Array(entries));
+
+        let img_path = frame.image_path(img);
+        let mut photo = image::open(&img_path)
+            .with_context(|| format!("reading {}", img_path.display()))?
+            .to_rgb8();
+        if photo.dimensions() != (cam.width, cam.height) {
+            bail!(
+                "{}: image is {:?} but cameras.{}.width/height say {}x{}",
+                img_path.display(),
+                photo.dimensions(),
+                cam.name,
+                cam.width,
+                cam.height
+            );
+        }
+        blend_masks(&mut photo, &masks);
+        for (cls, segs) in &wires {
+            for (a, b) in segs {
+                draw_line(&mut photo, *a, *b, COLOURS[*cls]);
+            }
+        }
+        let photo = match args.overlay_width {
+            Some(w) if w > 0 && w != cam.width => {
+                let h = ((cam.height as u64 * w as u64) / cam.width as u64).max(1) as u32;
+                image::imageops::resize(&photo, w, h, image::imageops::FilterType::Triangle)
+            }
+            _ => photo,
+        };
+        if args.overlay_png {
+            let p = dir.join("overlay.png");
+            photo
+                .save(&p)
+                .with_context(|| format!("writing {}", p.display()))?;
+        } else {
+            let p = dir.join("overlay.jpg");
+            let f =
+                std::fs::File::create(&p).with_context(|| format!("creating {}", p.display()))?;
+            image::codecs::jpeg::JpegEncoder::new_with_quality(std::io::BufWriter::new(f), 85)
+                .encode_image(&photo)
+                .with_context(|| format!("writing {}", p.display()))?;
+        }
+    }
+    let p = args.out.join("projection.json");
+    let text = serde_json::to_string_pretty(&json!({ "cameras": cams_json }))?;
+    std::fs::write(&p, text).with_context(|| format!("writing {}", p.display()))?;
+    println!(
+        "wrote masks, overlays and {} for {} cameras",
+        p.display(),
+        frame.cameras.len()
+    );
+    Ok(())
+}
+
+fn segment_hits_image(p: &CameraProjector, (a, b): &(DVec2, DVec2)) -> bool {
+    // sample along the segment: enough for a yes/no in-view flag
+    (0..=32).any(|k| p.in_image(a.lerp(*b, k as f64 / 32.0)))
+}
+
+/// Blends the masks (render resolution) onto the native image; each native pixel takes the mask pixel whose
+/// area it falls in (nearest under the align_corners=False mapping).
+fn blend_masks(photo: &mut RgbImage, m: &LayoutMasks) {
+    let (w, h) = photo.dimensions();
+    let (sx, sy) = (m.width as f64 / w as f64, m.height as f64 / h as f64);
+    for y in 0..h {
+        let my = (((y as f64 + 0.5) * sy) as usize).min(m.height - 1);
+        for x in 0..w {
+            let mx = (((x as f64 + 0.5) * sx) as usize).min(m.width - 1);
+            let px = photo.get_pixel_mut(x, y);
+            // map channels first (under), boxes last (over)
+            for c in (0..NUM_MASK_CHANNELS).rev() {
+                if m.channel(c)[my * m.width + mx] != 0 {
+                    let a = if c >= 10 { 0.3 } else { 0.4 };
+                    for (v, col) in px.0.iter_mut().zip(COLOURS[c]) {
+                        *v = (*v as f64 * (1.0 - a) + col as f64 * a) as u8;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// A 3-pixel-wide line (pixel centres at integer coordinates), clipped to the image by skipping off-image samples.
+fn draw_line(img: &mut RgbImage, a: DVec2, b: DVec2, c: [u8; 3]) {
+    let (w, h) = (img.width() as i64, img.height() as i64);
+    // Liang-Barsky against the image rectangle (plus the pen's margin): near-clipped edges can end ~1e5 px away
+    let (lo, hi) = (
+        DVec2::splat(-2.0),
+        DVec2::new(w as f64 + 1.0, h as f64 + 1.0),
+    );
+    let d = b - a;
+    let (mut t0, mut t1) = (0.0f64, 1.0f64);
+    for (p, q) in [
+        (-d.x, a.x - lo.x),
+        (d.x, hi.x - a.x),
+        (-d.y, a.y - lo.y),
+        (d.y, hi.y - a.y),
+    ] {
+        if p == 0.0 {
+            if q < 0.0 {
+                return;
+            }
+        } else if p < 0.0 {
+            t0 = t0.max(q / p);
+        } else {
+            t1 = t1.min(q / p);
+        }
+    }
+    if t0 > t1 {
+        return;
+    }
+    let (a, b) = (a + d * t0, a + d * t1);
+    let n = ((b - a).abs().max_element().ceil() as i64).clamp(1, 20_000);
+    for k in 0..=n {
+        let p = a.lerp(b, k as f64 / n as f64);
+        let (x, y) = (p.x.round() as i64, p.y.round() as i64);
+        for dy in -1..=1 {
+            for dx in -1..=1 {
+                let (xx, yy) = (x + dx, y + dy);
+                if xx >= 0 && yy >= 0 && xx < w && yy < h {
+                    img.put_pixel(xx as u32, yy as u32, Rgb(c));
+                }
+            }
+        }
+    }
+}
