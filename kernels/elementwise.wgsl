@@ -16,11 +16,15 @@ struct ScaleAddParams { n: u32, alpha: f32, beta: f32 }
 struct GegluParams { rows: u32, d: u32 }
 struct ConcatParams { n: u32, c1: u32, c2: u32, hw: u32 }
 struct TransposeParams { n: u32, r: u32, c: u32 }
+struct LinCombParams { n: u32, terms: u32, o_out: u32, o0: u32, o1: u32, o2: u32, o3: u32, c0: f32, c1: f32, c2: f32, c3: f32 }
 
 @group(0) @binding(0) var<storage, read> a: array<ST>;
 @group(0) @binding(1) var<storage, read> b: array<ST>;
 @group(0) @binding(2) var<storage, read_write> out: array<ST>;
 @group(0) @binding(1) var<storage, read_write> out1: array<ST>;
+@group(0) @binding(2) var<storage, read> t2: array<ST>;
+@group(0) @binding(3) var<storage, read> t3: array<ST>;
+@group(0) @binding(4) var<storage, read_write> out4: array<ST>;
 
 var<immediate> up: UnaryParams;
 var<immediate> bp: BinaryParams;
@@ -28,6 +32,7 @@ var<immediate> sp: ScaleAddParams;
 var<immediate> gp: GegluParams;
 var<immediate> cp: ConcatParams;
 var<immediate> tp: TransposeParams;
+var<immediate> lp: LinCombParams;
 
 // x: (n) -> out1: (n); op 0 = silu, 1 = gelu(erf)
 @compute @workgroup_size(256)
@@ -103,4 +108,18 @@ fn transpose(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg
     let c = (i / tp.r) % tp.c;
     let b = i / (tp.r * tp.c);
     out1[i] = a[(b * tp.r + r) * tp.c + c];
+}
+
+// out4[o_out + i] = sum_{k < terms} c_k * t_k[o_k + i], i < n, with t0 = a, t1 = b (the sampler's linear
+// combinations; element offsets select the uncond / cond halves of a guided batch). Unused terms must still
+// be bound (any buffer) and have c = 0. out may alias an input element-for-element.
+@compute @workgroup_size(256)
+fn lincomb(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let i = flat_index(wid, nwg, lid);
+    if (i >= lp.n) { return; }
+    var acc = lp.c0 * f32(a[lp.o0 + i]);
+    if (lp.terms > 1u) { acc += lp.c1 * f32(b[lp.o1 + i]); }
+    if (lp.terms > 2u) { acc += lp.c2 * f32(t2[lp.o2 + i]); }
+    if (lp.terms > 3u) { acc += lp.c3 * f32(t3[lp.o3 + i]); }
+    out4[lp.o_out + i] = ST(acc);
 }

@@ -5,6 +5,7 @@ pub mod config;
 pub mod controlnet;
 pub mod device;
 pub mod layers;
+pub mod pipeline;
 pub mod resnet;
 pub mod transformer;
 pub mod unet;

@@ -3,6 +3,7 @@ use anyhow::{ensure, Result};
 
 use super::{expect_shape, grid_1d, pick, same_dtype, Recorder};
 use crate::kernels::params::{
+    LinCombParams,
     BinaryParams, ConcatParams, GegluParams, ScaleAddParams, TransposeParams, UnaryParams,
 };
 use crate::kernels::KernelId as K;
@@ -217,4 +218,48 @@ pub fn transpose(rec: &mut Recorder, x: &Tensor, out: &Tensor) -> Result<()> {
         grid_1d("transpose", x.numel())?,
         "transpose",
     )
+}
+
+/// One term of [`lincomb`]: `coeff * x[offset..offset + n]`.
+pub struct LinTerm<'a> {
+    pub x: &'a Tensor,
+    pub offset: usize,
+    pub coeff: f32,
+}
+
+/// out[o_out + i] = sum_k coeff_k * x_k[offset_k + i] for i < n (1 to 4 terms, one dtype). Offsets are in
+/// elements; every range must lie inside its tensor. `out` may alias an input element-for-element.
+pub fn lincomb(rec: &mut Recorder, terms: &[LinTerm], out: &Tensor, o_out: usize, n: usize) -> Result<()> {
+    ensure!((1..=4).contains(&terms.len()), "lincomb: {} terms (1 to 4 supported)", terms.len());
+    let mut ts: Vec<&Tensor> = terms.iter().map(|t| t.x).collect();
+    ts.push(out);
+    let d = same_dtype("lincomb", &ts)?;
+    ensure!(n > 0 && o_out + n <= out.numel(), "lincomb: out range {o_out}..{} exceeds {:?}", o_out + n, out.shape());
+    for (k, t) in terms.iter().enumerate() {
+        ensure!(
+            t.offset + n <= t.x.numel(),
+            "lincomb: term {k} range {}..{} exceeds {:?}",
+            t.offset,
+            t.offset + n,
+            t.x.shape()
+        );
+        ensure!(t.coeff.is_finite(), "lincomb: term {k} coefficient {} is not finite", t.coeff);
+    }
+    let g = |k: usize| terms.get(k).unwrap_or(&terms[0]);
+    let p = LinCombParams {
+        n: n as u32,
+        terms: terms.len() as u32,
+        o_out: o_out as u32,
+        o0: g(0).offset as u32,
+        o1: g(1).offset as u32,
+        o2: g(2).offset as u32,
+        o3: g(3).offset as u32,
+        c0: g(0).coeff,
+        c1: if terms.len() > 1 { g(1).coeff } else { 0.0 },
+        c2: if terms.len() > 2 { g(2).coeff } else { 0.0 },
+        c3: if terms.len() > 3 { g(3).coeff } else { 0.0 },
+    };
+    let k = pick(d, K::ElementwiseF32Lincomb, K::ElementwiseF16Lincomb);
+    let bufs = [g(0).x.buffer(), g(1).x.buffer(), g(2).x.buffer(), g(3).x.buffer(), out.buffer()];
+    rec.dispatch(k, &bufs, bytemuck::bytes_of(&p), grid_1d("lincomb", n)?, "lincomb")
 }

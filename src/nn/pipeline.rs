@@ -1,0 +1,232 @@
+//! The guided sampling pipeline: UNet (+ ControlNet) + sampler (+ VAE decode), planned once per shape.
+//!
+//! Planning records three kinds of command buffers once: the model pass (the latent duplicated into the
+//! [uncond; cond] batch, cast to the model dtype, ControlNet, UNet, cast back to f32), one small recording per
+//! sampler step (the plan's linear combinations, coefficients baked in), and the VAE decode. Running writes
+//! the timestep of each step into a device tensor and replays them; nothing is recorded or allocated per step.
+//! Sampler buffers and the VAE are f32; the UNet/ControlNet run in the model dtype (f32 or f16).
+use std::collections::BTreeMap;
+
+use anyhow::{bail, ensure, Context as _, Result};
+
+use super::controlnet::ControlNet;
+use super::device::{Fwd, Workspace};
+use super::unet::{Residuals, UNet};
+use super::vae::VaeDecoder;
+use crate::ops::elementwise::{lincomb, LinTerm};
+use crate::ops::cast;
+use crate::sampling::{Buf, Op, SamplerPlan};
+use crate::tensor::{DType, Tensor};
+use crate::vk::{Context, Recording};
+
+/// Shapes and options of a planned run.
+#[derive(Clone, Debug)]
+pub struct PipelineShape {
+    /// Images per batch (cameras), N.
+    pub batch: usize,
+    /// Latent height and width.
+    pub latent: (usize, usize),
+    /// Context tokens (77) and width.
+    pub context: (usize, usize),
+    /// Classifier-free guidance scale; None runs the conditional pass only.
+    pub guidance: Option<f64>,
+    pub conditioning_scale: f32,
+}
+
+/// What a run returns.
+pub struct SampleOutput {
+    /// The latent after every step, (N, 4, h, w) each.
+    pub latents: Vec<Vec<f32>>,
+    /// The decoded image (N, 3, 8h, 8w), clamp(x / 2 + 0.5, 0, 1); empty without a VAE.
+    pub image: Vec<f32>,
+}
+
+pub struct Pipeline {
+    ctx: Context,
+    shape: PipelineShape,
+    plan: SamplerPlan,
+    /// Sampler buffers, f32 (N, 4, h, w); EpsUncond/EpsCond/Eps are views (offsets) into `eps32`.
+    bufs: BTreeMap<Buf, Tensor>,
+    t: Tensor,
+    context: Tensor,
+    cond: Option<Tensor>,
+    model: Recording,
+    steps: Vec<Recording>,
+    decode: Option<(Recording, Tensor)>,
+    _ws: Workspace,
+    /// Device bytes in use once planned (weights excluded).
+    pub planned_bytes: u64,
+}
+
+impl Pipeline {
+    /// Plans a run. `vae` (with its scaling factor) is optional; `control` needs a conditioning image per run.
+    pub fn new(
+        ctx: &Context,
+        unet: &UNet,
+        control: Option<&ControlNet>,
+        vae: Option<(&VaeDecoder, f64)>,
+        model_dtype: DType,
+        shape: PipelineShape,
+        plan: SamplerPlan,
+    ) -> Result<Self> {
+        let (h, w) = shape.latent;
+        let n = shape.batch;
+        ensure!(n > 0 && h > 0 && w > 0, "pipeline: empty shape {shape:?}");
+        let guided = shape.guidance.is_some();
+        let plan = match shape.guidance {
+            Some(s) => plan.with_guidance(s),
+            None => plan,
+        };
+        let mb = if guided { 2 * n } else { n };
+        let lat = [n, 4, h, w];
+        let per = n * 4 * h * w;
+        let before = ctx.allocated_bytes();
+        let mut ws = Workspace::new(ctx, model_dtype);
+        let eps32 = Tensor::empty(ctx, &[mb, 4, h, w], DType::F32, "eps32")?;
+        let mut bufs = BTreeMap::new();
+        for b in plan.buffers() {
+            match b {
+                Buf::Eps | Buf::EpsUncond | Buf::EpsCond => {}
+                Buf::Noise => bail!("pipeline: samplers that draw fresh noise per step (DDIM eta > 0) are not supported"),
+                other => {
+                    bufs.insert(other, Tensor::zeros(ctx, &lat, DType::F32, &format!("{other:?}"))?);
+                }
+            }
+        }
+        let sample = bufs.get(&Buf::Sample).context("plan without a Sample buffer")?.clone();
+        let t = Tensor::zeros(ctx, &[mb], DType::F32, "timestep")?;
+        let context = Tensor::zeros(ctx, &[mb, shape.context.0, shape.context.1], model_dtype, "context")?;
+        let cond = match control {
+            Some(c) => Some(Tensor::zeros(ctx, &[mb, c.cfg.conditioning_channels, 8 * h, 8 * w], model_dtype, "cond")?),
+            None => None,
+        };
+
+        // The model pass.
+        let mut rec = ctx.recorder()?;
+        let x32 = Tensor::empty(ctx, &[mb, 4, h, w], DType::F32, "x32")?;
+        for k in 0..mb / n {
+            lincomb(&mut rec, &[LinTerm { x: &sample, offset: 0, coeff: 1.0 }], &x32, k * per, per)?;
+        }
+        let x = ws.alloc(&[mb, 4, h, w])?;
+        cast::cast(&mut rec, &x32, &x)?;
+        let eps = {
+            let mut f = Fwd { rec: &mut rec, ws: &mut ws };
+            let res = match (control, &cond) {
+                (Some(c), Some(cimg)) => Some(c.forward(&mut f, &x, &t, &context, cimg, shape.conditioning_scale)?),
+                _ => None,
+            };
+            let r = res.as_ref().map(|o| Residuals { down: &o.down, mid: &o.mid });
+            unet.forward(&mut f, &x, &t, &context, r)?
+        };
+        cast::cast(&mut rec, &eps, &eps32)?;
+        let model = rec.finish()?;
+
+        // One recording per sampler step.
+        let view = |b: Buf| -> Result<(Tensor, usize)> {
+            Ok(match b {
+                Buf::Eps => (eps32.clone(), if guided { per } else { 0 }),
+                Buf::EpsUncond => (eps32.clone(), 0),
+                Buf::EpsCond => (eps32.clone(), per),
+                other => (bufs.get(&other).context("buffer")?.clone(), 0),
+            })
+        };
+        let mut steps = vec![];
+        for s in &plan.steps {
+            let mut rec = ctx.recorder()?;
+            for op in &s.ops {
+                match op {
+                    Op::LinComb { out, terms } => {
+                        let (o, oo) = view(*out)?;
+                        let views = terms.iter().map(|t| view(t.buf)).collect::<Result<Vec<_>>>()?;
+                        let lt: Vec<LinTerm> = views
+                            .iter()
+                            .zip(terms)
+                            .map(|((x, off), t)| LinTerm { x, offset: *off, coeff: t.coeff as f32 })
+                            .collect();
+                        lincomb(&mut rec, &lt, &o, oo, per)?;
+                    }
+                    Op::Clamp { .. } => bail!("pipeline: clip_sample (DDIM clamp) is not supported on the device"),
+                }
+            }
+            steps.push(rec.finish()?);
+        }
+
+        // VAE decode (f32).
+        let decode = match vae {
+            Some((dec, scaling)) => {
+                let mut vws = Workspace::new(ctx, DType::F32);
+                let mut rec = ctx.recorder()?;
+                let z = vws.alloc(&lat)?;
+                lincomb(&mut rec, &[LinTerm { x: &sample, offset: 0, coeff: (1.0 / scaling) as f32 }], &z, 0, per)?;
+                let img = dec.forward(&mut Fwd { rec: &mut rec, ws: &mut vws }, &z)?;
+                let r = rec.finish()?;
+                Some((r, img))
+            }
+            None => None,
+        };
+        let planned_bytes = ctx.allocated_bytes().saturating_sub(before);
+        Ok(Self { ctx: ctx.clone(), shape, plan, bufs, t, context, cond, model, steps, decode, _ws: ws, planned_bytes })
+    }
+
+    /// Runs the planned loop from the initial latent `x_t` (N, 4, h, w). `context_uncond`/`context_cond`:
+    /// (N, L, D) each (uncond ignored without guidance); `cond_image`: (N, C, 8h, 8w) when a ControlNet is used.
+    /// `keep_latents` keeps every step's latent.
+    pub fn run(
+        &self,
+        x_t: &[f32],
+        context_uncond: &[f32],
+        context_cond: &[f32],
+        cond_image: Option<&[f32]>,
+        keep_latents: bool,
+    ) -> Result<SampleOutput> {
+        let sample = &self.bufs[&Buf::Sample];
+        ensure!(x_t.len() == sample.numel(), "pipeline: x_T has {} values, expected {}", x_t.len(), sample.numel());
+        let guided = self.shape.guidance.is_some();
+        let ctx_n = self.context.numel() / if guided { 2 } else { 1 };
+        ensure!(context_cond.len() == ctx_n, "pipeline: context has {} values, expected {ctx_n}", context_cond.len());
+        let mut c = vec![];
+        if guided {
+            ensure!(context_uncond.len() == ctx_n, "pipeline: uncond context has {} values, expected {ctx_n}", context_uncond.len());
+            c.extend_from_slice(context_uncond);
+        }
+        c.extend_from_slice(context_cond);
+        self.context.write_f32(&self.ctx, &c)?;
+        match (&self.cond, cond_image) {
+            (Some(t), Some(img)) => {
+                let reps = if guided { 2 } else { 1 };
+                ensure!(img.len() * reps == t.numel(), "pipeline: conditioning image has {} values, expected {}", img.len(), t.numel() / reps);
+                t.write_f32(&self.ctx, &img.repeat(reps))?;
+            }
+            (Some(_), None) => bail!("pipeline: the ControlNet needs a conditioning image"),
+            (None, _) => {}
+        }
+        // Reset the sampler state: every run starts from x_T with empty rings.
+        for (b, t) in &self.bufs {
+            if *b == Buf::Sample {
+                t.write_f32(&self.ctx, x_t)?;
+            } else {
+                t.write_f32(&self.ctx, &vec![0.0; t.numel()])?;
+            }
+        }
+        let mut latents = vec![];
+        for (s, rec) in self.plan.steps.iter().zip(&self.steps) {
+            self.t.write_f32(&self.ctx, &vec![s.timestep as f32; self.t.numel()])?;
+            self.model.submit_wait().with_context(|| format!("model pass at step {}", s.index))?;
+            rec.submit_wait()?;
+            if keep_latents {
+                latents.push(sample.to_f32(&self.ctx)?);
+            }
+        }
+        let image = match &self.decode {
+            Some((r, img)) => {
+                r.submit_wait()?;
+                img.to_f32(&self.ctx)?.iter().map(|v| (v / 2.0 + 0.5).clamp(0.0, 1.0)).collect()
+            }
+            None => vec![],
+        };
+        if !keep_latents {
+            latents.push(sample.to_f32(&self.ctx)?);
+        }
+        Ok(SampleOutput { latents, image })
+    }
+}
