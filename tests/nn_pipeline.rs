@@ -61,7 +61,7 @@ fn guided_unipc_loop_matches_diffusers() {
     };
     let p = Pipeline::new(&ctx, &t.unet, Some(&t.control), Some((&t.vae, t.scaling)), DType::F32, shape, plan).unwrap();
     let out = p
-        .run(&io["in.x_T"].data, &io["in.context_uncond"].data, &io["in.context_cond"].data, Some(&io["in.cond_image"].data), true)
+        .run(&io["in.x_T"].data, &io["in.context_uncond"].data, &io["in.context_cond"].data, Some(&io["in.cond_image"].data), true, None)
         .unwrap();
     for (i, l) in out.latents.iter().enumerate() {
         golden::assert_close(&format!("latent after step {i}"), l, &io[&format!("out.latent_{i}")].data, 1e-5);
@@ -85,16 +85,16 @@ fn same_seed_same_device_is_bitwise_identical_and_extremes_stay_finite() {
     // 100 steps, f16 model, guidance 30: no NaN/Inf.
     let plan = unipc::plan(&NoiseSchedule::sd15(), &Default::default(), 100).unwrap();
     let p = Pipeline::new(&ctx, &t.unet, Some(&t.control), Some((&t.vae, t.scaling)), DType::F16, shape(Some(30.0)), plan).unwrap();
-    let a = p.run(&x, &u, &c, Some(&img), false).unwrap();
+    let a = p.run(&x, &u, &c, Some(&img), false, None).unwrap();
     assert!(a.latents[0].iter().chain(&a.image).all(|v| v.is_finite()), "NaN/Inf after 100 f16 steps at guidance 30");
     // Replaying the same plan gives bit-identical results.
-    let b = p.run(&x, &u, &c, Some(&img), false).unwrap();
+    let b = p.run(&x, &u, &c, Some(&img), false, None).unwrap();
     assert_eq!(a.latents[0].iter().map(|v| v.to_bits()).collect::<Vec<_>>(), b.latents[0].iter().map(|v| v.to_bits()).collect::<Vec<_>>());
     assert_eq!(a.image.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), b.image.iter().map(|v| v.to_bits()).collect::<Vec<_>>());
     // 1-step schedule without guidance.
     let plan1 = unipc::plan(&NoiseSchedule::sd15(), &Default::default(), 1).unwrap();
     let p1 = Pipeline::new(&ctx, &t.unet, Some(&t.control), None, DType::F16, shape(None), plan1).unwrap();
-    let o = p1.run(&x, &[], &c, Some(&img), false).unwrap();
+    let o = p1.run(&x, &[], &c, Some(&img), false, None).unwrap();
     assert!(o.latents[0].iter().all(|v| v.is_finite()));
     common::assert_no_validation_errors();
 }

@@ -2,8 +2,10 @@
 use clap::{Parser, Subcommand};
 
 mod bench;
+mod forward;
 mod info;
 mod project;
+mod sample;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -31,6 +33,10 @@ pub enum Command {
     Bench(BenchCmd),
     /// Project a keyframe's boxes (and a map) into its cameras: masks, overlays, projection.json.
     Project(project::ProjectArgs),
+    /// Run one model component (unet, controlnet, vae-encoder, vae-decoder) on named input tensors.
+    Forward(forward::ForwardArgs),
+    /// Run a full guided sampling loop (UNet + ControlNet + VAE decode) and write PNG and EXR.
+    Sample(sample::SampleArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -63,5 +69,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             min_time,
         }) => bench::run_ops(cli.device, json, filter, min_time),
         Command::Project(a) => project::run(a),
+        Command::Forward(a) => forward::run(cli.device, a),
+        Command::Sample(a) => sample::run(cli.device, a),
     }
 }

@@ -7,6 +7,7 @@ pub mod device;
 pub mod layers;
 pub mod pipeline;
 pub mod resnet;
+pub mod run;
 pub mod transformer;
 pub mod unet;
 pub mod vae;

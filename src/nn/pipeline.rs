@@ -170,7 +170,7 @@ impl Pipeline {
 
     /// Runs the planned loop from the initial latent `x_t` (N, 4, h, w). `context_uncond`/`context_cond`:
     /// (N, L, D) each (uncond ignored without guidance); `cond_image`: (N, C, 8h, 8w) when a ControlNet is used.
-    /// `keep_latents` keeps every step's latent.
+    /// `keep_latents` keeps every step's latent; `progress(done, total)` is called after each step.
     pub fn run(
         &self,
         x_t: &[f32],
@@ -178,6 +178,7 @@ impl Pipeline {
         context_cond: &[f32],
         cond_image: Option<&[f32]>,
         keep_latents: bool,
+        mut progress: Option<&mut dyn FnMut(usize, usize)>,
     ) -> Result<SampleOutput> {
         let sample = &self.bufs[&Buf::Sample];
         ensure!(x_t.len() == sample.numel(), "pipeline: x_T has {} values, expected {}", x_t.len(), sample.numel());
@@ -213,6 +214,9 @@ impl Pipeline {
             self.t.write_f32(&self.ctx, &vec![s.timestep as f32; self.t.numel()])?;
             self.model.submit_wait().with_context(|| format!("model pass at step {}", s.index))?;
             rec.submit_wait()?;
+            if let Some(p) = progress.as_mut() {
+                p(s.index + 1, self.plan.steps.len());
+            }
             if keep_latents {
                 latents.push(sample.to_f32(&self.ctx)?);
             }
