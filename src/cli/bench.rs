@@ -5,17 +5,25 @@ use anyhow::{bail, Result};
 use b2dr::ops::bench;
 use b2dr::vk::{Context, ContextOptions};
 
-pub fn run_ops(
+pub fn run_ops(device: Option<String>, json: bool, filter: Option<String>, min_time_s: f64) -> Result<()> {
+    run_cases(device, bench::cases(), json, filter, min_time_s, false)
+}
+
+/// `b2dr bench model`: the model-level cases of `b2dr::nn::bench`.
+pub fn run_model(device: Option<String>, json: bool, filter: Option<String>, min_time_s: f64, profile: bool) -> Result<()> {
+    run_cases(device, b2dr::nn::bench::cases(), json, filter, min_time_s, profile)
+}
+
+fn run_cases(
     device: Option<String>,
+    all: Vec<bench::BenchCase>,
     json: bool,
     filter: Option<String>,
     min_time_s: f64,
+    profile: bool,
 ) -> Result<()> {
-    let ctx = Context::new(&ContextOptions {
-        device,
-        validation: None,
-    })?;
-    let cases: Vec<_> = bench::cases()
+    let ctx = Context::new(&ContextOptions { device, validation: None, profile })?;
+    let cases: Vec<_> = all
         .into_iter()
         .filter(|c| filter.as_deref().is_none_or(|f| c.name.contains(f)))
         .collect();

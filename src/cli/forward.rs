@@ -38,7 +38,7 @@ pub fn run(device: Option<String>, a: ForwardArgs) -> Result<()> {
     let w = Weights::from_bytes_unchecked(&bytes, &a.weights.display().to_string())?;
     let ib = std::fs::read(&a.inputs).with_context(|| format!("reading {}", a.inputs.display()))?;
     let inputs = Weights::from_bytes_unchecked(&ib, &a.inputs.display().to_string())?.tensors;
-    let ctx = Context::new(&ContextOptions { device, validation: None })?;
+    let ctx = Context::new(&ContextOptions { device, validation: None, profile: false })?;
     let t = std::time::Instant::now();
     let out = forward_component(&ctx, a.component, cfg, &w, &inputs, a.dtype)
         .with_context(|| format!("{:?} forward", a.component))?;

@@ -41,6 +41,18 @@ pub enum Command {
 
 #[derive(Subcommand, Debug)]
 pub enum BenchCmd {
+    /// Time model components (guided UNet + ControlNet step, VAE decode) of b2dr-tiny at 224 x 400.
+    Model {
+        #[arg(long)]
+        json: bool,
+        #[arg(long)]
+        filter: Option<String>,
+        #[arg(long, default_value_t = 3.0)]
+        min_time: f64,
+        /// Print GPU time per op (timestamp queries after every dispatch).
+        #[arg(long)]
+        profile: bool,
+    },
     /// Time every op case (ms, GFLOP/s, GB/s) on the chosen device.
     Ops {
         /// One JSON object keyed by case name.
@@ -68,6 +80,9 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             filter,
             min_time,
         }) => bench::run_ops(cli.device, json, filter, min_time),
+        Command::Bench(BenchCmd::Model { json, filter, min_time, profile }) => {
+            bench::run_model(cli.device, json, filter, min_time, profile)
+        }
         Command::Project(a) => project::run(a),
         Command::Forward(a) => forward::run(cli.device, a),
         Command::Sample(a) => sample::run(cli.device, a),

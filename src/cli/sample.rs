@@ -64,7 +64,7 @@ pub fn run(device: Option<String>, a: SampleArgs) -> Result<()> {
     let (ih, iw) = parse_size(&a.size)?;
     let (h, w) = (ih / 8, iw / 8);
     ensure!(a.steps >= 1, "--steps must be >= 1");
-    let ctx = Context::new(&ContextOptions { device, validation: None })?;
+    let ctx = Context::new(&ContextOptions { device, validation: None, profile: false })?;
     let dt = a.dtype;
     // Components: a diffusers folder or b2dr-tiny with seeded weights (seeds 1, 2, 3 as in the goldens).
     let (uc, uw, cc, cw, vc, vw, context) = match &a.model {

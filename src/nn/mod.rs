@@ -1,6 +1,7 @@
 //! Model components of the SD1.5 family (UNet2DConditionModel, ControlNetModel, AutoencoderKL): their
 //! diffusers configs ([`config`]), host-side weights ([`weights`]), and the device modules (named after the
 //! diffusers modules) that record their forward passes with the ops.
+pub mod bench;
 pub mod config;
 pub mod controlnet;
 pub mod device;

@@ -26,6 +26,9 @@ pub struct BenchResult {
     pub gflops: f64,
     pub gbs: f64,
     pub iters: usize,
+    /// Per-op GPU time of the last replay, summed by label, largest first (contexts created with `profile`).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub profile: Vec<(String, f64)>,
 }
 
 pub(crate) fn random_tensor(
@@ -103,11 +106,18 @@ pub fn run_case(
     }
     times.sort_by(|a, b| a.total_cmp(b));
     let s = times[times.len() / 2];
+    let mut by: std::collections::BTreeMap<String, f64> = Default::default();
+    for t in rec.timings()? {
+        *by.entry(t.label).or_default() += t.ms;
+    }
+    let mut profile: Vec<(String, f64)> = by.into_iter().collect();
+    profile.sort_by(|a, b| b.1.total_cmp(&a.1));
     Ok(BenchResult {
         name: case.name.clone(),
         ms: s * 1e3,
         gflops: case.flops / s * 1e-9,
         gbs: case.bytes / s * 1e-9,
         iters: times.len(),
+        profile,
     })
 }

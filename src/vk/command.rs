@@ -54,7 +54,7 @@ pub struct Recording {
 impl Context {
     /// Starts a recording.
     pub fn recorder(&self) -> Result<Recorder> {
-        Recorder::new(self, 0)
+        Recorder::new(self, if self.inner.profile { 16384 } else { 0 })
     }
 
     /// Starts a recording that writes a GPU timestamp after each of up to `max` dispatches.
@@ -313,6 +313,11 @@ impl Recorder {
     /// Number of dispatches recorded so far.
     pub fn dispatch_count(&self) -> usize {
         self.dispatches
+    }
+
+    /// The context this recorder records for (launchers ask it which kernels the device supports).
+    pub fn context(&self) -> &Context {
+        &self.ctx
     }
 
     /// Ends recording.

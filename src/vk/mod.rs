@@ -34,6 +34,8 @@ pub struct ContextOptions {
     pub device: Option<String>,
     /// Enable the Khronos validation layer; default: `B2DR_VALIDATION=1`.
     pub validation: Option<bool>,
+    /// Every recorder writes a GPU timestamp after each dispatch (per-op profiles, `--profile`).
+    pub profile: bool,
 }
 
 /// Handles a library user passes in to run b2dr on their own Vulkan objects ("explicit Vulkan control").
@@ -75,6 +77,7 @@ pub(crate) struct Inner {
     pub debug_utils: Option<ash::ext::debug_utils::Device>,
     owned: bool,
     pub validation: bool,
+    pub profile: bool,
 }
 
 /// A Vulkan device ready for b2dr's kernels. Cheap to clone.
@@ -102,7 +105,7 @@ impl Context {
             .debug
             .as_ref()
             .map(|_| ash::ext::debug_utils::Device::new(&parts.instance, &dev));
-        Self::assemble(
+        let mut c = Self::assemble(
             parts.entry,
             parts.instance,
             parts.debug,
@@ -114,7 +117,11 @@ impl Context {
             true,
             parts.validation,
             debug_utils,
-        )
+        )?;
+        if let Some(inner) = Arc::get_mut(&mut c.inner) {
+            inner.profile = opts.profile;
+        }
+        Ok(c)
     }
 
     /// Uses a caller's instance, device and queue. b2dr creates its own allocator, command pool and pipelines
@@ -177,6 +184,7 @@ impl Context {
                 debug_utils,
                 owned,
                 validation,
+                profile: false,
             }),
         })
     }
