@@ -2,8 +2,10 @@
 //! picks the pipeline variant, computes the grid, pushes the parameters and records one or more dispatches into
 //! a [`Recorder`]. Outputs are caller-allocated so whole models can be planned once and replayed.
 //! Plain CPU f64 references for every op live in [`reference`].
+pub mod attention;
 pub mod elementwise;
 pub mod reference;
+pub mod softmax;
 
 use anyhow::{ensure, Result};
 

@@ -1,0 +1,106 @@
+//! Attention benchmarks: the UNet's first-level self- and cross-attention (1400 tokens, 8 heads of 40, batch 1;
+//! cross-attention to the 77-token context), f32 and f16 storage. Each iteration submits one pre-recorded
+//! dispatch and waits on its fence, so the clock is read after the device finished. FLOP = 4 * B * H * Lq * Lk
+//! * d (two matrix products); criterion's "elem/s" throughput is FLOP/s, and a GFLOP/s line is printed per case.
+//! Run: `cargo bench --bench ops_attention` (lavapipe honours LP_NUM_THREADS).
+use std::time::Instant;
+
+use b2dr::ops::attention::attention;
+use b2dr::tensor::{DType, Tensor};
+use b2dr::vk::{Context, ContextOptions};
+use criterion::{criterion_group, criterion_main, Criterion, Throughput};
+
+struct Case {
+    dtype: DType,
+    lq: usize,
+    lk: usize,
+    heads: usize,
+    d: usize,
+}
+
+fn bench(c: &mut Criterion) {
+    let ctx = match Context::new(&ContextOptions::default()) {
+        Ok(c) => c,
+        Err(e) => {
+            eprintln!("SKIP: no Vulkan device ({e:#})");
+            return;
+        }
+    };
+    eprintln!("device: {} ({})", ctx.info().name, ctx.info().kind);
+    let cases = [
+        Case {
+            dtype: DType::F32,
+            lq: 1400,
+            lk: 1400,
+            heads: 8,
+            d: 40,
+        },
+        Case {
+            dtype: DType::F32,
+            lq: 1400,
+            lk: 77,
+            heads: 8,
+            d: 40,
+        },
+        Case {
+            dtype: DType::F16,
+            lq: 1400,
+            lk: 1400,
+            heads: 8,
+            d: 40,
+        },
+        Case {
+            dtype: DType::F16,
+            lq: 1400,
+            lk: 77,
+            heads: 8,
+            d: 40,
+        },
+    ];
+    let mut g = c.benchmark_group("attention");
+    g.sample_size(10);
+    for cs in &cases {
+        let name = format!(
+            "attention_{}_{}x{}_h{}_d{}",
+            cs.dtype.name(),
+            cs.lq,
+            cs.lk,
+            cs.heads,
+            cs.d
+        );
+        let w = cs.heads * cs.d;
+        let mk = |l: usize, seed: f32| {
+            let data: Vec<f32> = (0..l * w)
+                .map(|i| ((i as f32 * 0.618 + seed).fract() - 0.5) * 2.0)
+                .collect();
+            Tensor::from_f32(&ctx, &[1, l, w], cs.dtype, &data, "bench").expect("upload")
+        };
+        let (q, k, v) = (mk(cs.lq, 0.1), mk(cs.lk, 0.2), mk(cs.lk, 0.3));
+        let out = Tensor::empty(&ctx, &[1, cs.lq, w], cs.dtype, "bench-out").expect("alloc");
+        let mut rec = ctx.recorder().expect("recorder");
+        attention(&mut rec, &q, &k, &v, &out, cs.heads, None).expect("record");
+        let recording = rec.finish().expect("finish");
+        recording.submit_wait().expect("warm-up"); // pipeline compile (JIT) happens here, outside the clock
+        let flop = 4 * cs.heads * cs.lq * cs.lk * cs.d;
+        // A plain timing first, so the GFLOP/s line is printed even with criterion's output filtered.
+        let n = 5;
+        let t0 = Instant::now();
+        for _ in 0..n {
+            recording.submit_wait().expect("submit");
+        }
+        let s = t0.elapsed().as_secs_f64() / n as f64;
+        eprintln!(
+            "{name}: {:.2} ms, {:.2} GFLOP/s",
+            s * 1e3,
+            flop as f64 / s * 1e-9
+        );
+        g.throughput(Throughput::Elements(flop as u64));
+        g.bench_function(&name, |b| {
+            b.iter(|| recording.submit_wait().expect("submit"))
+        });
+    }
+    g.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

@@ -1,0 +1,178 @@
+//! variant f32_d8: alias ST = f32; const D4: u32 = 2u;
+//! variant f32_d40: alias ST = f32; const D4: u32 = 10u;
+//! variant f32_d80: alias ST = f32; const D4: u32 = 20u;
+//! variant f32_d160: alias ST = f32; const D4: u32 = 40u;
+//! variant f16_d8: enable f16; alias ST = f16; const D4: u32 = 2u;
+//! variant f16_d40: enable f16; alias ST = f16; const D4: u32 = 10u;
+//! variant f16_d80: enable f16; alias ST = f16; const D4: u32 = 20u;
+//! variant f16_d160: enable f16; alias ST = f16; const D4: u32 = 40u;
+// Multi-head attention, flash style (online softmax), storage type ST, all arithmetic in f32.
+//
+// Layout (token-major, as the UNet's linear projections produce it; heads interleaved in the last dim):
+//   q: (B, Lq, H*d), k: (B, Lk, H*d), v: (B, Lk, H*d) -> o: (B, Lq, H*d); head h owns columns [h*d, h*d + d).
+// Buffers are read as vec4 (d % 4 == 0; nc = d / 4 chunks per head row, w4 = H * nc chunks per token row).
+//
+// Mapping for llvmpipe (8-wide SIMD across invocations, lavapipe's subgroup size 8). A work group is 8
+// invocations = one subgroup; lane l owns query row qb*8 + l of one (batch, head): its q (pre-scaled) and its
+// output accumulator live in registers (`array<vec4<f32>, D4>` indexed only by constants once the chunk loops
+// are unrolled). Keys go by tiles of 8: lane l loads chunk c of key j0 + l (one vec4 per lane: every lane's load
+// is useful), and subgroupBroadcast with a constant lane index (a register shuffle in llvmpipe) hands key
+// j0 + t's chunk to all lanes. So each global load feeds 32 multiply-adds per lane and there are no barriers,
+// no shared memory, no gathers of uniform data. Per tile: logits s (8 per lane), running max m and sum l,
+// rescale acc by exp(m_old - m_new), acc += p * V. Masked keys get logit -3e38 (exp -> 0, never inf - inf).
+//
+// Loop budget (lavapipe: 65535 loop back-edges per invocation, then loops silently exit): the key loop runs
+// ceil(Lk / 8) times; the chunk loops (D4 trips each) are counted too if the driver does not unroll them, so
+// an invocation runs at most ceil(Lk / 8) * (2 * D4 + 1) + 2 * D4 back-edges; `wide` adds ceil(nc / 2) per tile
+// for its q.k loop. The launcher checks this bound and refuses shapes that would exceed it.
+//
+// `main` needs d <= 4 * D4. `wide` (any d % 8 == 0, used for d > 160, e.g. the VAE's 512) streams q chunks
+// from memory for the logits and splits the output columns into slices of 4 * D4 (one slice per work group),
+// recomputing the logits per slice.
+
+struct AttnParams {
+    lq: u32, lk: u32, heads: u32, nc: u32, w4: u32,
+    qblocks: u32, slices: u32, groups: u32, scale: f32,
+}
+
+@group(0) @binding(0) var<storage, read> q: array<vec4<ST>>;
+@group(0) @binding(1) var<storage, read> k: array<vec4<ST>>;
+@group(0) @binding(2) var<storage, read> v: array<vec4<ST>>;
+@group(0) @binding(3) var<storage, read_write> o: array<vec4<ST>>;
+
+var<immediate> a: AttnParams;
+
+const NEG_BIG: f32 = -3.0e38;
+
+// s[t] for t in 0..8 (two vec4s) += q chunk . (key j0 + t's chunk), the chunks held by lane t of `kc`.
+fn logits_step(qc: vec4<f32>, kc: vec4<f32>, s: ptr<function, array<vec4<f32>, 2>>) {
+    (*s)[0] += vec4<f32>(dot(qc, subgroupBroadcast(kc, 0u)), dot(qc, subgroupBroadcast(kc, 1u)),
+                         dot(qc, subgroupBroadcast(kc, 2u)), dot(qc, subgroupBroadcast(kc, 3u)));
+    (*s)[1] += vec4<f32>(dot(qc, subgroupBroadcast(kc, 4u)), dot(qc, subgroupBroadcast(kc, 5u)),
+                         dot(qc, subgroupBroadcast(kc, 6u)), dot(qc, subgroupBroadcast(kc, 7u)));
+}
+
+// acc chunk * alpha + sum_t p[t] * (value chunk of key j0 + t, held by lane t of `vc`).
+fn values_step(acc: vec4<f32>, alpha: f32, p0: vec4<f32>, p1: vec4<f32>, vc: vec4<f32>) -> vec4<f32> {
+    var r = acc * alpha;
+    r += p0.x * subgroupBroadcast(vc, 0u) + p0.y * subgroupBroadcast(vc, 1u)
+       + p0.z * subgroupBroadcast(vc, 2u) + p0.w * subgroupBroadcast(vc, 3u);
+    r += p1.x * subgroupBroadcast(vc, 4u) + p1.y * subgroupBroadcast(vc, 5u)
+       + p1.z * subgroupBroadcast(vc, 6u) + p1.w * subgroupBroadcast(vc, 7u);
+    return r;
+}
+
+// Online-softmax update for one tile: masks keys >= Lk, returns (alpha, p0, p1) via pointers, updates m and l.
+fn softmax_step(j0: u32, s: ptr<function, array<vec4<f32>, 2>>, m: ptr<function, f32>, l: ptr<function, f32>,
+                alpha: ptr<function, f32>, p0: ptr<function, vec4<f32>>, p1: ptr<function, vec4<f32>>) {
+    let nval = vec4<u32>(a.lk - j0);
+    let s0 = select(vec4<f32>(NEG_BIG), (*s)[0], vec4<u32>(0u, 1u, 2u, 3u) < nval);
+    let s1 = select(vec4<f32>(NEG_BIG), (*s)[1], vec4<u32>(4u, 5u, 6u, 7u) < nval);
+    let t = max(s0, s1);
+    let mn = max(*m, max(max(t.x, t.y), max(t.z, t.w)));
+    *alpha = exp(*m - mn);
+    *p0 = exp(s0 - mn);
+    *p1 = exp(s1 - mn);
+    *l = *l * *alpha + dot(*p0 + *p1, vec4<f32>(1.0));
+    *m = mn;
+}
+
+// q: (B, Lq, H*d), k, v: (B, Lk, H*d) -> o: (B, Lq, H*d), d <= 4 * D4.
+// grid: B * H * ceil(Lq / 8) work groups of 8 (folded into x, y); group g -> (b, h, query block).
+@compute @workgroup_size(8)
+fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+        @builtin(subgroup_invocation_id) lane: u32) {
+    let g = wid.y * nwg.x + wid.x;
+    if (g >= a.groups) { return; }
+    let qb = g % a.qblocks;
+    let bh = g / a.qblocks;
+    let h = bh % a.heads;
+    let b = bh / a.heads;
+    let i = qb * 8u + lane;
+    let qrow = (b * a.lq + min(i, a.lq - 1u)) * a.w4 + h * a.nc;
+    let kbase = b * a.lk * a.w4 + h * a.nc;
+    let last = a.nc - 1u;
+    // Chunks past nc: q is zero (no effect on the logits), values are re-read from a valid chunk, never stored.
+    var qr: array<vec4<f32>, D4>;
+    var acc: array<vec4<f32>, D4>;
+    for (var c = 0u; c < D4; c++) {
+        qr[c] = vec4<f32>(q[qrow + min(c, last)]) * select(0.0, a.scale, c < a.nc);
+        acc[c] = vec4<f32>(0.0);
+    }
+    var m = NEG_BIG;
+    var l = 0.0;
+    for (var j0 = 0u; j0 < a.lk; j0 += 8u) {
+        let krow = kbase + min(j0 + lane, a.lk - 1u) * a.w4;
+        var s: array<vec4<f32>, 2>;
+        s[0] = vec4<f32>(0.0);
+        s[1] = vec4<f32>(0.0);
+        for (var c = 0u; c < D4; c++) {
+            logits_step(qr[c], vec4<f32>(k[krow + min(c, last)]), &s);
+        }
+        var alpha: f32;
+        var p0: vec4<f32>;
+        var p1: vec4<f32>;
+        softmax_step(j0, &s, &m, &l, &alpha, &p0, &p1);
+        for (var c = 0u; c < D4; c++) {
+            acc[c] = values_step(acc[c], alpha, p0, p1, vec4<f32>(v[krow + min(c, last)]));
+        }
+    }
+    if (i < a.lq) {
+        let inv = 1.0 / l;
+        let orow = (b * a.lq + i) * a.w4 + h * a.nc;
+        for (var c = 0u; c < D4; c++) {
+            if (c < a.nc) { o[orow + c] = vec4<ST>(acc[c] * inv); }
+        }
+    }
+}
+
+// Same shapes as `main` for d % 8 == 0 of any size; grid: B * H * ceil(Lq / 8) * slices work groups,
+// group g -> (slice = g % slices, then as main); this group writes columns [slice * 4 * D4, (slice + 1) * 4 * D4).
+@compute @workgroup_size(8)
+fn wide(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+        @builtin(subgroup_invocation_id) lane: u32) {
+    let gs = wid.y * nwg.x + wid.x;
+    if (gs >= a.groups) { return; }
+    let sl = gs % a.slices;
+    let g = gs / a.slices;
+    let qb = g % a.qblocks;
+    let bh = g / a.qblocks;
+    let h = bh % a.heads;
+    let b = bh / a.heads;
+    let i = qb * 8u + lane;
+    let qrow = (b * a.lq + min(i, a.lq - 1u)) * a.w4 + h * a.nc;
+    let kbase = b * a.lk * a.w4 + h * a.nc;
+    let last = a.nc - 1u;
+    let c0 = sl * D4;
+    var acc: array<vec4<f32>, D4>;
+    for (var c = 0u; c < D4; c++) {
+        acc[c] = vec4<f32>(0.0);
+    }
+    var m = NEG_BIG;
+    var l = 0.0;
+    for (var j0 = 0u; j0 < a.lk; j0 += 8u) {
+        let krow = kbase + min(j0 + lane, a.lk - 1u) * a.w4;
+        var s: array<vec4<f32>, 2>;
+        s[0] = vec4<f32>(0.0);
+        s[1] = vec4<f32>(0.0);
+        // Two chunks per trip halves this loop's share of the budget (nc is even: d % 8 == 0).
+        for (var c = 0u; c < a.nc; c += 2u) {
+            logits_step(vec4<f32>(q[qrow + c]) * a.scale, vec4<f32>(k[krow + c]), &s);
+            logits_step(vec4<f32>(q[qrow + c + 1u]) * a.scale, vec4<f32>(k[krow + c + 1u]), &s);
+        }
+        var alpha: f32;
+        var p0: vec4<f32>;
+        var p1: vec4<f32>;
+        softmax_step(j0, &s, &m, &l, &alpha, &p0, &p1);
+        for (var c = 0u; c < D4; c++) {
+            acc[c] = values_step(acc[c], alpha, p0, p1, vec4<f32>(v[krow + min(c0 + c, last)]));
+        }
+    }
+    if (i < a.lq) {
+        let inv = 1.0 / l;
+        let orow = (b * a.lq + i) * a.w4 + h * a.nc;
+        for (var c = 0u; c < D4; c++) {
+            if (c0 + c < a.nc) { o[orow + c0 + c] = vec4<ST>(acc[c] * inv); }
+        }
+    }
+}
