@@ -5,7 +5,7 @@
 //! Run: `cargo bench --bench ops_attention` (lavapipe honours LP_NUM_THREADS).
 use std::time::Instant;
 
-use b2dr::ops::attention::attention;
+use b2dr::ops::attention::{attention_with, choose, KERNELS};
 use b2dr::tensor::{DType, Tensor};
 use b2dr::vk::{Context, ContextOptions};
 use criterion::{criterion_group, criterion_main, Criterion, Throughput};
@@ -77,27 +77,40 @@ fn bench(c: &mut Criterion) {
         };
         let (q, k, v) = (mk(cs.lq, 0.1), mk(cs.lk, 0.2), mk(cs.lk, 0.3));
         let out = Tensor::empty(&ctx, &[1, cs.lq, w], cs.dtype, "bench-out").expect("alloc");
-        let mut rec = ctx.recorder().expect("recorder");
-        attention(&mut rec, &q, &k, &v, &out, cs.heads, None).expect("record");
-        let recording = rec.finish().expect("finish");
-        recording.submit_wait().expect("warm-up"); // pipeline compile (JIT) happens here, outside the clock
         let flop = 4 * cs.heads * cs.lq * cs.lk * cs.d;
-        // A plain timing first, so the GFLOP/s line is printed even with criterion's output filtered.
-        let n = 5;
-        let t0 = Instant::now();
-        for _ in 0..n {
-            recording.submit_wait().expect("submit");
+        let default = choose(cs.dtype, cs.d);
+        // The default kernel under the case's name, then the other kernels holding the same head dim (query
+        // rows per lane R) suffixed with `_r<R>`, all in one run so they see the same machine load.
+        let kernels = KERNELS
+            .iter()
+            .filter(|k| k.dtype == cs.dtype && !k.wide && k.cols == default.cols);
+        for kn in kernels {
+            let label = if kn.id == default.id {
+                name.clone()
+            } else {
+                format!("{name}_r{}", kn.rows)
+            };
+            let mut rec = ctx.recorder().expect("recorder");
+            attention_with(&mut rec, &q, &k, &v, &out, cs.heads, None, Some(*kn)).expect("record");
+            let recording = rec.finish().expect("finish");
+            recording.submit_wait().expect("warm-up"); // pipeline JIT happens here, outside the clock
+                                                       // A plain timing first, so the GFLOP/s line is printed even with criterion's output filtered.
+            let n = 5;
+            let t0 = Instant::now();
+            for _ in 0..n {
+                recording.submit_wait().expect("submit");
+            }
+            let s = t0.elapsed().as_secs_f64() / n as f64;
+            eprintln!(
+                "{label}: {:.2} ms, {:.2} GFLOP/s",
+                s * 1e3,
+                flop as f64 / s * 1e-9
+            );
+            g.throughput(Throughput::Elements(flop as u64));
+            g.bench_function(&label, |b| {
+                b.iter(|| recording.submit_wait().expect("submit"))
+            });
         }
-        let s = t0.elapsed().as_secs_f64() / n as f64;
-        eprintln!(
-            "{name}: {:.2} ms, {:.2} GFLOP/s",
-            s * 1e3,
-            flop as f64 / s * 1e-9
-        );
-        g.throughput(Throughput::Elements(flop as u64));
-        g.bench_function(&name, |b| {
-            b.iter(|| recording.submit_wait().expect("submit"))
-        });
     }
     g.finish();
 }

@@ -1,11 +1,19 @@
-//! variant f32_d8: alias ST = f32; const D4: u32 = 2u;
-//! variant f32_d40: alias ST = f32; const D4: u32 = 10u;
-//! variant f32_d80: alias ST = f32; const D4: u32 = 20u;
-//! variant f32_d160: alias ST = f32; const D4: u32 = 40u;
-//! variant f16_d8: enable f16; alias ST = f16; const D4: u32 = 2u;
-//! variant f16_d40: enable f16; alias ST = f16; const D4: u32 = 10u;
-//! variant f16_d80: enable f16; alias ST = f16; const D4: u32 = 20u;
-//! variant f16_d160: enable f16; alias ST = f16; const D4: u32 = 40u;
+//! variant f32_d8: alias ST = f32; const D4: u32 = 2u; const R: u32 = 1u;
+//! variant f32_d8r4: alias ST = f32; const D4: u32 = 2u; const R: u32 = 4u;
+//! variant f32_d40: alias ST = f32; const D4: u32 = 10u; const R: u32 = 1u;
+//! variant f32_d40r2: alias ST = f32; const D4: u32 = 10u; const R: u32 = 2u;
+//! variant f32_d40r4: alias ST = f32; const D4: u32 = 10u; const R: u32 = 4u;
+//! variant f32_d80: alias ST = f32; const D4: u32 = 20u; const R: u32 = 1u;
+//! variant f32_d80r2: alias ST = f32; const D4: u32 = 20u; const R: u32 = 2u;
+//! variant f32_d160: alias ST = f32; const D4: u32 = 40u; const R: u32 = 1u;
+//! variant f16_d8: enable f16; alias ST = f16; const D4: u32 = 2u; const R: u32 = 1u;
+//! variant f16_d8r4: enable f16; alias ST = f16; const D4: u32 = 2u; const R: u32 = 4u;
+//! variant f16_d40: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 1u;
+//! variant f16_d40r2: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 2u;
+//! variant f16_d40r4: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 4u;
+//! variant f16_d80: enable f16; alias ST = f16; const D4: u32 = 20u; const R: u32 = 1u;
+//! variant f16_d80r2: enable f16; alias ST = f16; const D4: u32 = 20u; const R: u32 = 2u;
+//! variant f16_d160: enable f16; alias ST = f16; const D4: u32 = 40u; const R: u32 = 1u;
 // Multi-head attention, flash style (online softmax), storage type ST, all arithmetic in f32.
 //
 // Layout (token-major, as the UNet's linear projections produce it; heads interleaved in the last dim):
@@ -44,12 +52,16 @@ var<immediate> a: AttnParams;
 
 const NEG_BIG: f32 = -3.0e38;
 
-// s[t] for t in 0..8 (two vec4s) += q chunk . (key j0 + t's chunk), the chunks held by lane t of `kc`.
-fn logits_step(qc: vec4<f32>, kc: vec4<f32>, s: ptr<function, array<vec4<f32>, 2>>) {
-    (*s)[0] += vec4<f32>(dot(qc, subgroupBroadcast(kc, 0u)), dot(qc, subgroupBroadcast(kc, 1u)),
-                         dot(qc, subgroupBroadcast(kc, 2u)), dot(qc, subgroupBroadcast(kc, 3u)));
-    (*s)[1] += vec4<f32>(dot(qc, subgroupBroadcast(kc, 4u)), dot(qc, subgroupBroadcast(kc, 5u)),
-                         dot(qc, subgroupBroadcast(kc, 6u)), dot(qc, subgroupBroadcast(kc, 7u)));
+// Logits of keys j0 + 0..3 (`lo`) and j0 + 4..7 (`hi`) for one chunk: q chunk . (key j0 + t's chunk, held by lane
+// t of `kc`).
+fn logits_lo(qc: vec4<f32>, kc: vec4<f32>) -> vec4<f32> {
+    return vec4<f32>(dot(qc, subgroupBroadcast(kc, 0u)), dot(qc, subgroupBroadcast(kc, 1u)),
+                     dot(qc, subgroupBroadcast(kc, 2u)), dot(qc, subgroupBroadcast(kc, 3u)));
+}
+
+fn logits_hi(qc: vec4<f32>, kc: vec4<f32>) -> vec4<f32> {
+    return vec4<f32>(dot(qc, subgroupBroadcast(kc, 4u)), dot(qc, subgroupBroadcast(kc, 5u)),
+                     dot(qc, subgroupBroadcast(kc, 6u)), dot(qc, subgroupBroadcast(kc, 7u)));
 }
 
 // acc chunk * alpha + sum_t p[t] * (value chunk of key j0 + t, held by lane t of `vc`).
@@ -62,23 +74,26 @@ fn values_step(acc: vec4<f32>, alpha: f32, p0: vec4<f32>, p1: vec4<f32>, vc: vec
     return r;
 }
 
-// Online-softmax update for one tile: masks keys >= Lk, returns (alpha, p0, p1) via pointers, updates m and l.
-fn softmax_step(j0: u32, s: ptr<function, array<vec4<f32>, 2>>, m: ptr<function, f32>, l: ptr<function, f32>,
-                alpha: ptr<function, f32>, p0: ptr<function, vec4<f32>>, p1: ptr<function, vec4<f32>>) {
+// Online-softmax state of one query row after a tile: running max m and sum l, the factor alpha that rescales
+// the accumulator, and the tile's weights p0 (keys j0 + 0..3), p1 (j0 + 4..7).
+struct Online { m: f32, l: f32, alpha: f32, p0: vec4<f32>, p1: vec4<f32> }
+
+// Masks keys >= Lk (logit -3e38: exp gives 0 and max never sees it), then updates (m, l).
+fn online_step(j0: u32, s0in: vec4<f32>, s1in: vec4<f32>, m: f32, l: f32) -> Online {
     let nval = vec4<u32>(a.lk - j0);
-    let s0 = select(vec4<f32>(NEG_BIG), (*s)[0], vec4<u32>(0u, 1u, 2u, 3u) < nval);
-    let s1 = select(vec4<f32>(NEG_BIG), (*s)[1], vec4<u32>(4u, 5u, 6u, 7u) < nval);
+    let s0 = select(vec4<f32>(NEG_BIG), s0in, vec4<u32>(0u, 1u, 2u, 3u) < nval);
+    let s1 = select(vec4<f32>(NEG_BIG), s1in, vec4<u32>(4u, 5u, 6u, 7u) < nval);
     let t = max(s0, s1);
-    let mn = max(*m, max(max(t.x, t.y), max(t.z, t.w)));
-    *alpha = exp(*m - mn);
-    *p0 = exp(s0 - mn);
-    *p1 = exp(s1 - mn);
-    *l = *l * *alpha + dot(*p0 + *p1, vec4<f32>(1.0));
-    *m = mn;
+    let mn = max(m, max(max(t.x, t.y), max(t.z, t.w)));
+    let alpha = exp(m - mn);
+    let p0 = exp(s0 - mn);
+    let p1 = exp(s1 - mn);
+    return Online(mn, l * alpha + dot(p0 + p1, vec4<f32>(1.0)), alpha, p0, p1);
 }
 
 // q: (B, Lq, H*d), k, v: (B, Lk, H*d) -> o: (B, Lq, H*d), d <= 4 * D4.
-// grid: B * H * ceil(Lq / 8) work groups of 8 (folded into x, y); group g -> (b, h, query block).
+// grid: B * H * ceil(Lq / (8 R)) work groups of 8 (folded into x, y); group g -> (b, h, query block); lane l owns
+// query rows qb * 8R + 8r + l for r < R (R rows per lane share every key/value load and broadcast).
 @compute @workgroup_size(8)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
         @builtin(subgroup_invocation_id) lane: u32) {
@@ -88,40 +103,60 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
     let bh = g / a.qblocks;
     let h = bh % a.heads;
     let b = bh / a.heads;
-    let i = qb * 8u + lane;
-    let qrow = (b * a.lq + min(i, a.lq - 1u)) * a.w4 + h * a.nc;
     let kbase = b * a.lk * a.w4 + h * a.nc;
     let last = a.nc - 1u;
     // Chunks past nc: q is zero (no effect on the logits), values are re-read from a valid chunk, never stored.
-    var qr: array<vec4<f32>, D4>;
-    var acc: array<vec4<f32>, D4>;
-    for (var c = 0u; c < D4; c++) {
-        qr[c] = vec4<f32>(q[qrow + min(c, last)]) * select(0.0, a.scale, c < a.nc);
-        acc[c] = vec4<f32>(0.0);
+    // Arrays are indexed by loop counters whose trip count equals the array length, so NIR unrolls the loops
+    // (up to 32 trips) and the arrays become registers.
+    var qr: array<array<vec4<f32>, D4>, R>;
+    var acc: array<array<vec4<f32>, D4>, R>;
+    var m: array<f32, R>;
+    var l: array<f32, R>;
+    for (var r = 0u; r < R; r++) {
+        let qrow = (b * a.lq + min(qb * 8u * R + 8u * r + lane, a.lq - 1u)) * a.w4 + h * a.nc;
+        for (var c = 0u; c < D4; c++) {
+            qr[r][c] = vec4<f32>(q[qrow + min(c, last)]) * select(0.0, a.scale, c < a.nc);
+            acc[r][c] = vec4<f32>(0.0);
+        }
+        m[r] = NEG_BIG;
+        l[r] = 0.0;
     }
-    var m = NEG_BIG;
-    var l = 0.0;
     for (var j0 = 0u; j0 < a.lk; j0 += 8u) {
         let krow = kbase + min(j0 + lane, a.lk - 1u) * a.w4;
-        var s: array<vec4<f32>, 2>;
-        s[0] = vec4<f32>(0.0);
-        s[1] = vec4<f32>(0.0);
-        for (var c = 0u; c < D4; c++) {
-            logits_step(qr[c], vec4<f32>(k[krow + min(c, last)]), &s);
+        var s0: array<vec4<f32>, R>;
+        var s1: array<vec4<f32>, R>;
+        for (var r = 0u; r < R; r++) {
+            s0[r] = vec4<f32>(0.0);
+            s1[r] = vec4<f32>(0.0);
         }
-        var alpha: f32;
-        var p0: vec4<f32>;
-        var p1: vec4<f32>;
-        softmax_step(j0, &s, &m, &l, &alpha, &p0, &p1);
         for (var c = 0u; c < D4; c++) {
-            acc[c] = values_step(acc[c], alpha, p0, p1, vec4<f32>(v[krow + min(c, last)]));
+            let kc = vec4<f32>(k[krow + min(c, last)]);
+            for (var r = 0u; r < R; r++) {
+                s0[r] += logits_lo(qr[r][c], kc);
+                s1[r] += logits_hi(qr[r][c], kc);
+            }
+        }
+        var st: array<Online, R>;
+        for (var r = 0u; r < R; r++) {
+            st[r] = online_step(j0, s0[r], s1[r], m[r], l[r]);
+            m[r] = st[r].m;
+            l[r] = st[r].l;
+        }
+        for (var c = 0u; c < D4; c++) {
+            let vc = vec4<f32>(v[krow + min(c, last)]);
+            for (var r = 0u; r < R; r++) {
+                acc[r][c] = values_step(acc[r][c], st[r].alpha, st[r].p0, st[r].p1, vc);
+            }
         }
     }
-    if (i < a.lq) {
-        let inv = 1.0 / l;
-        let orow = (b * a.lq + i) * a.w4 + h * a.nc;
-        for (var c = 0u; c < D4; c++) {
-            if (c < a.nc) { o[orow + c] = vec4<ST>(acc[c] * inv); }
+    for (var r = 0u; r < R; r++) {
+        let i = qb * 8u * R + 8u * r + lane;
+        if (i < a.lq) {
+            let inv = 1.0 / l[r];
+            let orow = (b * a.lq + i) * a.w4 + h * a.nc;
+            for (var c = 0u; c < D4; c++) {
+                if (c < a.nc) { o[orow + c] = vec4<ST>(acc[r][c] * inv); }
+            }
         }
     }
 }
@@ -152,20 +187,22 @@ fn wide(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
     var l = 0.0;
     for (var j0 = 0u; j0 < a.lk; j0 += 8u) {
         let krow = kbase + min(j0 + lane, a.lk - 1u) * a.w4;
-        var s: array<vec4<f32>, 2>;
-        s[0] = vec4<f32>(0.0);
-        s[1] = vec4<f32>(0.0);
+        var s0 = vec4<f32>(0.0);
+        var s1 = vec4<f32>(0.0);
         // Two chunks per trip halves this loop's share of the budget (nc is even: d % 8 == 0).
         for (var c = 0u; c < a.nc; c += 2u) {
-            logits_step(vec4<f32>(q[qrow + c]) * a.scale, vec4<f32>(k[krow + c]), &s);
-            logits_step(vec4<f32>(q[qrow + c + 1u]) * a.scale, vec4<f32>(k[krow + c + 1u]), &s);
+            let qa = vec4<f32>(q[qrow + c]) * a.scale;
+            let ka = vec4<f32>(k[krow + c]);
+            let qb2 = vec4<f32>(q[qrow + c + 1u]) * a.scale;
+            let kb = vec4<f32>(k[krow + c + 1u]);
+            s0 += logits_lo(qa, ka) + logits_lo(qb2, kb);
+            s1 += logits_hi(qa, ka) + logits_hi(qb2, kb);
         }
-        var alpha: f32;
-        var p0: vec4<f32>;
-        var p1: vec4<f32>;
-        softmax_step(j0, &s, &m, &l, &alpha, &p0, &p1);
+        let st = online_step(j0, s0, s1, m, l);
+        m = st.m;
+        l = st.l;
         for (var c = 0u; c < D4; c++) {
-            acc[c] = values_step(acc[c], alpha, p0, p1, vec4<f32>(v[krow + min(c0 + c, last)]));
+            acc[c] = values_step(acc[c], st.alpha, st.p0, st.p1, vec4<f32>(v[krow + min(c0 + c, last)]));
         }
     }
     if (i < a.lq) {

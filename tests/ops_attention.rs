@@ -1,7 +1,9 @@
 //! Multi-head attention against the CPU f64 reference: SD shapes (UNet self/cross attention at every level,
 //! the VAE mid-block's single head of 512), odd sizes, the loop-budget edge, extreme logits and inputs.
 mod common;
-use b2dr::ops::attention::{attention, loop_trips, LOOP_BUDGET};
+use b2dr::ops::attention::{
+    attention, attention_with, loop_trips, AttnKernel, KERNELS, LOOP_BUDGET,
+};
 use b2dr::ops::reference::attention::{self as r, AttnShape};
 use b2dr::tensor::DType;
 use common::*;
@@ -73,7 +75,13 @@ const CASES: &[Case] = &[
     },
 ];
 
-fn check(ctx: &b2dr::vk::Context, c: &Case, dtype: DType, seed: u64) -> f64 {
+fn check(
+    ctx: &b2dr::vk::Context,
+    c: &Case,
+    dtype: DType,
+    seed: u64,
+    kn: Option<AttnKernel>,
+) -> f64 {
     let w = c.heads * c.d;
     let (nq, nk) = (c.b * c.lq * w, c.b * c.lk * w);
     let q = uniform(nq, c.qk, seed);
@@ -88,7 +96,7 @@ fn check(ctx: &b2dr::vk::Context, c: &Case, dtype: DType, seed: u64) -> f64 {
     );
     let out = empty(ctx, &qs, dtype);
     run(ctx, |rec| {
-        attention(rec, &qt, &kt, &vt, &out, c.heads, None)
+        attention_with(rec, &qt, &kt, &vt, &out, c.heads, None, kn)
     });
     let shape = AttnShape {
         batch: c.b,
@@ -124,7 +132,7 @@ fn attention_matches_reference() {
                 "{}: case exceeds the budget",
                 c.name
             );
-            let e = check(&ctx, c, dtype, 1000 + 10 * i as u64);
+            let e = check(&ctx, c, dtype, 1000 + 10 * i as u64, None);
             let tol = if dtype == DType::F32 {
                 TOL_F32
             } else {
@@ -141,12 +149,50 @@ fn attention_matches_reference() {
     assert_no_validation_errors();
 }
 
+/// Every kernel variant (not only the defaults) on a ragged shape at its full head dim and with padding.
+#[test]
+fn every_kernel_matches_reference() {
+    let Some(ctx) = ctx() else { return };
+    for (i, kn) in KERNELS.iter().enumerate() {
+        let dims = if kn.wide {
+            vec![264, 168]
+        } else {
+            vec![kn.cols, kn.cols - 4]
+        };
+        for d in dims.into_iter().filter(|&d| d > 0) {
+            let c = case("variant", 2, 37, 45, 2, d);
+            let e = check(&ctx, &c, kn.dtype, 7000 + i as u64, Some(*kn));
+            let tol = if kn.dtype == DType::F32 {
+                TOL_F32
+            } else {
+                TOL_F16
+            };
+            eprintln!("attention {:?} d {d}: nmse {e:.3e}", kn.id);
+            assert!(
+                e <= tol,
+                "attention {:?} d {d}: nmse {e:e} > {tol:e}",
+                kn.id
+            );
+        }
+    }
+    assert_no_validation_errors();
+}
+
 #[test]
 fn attention_bad_inputs_are_errors() {
     let Some(ctx) = ctx() else { return };
     let f = |s: &[usize], d| empty(&ctx, s, d);
     let q = f(&[1, 7, 16], DType::F32);
     let k = f(&[1, 5, 16], DType::F32);
+    let mut rec2 = ctx.recorder().unwrap();
+    // a kernel that does not take this head dim
+    let d8 = KERNELS.iter().find(|k| k.cols == 8 && !k.wide).unwrap();
+    let e = attention_with(&mut rec2, &q, &k, &k, &q, 1, None, Some(*d8))
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("attention") && e.contains("head dim 16"), "{e}");
+    assert_eq!(rec2.dispatch_count(), 0);
+    drop(rec2);
     let mut rec = ctx.recorder().unwrap();
     let mut err = |q: &_, k: &_, v: &_, o: &_, h| {
         attention(&mut rec, q, k, v, o, h, None)

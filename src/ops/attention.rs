@@ -18,36 +18,84 @@ use crate::tensor::{DType, Tensor};
 /// lavapipe stops all loops of an invocation after 65535 back-edges; stay well below.
 pub const LOOP_BUDGET: usize = 60_000;
 
-/// `main` variants by the head dim they hold in registers (the smallest that fits is used).
-const VARIANTS: [(usize, K, K); 4] = [
-    (8, K::AttentionF32D8, K::AttentionF16D8),
-    (40, K::AttentionF32D40, K::AttentionF16D40),
-    (80, K::AttentionF32D80, K::AttentionF16D80),
-    (160, K::AttentionF32D160, K::AttentionF16D160),
-];
-
-/// The kernel chosen for head dim `d`: (kernel, columns per work group, whether it is the sliced `wide` entry).
-fn choose(dtype: DType, d: usize) -> (K, usize, bool) {
-    for (cols, f32_id, f16_id) in VARIANTS {
-        if d <= cols {
-            return (super::pick(dtype, f32_id, f16_id), cols, false);
-        }
-    }
-    let wide = super::pick(dtype, K::AttentionF32D160Wide, K::AttentionF16D160Wide);
-    (wide, 160, true)
+/// One compiled attention kernel: the head dims it takes, query rows per lane, whether it is the sliced entry.
+#[derive(Clone, Copy, Debug)]
+pub struct AttnKernel {
+    pub id: K,
+    pub dtype: DType,
+    /// Head dim held in registers (`main`: d <= cols) or per output slice (`wide`: any d % 8 == 0).
+    pub cols: usize,
+    /// Query rows per invocation (R in the kernel).
+    pub rows: usize,
+    pub wide: bool,
 }
 
-/// Upper bound of loop back-edges one invocation runs (counting the constant-trip chunk loops as loops, in case
-/// the driver does not unroll them).
-pub fn loop_trips(lk: usize, d: usize) -> usize {
-    let (_, cols, wide) = choose(DType::F32, d);
-    let d4 = cols / 4;
-    let tiles = lk.div_ceil(8);
-    if wide {
-        tiles * (d / 8 + d4 + 1) + 2 * d4
-    } else {
-        tiles * (2 * d4 + 1) + 2 * d4
+const fn kern(id: K, dtype: DType, cols: usize, rows: usize, wide: bool) -> AttnKernel {
+    AttnKernel {
+        id,
+        dtype,
+        cols,
+        rows,
+        wide,
     }
+}
+
+/// All attention kernels, in order of preference for a given head dim (the first that fits is the default).
+pub const KERNELS: &[AttnKernel] = &[
+    kern(K::AttentionF32D8r4, DType::F32, 8, 4, false),
+    kern(K::AttentionF32D8, DType::F32, 8, 1, false),
+    kern(K::AttentionF32D40r2, DType::F32, 40, 2, false),
+    kern(K::AttentionF32D40r4, DType::F32, 40, 4, false),
+    kern(K::AttentionF32D40, DType::F32, 40, 1, false),
+    kern(K::AttentionF32D80r2, DType::F32, 80, 2, false),
+    kern(K::AttentionF32D80, DType::F32, 80, 1, false),
+    kern(K::AttentionF32D160, DType::F32, 160, 1, false),
+    kern(K::AttentionF32D160Wide, DType::F32, 160, 1, true),
+    kern(K::AttentionF16D8r4, DType::F16, 8, 4, false),
+    kern(K::AttentionF16D8, DType::F16, 8, 1, false),
+    kern(K::AttentionF16D40r2, DType::F16, 40, 2, false),
+    kern(K::AttentionF16D40r4, DType::F16, 40, 4, false),
+    kern(K::AttentionF16D40, DType::F16, 40, 1, false),
+    kern(K::AttentionF16D80r2, DType::F16, 80, 2, false),
+    kern(K::AttentionF16D80, DType::F16, 80, 1, false),
+    kern(K::AttentionF16D160, DType::F16, 160, 1, false),
+    kern(K::AttentionF16D160Wide, DType::F16, 160, 1, true),
+];
+
+impl AttnKernel {
+    /// Whether this kernel computes head dim `d`.
+    pub fn fits(&self, d: usize) -> bool {
+        if self.wide {
+            d % 8 == 0
+        } else {
+            d <= self.cols
+        }
+    }
+
+    /// Upper bound of loop back-edges one invocation runs for `lk` keys at head dim `d`, counting the
+    /// constant-trip chunk loops as loops (NIR unrolls them only up to 32 trips).
+    pub fn loop_trips(&self, lk: usize, d: usize) -> usize {
+        let d4 = self.cols / 4;
+        let tiles = lk.div_ceil(8);
+        if self.wide {
+            tiles * (d / 8 + d4 + 1) + 2 * d4
+        } else {
+            self.rows * (tiles * (2 * d4 + 1) + 2 * d4)
+        }
+    }
+}
+
+/// The default kernel for `dtype` and head dim `d`.
+pub fn choose(dtype: DType, d: usize) -> AttnKernel {
+    *KERNELS
+        .iter()
+        .find(|k| k.dtype == dtype && k.fits(d))
+        .expect("the wide kernels take every d % 8 == 0; others are rejected before")
+}
+
+/// Loop bound of the default kernel (see [`AttnKernel::loop_trips`]).
+pub fn loop_trips(lk: usize, d: usize) -> usize {
+    choose(DType::F32, d).loop_trips(lk, d)
 }
 
 /// Multi-head attention, see the module docs for the layout. `scale` defaults to 1/sqrt(d).
@@ -59,6 +107,21 @@ pub fn attention(
     out: &Tensor,
     heads: usize,
     scale: Option<f32>,
+) -> Result<()> {
+    attention_with(rec, q, k, v, out, heads, scale, None)
+}
+
+/// [`attention`] with an explicit kernel from [`KERNELS`] (benchmarks and tests compare them).
+#[allow(clippy::too_many_arguments)]
+pub fn attention_with(
+    rec: &mut Recorder,
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    out: &Tensor,
+    heads: usize,
+    scale: Option<f32>,
+    kernel: Option<AttnKernel>,
 ) -> Result<()> {
     let (sq, sk, sv, so) = (q.shape(), k.shape(), v.shape(), out.shape());
     let shapes = format!("q {sq:?}, k {sk:?}, v {sv:?}, out {so:?}, heads {heads}");
@@ -80,19 +143,25 @@ pub fn attention(
         "attention: {heads} heads do not divide the width {w}: {shapes}"
     );
     let d = w / heads;
-    let (kernel, cols, wide) = choose(dtype, d);
     ensure!(
-        d % 4 == 0 && (!wide || d % 8 == 0),
+        d % 4 == 0 && (d <= 160 || d % 8 == 0),
         "attention: head dim {d} must be a multiple of 4 (of 8 above 160): {shapes}"
     );
-    let trips = loop_trips(lk, d);
+    let kn = kernel.unwrap_or_else(|| choose(dtype, d));
+    ensure!(
+        kn.dtype == dtype && kn.fits(d),
+        "attention: kernel {:?} does not take {} head dim {d}: {shapes}",
+        kn.id,
+        dtype.name()
+    );
+    let trips = kn.loop_trips(lk, d);
     ensure!(
         trips <= LOOP_BUDGET,
         "attention: Lk = {lk} at head dim {d} needs {trips} loop trips per invocation, over lavapipe's \
          budget of {LOOP_BUDGET}: split the keys ({shapes})"
     );
-    let qblocks = lq.div_ceil(8);
-    let slices = if wide { d.div_ceil(cols) } else { 1 };
+    let qblocks = lq.div_ceil(8 * kn.rows);
+    let slices = if kn.wide { d.div_ceil(kn.cols) } else { 1 };
     let groups = b * heads * qblocks * slices;
     let p = AttnParams {
         lq: lq as u32,
@@ -106,7 +175,7 @@ pub fn attention(
         scale: scale.unwrap_or(1.0 / (d as f32).sqrt()),
     };
     rec.dispatch(
-        kernel,
+        kn.id,
         &[q.buffer(), k.buffer(), v.buffer(), out.buffer()],
         bytemuck::bytes_of(&p),
         fold_groups("attention", groups)?,
