@@ -80,37 +80,51 @@ fn bench(c: &mut Criterion) {
         let flop = 4 * cs.heads * cs.lq * cs.lk * cs.d;
         let default = choose(cs.dtype, cs.d);
         // The default kernel under the case's name, then the other kernels holding the same head dim (query
-        // rows per lane R) suffixed with `_r<R>`, all in one run so they see the same machine load.
-        let kernels = KERNELS
+        // rows per lane R) suffixed with `_r<R>`.
+        let kernels: Vec<_> = KERNELS
             .iter()
-            .filter(|k| k.dtype == cs.dtype && !k.wide && k.cols == default.cols);
-        for kn in kernels {
-            let label = if kn.id == default.id {
-                name.clone()
-            } else {
-                format!("{name}_r{}", kn.rows)
-            };
-            let mut rec = ctx.recorder().expect("recorder");
-            attention_with(&mut rec, &q, &k, &v, &out, cs.heads, None, Some(*kn)).expect("record");
-            let recording = rec.finish().expect("finish");
-            recording.submit_wait().expect("warm-up"); // pipeline JIT happens here, outside the clock
-                                                       // A plain timing first, so the GFLOP/s line is printed even with criterion's output filtered.
-            let n = 5;
-            let t0 = Instant::now();
-            for _ in 0..n {
+            .filter(|k| k.dtype == cs.dtype && !k.wide && k.cols == default.cols)
+            .map(|kn| {
+                let label = if kn.id == default.id {
+                    name.clone()
+                } else {
+                    format!("{name}_r{}", kn.rows)
+                };
+                let mut rec = ctx.recorder().expect("recorder");
+                attention_with(&mut rec, &q, &k, &v, &out, cs.heads, None, Some(*kn))
+                    .expect("record");
+                let recording = rec.finish().expect("finish");
+                recording.submit_wait().expect("warm-up"); // pipeline JIT happens here, outside the clock
+                (label, recording)
+            })
+            .collect();
+        // A plain timing first, so GFLOP/s lines are printed even with criterion's output filtered. The machine
+        // is shared: the variants run round-robin (7 rounds) so each sees the same load, and the best and the
+        // median run of each are printed.
+        let mut t = vec![vec![]; kernels.len()];
+        for _ in 0..7 {
+            for (ti, (_, recording)) in t.iter_mut().zip(&kernels) {
+                let t0 = Instant::now();
                 recording.submit_wait().expect("submit");
+                ti.push(t0.elapsed().as_secs_f64());
             }
-            let s = t0.elapsed().as_secs_f64() / n as f64;
-            eprintln!(
-                "{label}: {:.2} ms, {:.2} GFLOP/s",
-                s * 1e3,
-                flop as f64 / s * 1e-9
-            );
-            g.throughput(Throughput::Elements(flop as u64));
-            g.bench_function(&label, |b| {
-                b.iter(|| recording.submit_wait().expect("submit"))
-            });
         }
+        let gf = |s: f64| flop as f64 / s * 1e-9;
+        for (ti, (label, _)) in t.iter_mut().zip(&kernels) {
+            ti.sort_by(f64::total_cmp);
+            eprintln!(
+                "{label}: best {:.2} ms = {:.2} GFLOP/s, median {:.2} ms = {:.2} GFLOP/s",
+                ti[0] * 1e3,
+                gf(ti[0]),
+                ti[3] * 1e3,
+                gf(ti[3])
+            );
+        }
+        let (label, recording) = &kernels[0];
+        g.throughput(Throughput::Elements(flop as u64));
+        g.bench_function(label, |b| {
+            b.iter(|| recording.submit_wait().expect("submit"))
+        });
     }
     g.finish();
 }

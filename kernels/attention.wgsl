@@ -3,6 +3,7 @@
 //! variant f32_d40: alias ST = f32; const D4: u32 = 10u; const R: u32 = 1u;
 //! variant f32_d40r2: alias ST = f32; const D4: u32 = 10u; const R: u32 = 2u;
 //! variant f32_d40r4: alias ST = f32; const D4: u32 = 10u; const R: u32 = 4u;
+//! variant f32_d40r8: alias ST = f32; const D4: u32 = 10u; const R: u32 = 8u;
 //! variant f32_d80: alias ST = f32; const D4: u32 = 20u; const R: u32 = 1u;
 //! variant f32_d80r2: alias ST = f32; const D4: u32 = 20u; const R: u32 = 2u;
 //! variant f32_d160: alias ST = f32; const D4: u32 = 40u; const R: u32 = 1u;
@@ -11,6 +12,7 @@
 //! variant f16_d40: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 1u;
 //! variant f16_d40r2: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 2u;
 //! variant f16_d40r4: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 4u;
+//! variant f16_d40r8: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 8u;
 //! variant f16_d80: enable f16; alias ST = f16; const D4: u32 = 20u; const R: u32 = 1u;
 //! variant f16_d80r2: enable f16; alias ST = f16; const D4: u32 = 20u; const R: u32 = 2u;
 //! variant f16_d160: enable f16; alias ST = f16; const D4: u32 = 40u; const R: u32 = 1u;
