@@ -1,8 +1,11 @@
 //! Attention benchmarks: the UNet's first-level self- and cross-attention (1400 tokens, 8 heads of 40, batch 1;
-//! cross-attention to the 77-token context), f32 and f16 storage. Each iteration submits one pre-recorded
-//! dispatch and waits on its fence, so the clock is read after the device finished. FLOP = 4 * B * H * Lq * Lk
-//! * d (two matrix products); criterion's "elem/s" throughput is FLOP/s, and a GFLOP/s line is printed per case.
-//! Run: `cargo bench --bench ops_attention` (lavapipe honours LP_NUM_THREADS).
+//! cross-attention to the 77-token context), f32 and f16 storage, named `attention_<dtype>_<Lq>x<Lk>_h<H>_d<d>`.
+//! Each iteration submits one pre-recorded dispatch and waits on its fence, so the clock is read after the device
+//! finished. FLOP = 4 B H Lq Lk d (two matrix products); criterion's "elem/s" throughput is FLOP/s.
+//!
+//! Before criterion runs a case, the default kernel and its siblings with other query rows per lane (`_r<R>`)
+//! run round-robin 7 times each and print best / median GFLOP/s: on a shared machine only runs taken side by
+//! side compare. Run: `cargo bench --bench ops_attention` (lavapipe honours `LP_NUM_THREADS`).
 use std::time::Instant;
 
 use b2dr::ops::attention::{attention_with, choose, KERNELS};
