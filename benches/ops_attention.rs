@@ -91,7 +91,11 @@ fn bench(c: &mut Criterion) {
                 let label = if kn.id == default.id {
                     name.clone()
                 } else {
-                    format!("{name}_r{}", kn.rows)
+                    format!(
+                        "{name}_r{}{}",
+                        kn.rows,
+                        if kn.packed { "_packed" } else { "" }
+                    )
                 };
                 let mut rec = ctx.recorder().expect("recorder");
                 attention_with(&mut rec, &q, &k, &v, &out, cs.heads, None, Some(*kn))

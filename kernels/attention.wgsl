@@ -1,26 +1,30 @@
-//! variant f32_d8: alias ST = f32; const D4: u32 = 2u; const R: u32 = 1u;
-//! variant f32_d8r4: alias ST = f32; const D4: u32 = 2u; const R: u32 = 4u;
-//! variant f32_d40: alias ST = f32; const D4: u32 = 10u; const R: u32 = 1u;
-//! variant f32_d40r2: alias ST = f32; const D4: u32 = 10u; const R: u32 = 2u;
-//! variant f32_d40r4: alias ST = f32; const D4: u32 = 10u; const R: u32 = 4u;
-//! variant f32_d40r8: alias ST = f32; const D4: u32 = 10u; const R: u32 = 8u;
-//! variant f32_d80: alias ST = f32; const D4: u32 = 20u; const R: u32 = 1u;
-//! variant f32_d80r2: alias ST = f32; const D4: u32 = 20u; const R: u32 = 2u;
-//! variant f32_d160: alias ST = f32; const D4: u32 = 40u; const R: u32 = 1u;
-//! variant f16_d8: enable f16; alias ST = f16; const D4: u32 = 2u; const R: u32 = 1u;
-//! variant f16_d8r4: enable f16; alias ST = f16; const D4: u32 = 2u; const R: u32 = 4u;
-//! variant f16_d40: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 1u;
-//! variant f16_d40r2: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 2u;
-//! variant f16_d40r4: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 4u;
-//! variant f16_d40r8: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 8u;
-//! variant f16_d80: enable f16; alias ST = f16; const D4: u32 = 20u; const R: u32 = 1u;
-//! variant f16_d80r2: enable f16; alias ST = f16; const D4: u32 = 20u; const R: u32 = 2u;
-//! variant f16_d160: enable f16; alias ST = f16; const D4: u32 = 40u; const R: u32 = 1u;
+//! variant f32_d8: alias ST = f32; const D4: u32 = 2u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f32_d8r4: alias ST = f32; const D4: u32 = 2u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f32_d40: alias ST = f32; const D4: u32 = 10u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f32_d40r2: alias ST = f32; const D4: u32 = 10u; const R: u32 = 2u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f32_d40r4: alias ST = f32; const D4: u32 = 10u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f32_d80: alias ST = f32; const D4: u32 = 20u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f32_d80r2: alias ST = f32; const D4: u32 = 20u; const R: u32 = 2u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f32_d160: alias ST = f32; const D4: u32 = 40u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f16_d8: enable f16; alias ST = f16; const D4: u32 = 2u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f16_d8r4: enable f16; alias ST = f16; const D4: u32 = 2u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f16_d40: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f16_d40r2: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 2u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f16_d40r4: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f16_d80: enable f16; alias ST = f16; const D4: u32 = 20u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f16_d80r2: enable f16; alias ST = f16; const D4: u32 = 20u; const R: u32 = 2u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f16_d160: enable f16; alias ST = f16; const D4: u32 = 40u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f16p_d8r4: enable f16; alias ST = f16; const D4: u32 = 2u; const R: u32 = 4u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); }
+//! variant f16p_d40r2: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 2u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); }
+//! variant f16p_d40r4: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 4u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); }
+//! variant f16p_d80r2: enable f16; alias ST = f16; const D4: u32 = 20u; const R: u32 = 2u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); }
 // Multi-head attention, flash style (online softmax), storage type ST, all arithmetic in f32.
 //
 // Layout (token-major, as the UNet's linear projections produce it; heads interleaved in the last dim):
 //   q: (B, Lq, H*d), k: (B, Lk, H*d), v: (B, Lk, H*d) -> o: (B, Lq, H*d); head h owns columns [h*d, h*d + d).
 // Buffers are read as vec4 (d % 4 == 0; nc = d / 4 chunks per head row, w4 = H * nc chunks per token row).
+// Every global load in lavapipe 22.3 is a branchy loop over the 8 lanes, so load instructions, not FLOPs, set the
+// speed: the `f16p` variants read k and v as vec4<u32> (two f16 chunks per load, d % 8 == 0) and unpack them.
 //
 // Mapping for llvmpipe (8-wide SIMD across invocations, lavapipe's subgroup size 8). A work group is 8
 // invocations = one subgroup; lane l owns query row qb*8 + l of one (batch, head): its q (pre-scaled) and its
@@ -40,14 +44,25 @@
 // from memory for the logits and splits the output columns into slices of 4 * D4 (one slice per work group),
 // recomputing the logits per slice.
 
+// IEEE half bit patterns (low 16 bits) -> f32: normal numbers by rebiasing the exponent, subnormals as m * 2^-24
+// (f16 inf/NaN are not expected in attention inputs).
+fn halves_to_f32(b: vec4<u32>) -> vec4<f32> {
+    let e = (b >> vec4<u32>(10u)) & vec4<u32>(0x1fu);
+    let m = b & vec4<u32>(0x3ffu);
+    let sgn = (b & vec4<u32>(0x8000u)) << vec4<u32>(16u);
+    let normal = bitcast<vec4<f32>>(sgn | ((e + vec4<u32>(112u)) << vec4<u32>(23u)) | (m << vec4<u32>(13u)));
+    let sub = bitcast<vec4<f32>>(sgn | vec4<u32>(0x3f800000u)) * vec4<f32>(m) * 5.9604645e-8;
+    return select(normal, sub, e == vec4<u32>(0u));
+}
+
 struct AttnParams {
     lq: u32, lk: u32, heads: u32, nc: u32, w4: u32,
     qblocks: u32, slices: u32, groups: u32, scale: f32,
 }
 
 @group(0) @binding(0) var<storage, read> q: array<vec4<ST>>;
-@group(0) @binding(1) var<storage, read> k: array<vec4<ST>>;
-@group(0) @binding(2) var<storage, read> v: array<vec4<ST>>;
+@group(0) @binding(1) var<storage, read> k: array<KT>;
+@group(0) @binding(2) var<storage, read> v: array<KT>;
 @group(0) @binding(3) var<storage, read_write> o: array<vec4<ST>>;
 
 var<immediate> a: AttnParams;
@@ -131,8 +146,11 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
             s0[r] = vec4<f32>(0.0);
             s1[r] = vec4<f32>(0.0);
         }
+        var raw: KT;
         for (var c = 0u; c < D4; c++) {
-            let kc = vec4<f32>(k[krow + min(c, last)]);
+            // CPL chunks per load; c is a constant after unrolling, so the branch and the unpack part fold.
+            if (c % CPL == 0u) { raw = k[(krow + min(c, last)) / CPL]; }
+            let kc = unpack(raw, c % CPL);
             for (var r = 0u; r < R; r++) {
                 s0[r] += logits_lo(qr[r][c], kc);
                 s1[r] += logits_hi(qr[r][c], kc);
@@ -145,7 +163,8 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
             l[r] = st[r].l;
         }
         for (var c = 0u; c < D4; c++) {
-            let vc = vec4<f32>(v[krow + min(c, last)]);
+            if (c % CPL == 0u) { raw = v[(krow + min(c, last)) / CPL]; }
+            let vc = unpack(raw, c % CPL);
             for (var r = 0u; r < R; r++) {
                 acc[r][c] = values_step(acc[r][c], st[r].alpha, st[r].p0, st[r].p1, vc);
             }
@@ -194,9 +213,9 @@ fn wide(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
         // Two chunks per trip halves this loop's share of the budget (nc is even: d % 8 == 0).
         for (var c = 0u; c < a.nc; c += 2u) {
             let qa = vec4<f32>(q[qrow + c]) * a.scale;
-            let ka = vec4<f32>(k[krow + c]);
+            let ka = unpack(k[(krow + c) / CPL], (krow + c) % CPL);
             let qb2 = vec4<f32>(q[qrow + c + 1u]) * a.scale;
-            let kb = vec4<f32>(k[krow + c + 1u]);
+            let kb = unpack(k[(krow + c + 1u) / CPL], (krow + c + 1u) % CPL);
             s0 += logits_lo(qa, ka) + logits_lo(qb2, kb);
             s1 += logits_hi(qa, ka) + logits_hi(qb2, kb);
         }
@@ -204,7 +223,7 @@ fn wide(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
         m = st.m;
         l = st.l;
         for (var c = 0u; c < D4; c++) {
-            acc[c] = values_step(acc[c], st.alpha, st.p0, st.p1, vec4<f32>(v[krow + min(c0 + c, last)]));
+            acc[c] = values_step(acc[c], st.alpha, st.p0, st.p1, unpack(v[(krow + min(c0 + c, last)) / CPL], (krow + min(c0 + c, last)) % CPL));
         }
     }
     if (i < a.lq) {

@@ -157,9 +157,9 @@ fn every_kernel_matches_reference() {
         let dims = if kn.wide {
             vec![264, 168]
         } else {
-            vec![kn.cols, kn.cols - 4]
+            vec![kn.cols, kn.cols - 4, kn.cols - 8]
         };
-        for d in dims.into_iter().filter(|&d| d > 0) {
+        for d in dims.into_iter().filter(|&d| d > 0 && kn.fits(d)) {
             let c = case("variant", 2, 37, 45, 2, d);
             let e = check(&ctx, &c, kn.dtype, 7000 + i as u64, Some(*kn));
             let tol = if kn.dtype == DType::F32 {

@@ -28,40 +28,52 @@ pub struct AttnKernel {
     /// Query rows per invocation (R in the kernel).
     pub rows: usize,
     pub wide: bool,
+    /// k and v read as packed pairs of f16 chunks (needs d % 8 == 0).
+    pub packed: bool,
 }
 
-const fn kern(id: K, dtype: DType, cols: usize, rows: usize, wide: bool) -> AttnKernel {
+const fn kern(
+    id: K,
+    dtype: DType,
+    cols: usize,
+    rows: usize,
+    wide: bool,
+    packed: bool,
+) -> AttnKernel {
     AttnKernel {
         id,
         dtype,
         cols,
         rows,
         wide,
+        packed,
     }
 }
 
 /// All attention kernels, in order of preference for a given head dim (the first that fits is the default).
 pub const KERNELS: &[AttnKernel] = &[
-    kern(K::AttentionF32D8r4, DType::F32, 8, 4, false),
-    kern(K::AttentionF32D8, DType::F32, 8, 1, false),
-    kern(K::AttentionF32D40r4, DType::F32, 40, 4, false),
-    kern(K::AttentionF32D40r2, DType::F32, 40, 2, false),
-    kern(K::AttentionF32D40r8, DType::F32, 40, 8, false),
-    kern(K::AttentionF32D40, DType::F32, 40, 1, false),
-    kern(K::AttentionF32D80r2, DType::F32, 80, 2, false),
-    kern(K::AttentionF32D80, DType::F32, 80, 1, false),
-    kern(K::AttentionF32D160, DType::F32, 160, 1, false),
-    kern(K::AttentionF32D160Wide, DType::F32, 160, 1, true),
-    kern(K::AttentionF16D8r4, DType::F16, 8, 4, false),
-    kern(K::AttentionF16D8, DType::F16, 8, 1, false),
-    kern(K::AttentionF16D40r4, DType::F16, 40, 4, false),
-    kern(K::AttentionF16D40r2, DType::F16, 40, 2, false),
-    kern(K::AttentionF16D40r8, DType::F16, 40, 8, false),
-    kern(K::AttentionF16D40, DType::F16, 40, 1, false),
-    kern(K::AttentionF16D80r2, DType::F16, 80, 2, false),
-    kern(K::AttentionF16D80, DType::F16, 80, 1, false),
-    kern(K::AttentionF16D160, DType::F16, 160, 1, false),
-    kern(K::AttentionF16D160Wide, DType::F16, 160, 1, true),
+    kern(K::AttentionF32D8r4, DType::F32, 8, 4, false, false),
+    kern(K::AttentionF32D8, DType::F32, 8, 1, false, false),
+    kern(K::AttentionF32D40r4, DType::F32, 40, 4, false, false),
+    kern(K::AttentionF32D40r2, DType::F32, 40, 2, false, false),
+    kern(K::AttentionF32D40, DType::F32, 40, 1, false, false),
+    kern(K::AttentionF32D80r2, DType::F32, 80, 2, false, false),
+    kern(K::AttentionF32D80, DType::F32, 80, 1, false, false),
+    kern(K::AttentionF32D160, DType::F32, 160, 1, false, false),
+    kern(K::AttentionF32D160Wide, DType::F32, 160, 1, true, false),
+    kern(K::AttentionF16pD8r4, DType::F16, 8, 4, false, true),
+    kern(K::AttentionF16pD40r4, DType::F16, 40, 4, false, true),
+    kern(K::AttentionF16pD40r2, DType::F16, 40, 2, false, true),
+    kern(K::AttentionF16pD80r2, DType::F16, 80, 2, false, true),
+    kern(K::AttentionF16D8r4, DType::F16, 8, 4, false, false),
+    kern(K::AttentionF16D8, DType::F16, 8, 1, false, false),
+    kern(K::AttentionF16D40r4, DType::F16, 40, 4, false, false),
+    kern(K::AttentionF16D40r2, DType::F16, 40, 2, false, false),
+    kern(K::AttentionF16D40, DType::F16, 40, 1, false, false),
+    kern(K::AttentionF16D80r2, DType::F16, 80, 2, false, false),
+    kern(K::AttentionF16D80, DType::F16, 80, 1, false, false),
+    kern(K::AttentionF16D160, DType::F16, 160, 1, false, false),
+    kern(K::AttentionF16D160Wide, DType::F16, 160, 1, true, false),
 ];
 
 impl AttnKernel {
@@ -70,7 +82,7 @@ impl AttnKernel {
         if self.wide {
             d % 8 == 0
         } else {
-            d <= self.cols
+            d <= self.cols && (!self.packed || d % 8 == 0)
         }
     }
 
