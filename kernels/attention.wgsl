@@ -27,32 +27,40 @@
 // speed: the `f16p` variants read k and v as vec4<u32> (two f16 chunks per load, d % 8 == 0) and unpack them.
 //
 // Mapping for llvmpipe (8-wide SIMD across invocations, lavapipe's subgroup size 8). A work group is 8
-// invocations = one subgroup; lane l owns query row qb*8 + l of one (batch, head): its q (pre-scaled) and its
-// output accumulator live in registers (`array<vec4<f32>, D4>` indexed only by constants once the chunk loops
-// are unrolled). Keys go by tiles of 8: lane l loads chunk c of key j0 + l (one vec4 per lane: every lane's load
-// is useful), and subgroupBroadcast with a constant lane index (a register shuffle in llvmpipe) hands key
-// j0 + t's chunk to all lanes. So each global load feeds 32 multiply-adds per lane and there are no barriers,
-// no shared memory, no gathers of uniform data. Per tile: logits s (8 per lane), running max m and sum l,
-// rescale acc by exp(m_old - m_new), acc += p * V. Masked keys get logit -3e38 (exp -> 0, never inf - inf).
+// invocations = one subgroup; lane l owns the R query rows qb*8R + 8r + l (r < R) of one (batch, head): their q
+// (pre-scaled) and output accumulators live in registers (`array<array<vec4<f32>, D4>, R>` indexed only by
+// constants once the loops are unrolled). Keys go by tiles of 8: lane l loads chunk c of key j0 + l (one vec4
+// per lane: every lane's load is useful), and subgroupBroadcast with a constant lane index (a register shuffle
+// in llvmpipe) hands key j0 + t's chunk to all lanes. So each global load feeds 32 R multiply-adds per lane and
+// there are no barriers, no shared memory, no gathers of uniform data. Per tile and row: logits s (8 per lane),
+// running max m and sum l, rescale acc by exp(m_old - m_new), acc += p * V. Masked keys get logit -3e38
+// (exp -> 0, never inf - inf). Measured on lavapipe (1400 tokens, d 40): R = 1 -> 2 -> 4 gains ~1.5x, R = 8 no
+// more (register pressure); loading k/v for only every other chunk (a wrong-result probe) was ~1.9x faster, so
+// the remaining time is mostly the per-lane load loops.
+//
+// On GPUs with wider subgroups (32, 64) the work group of 8 is still one subgroup (lanes 0..7); subgroups
+// narrower than 8 are not supported.
 //
 // Loop budget (lavapipe: 65535 loop back-edges per invocation, then loops silently exit): the key loop runs
-// ceil(Lk / 8) times; the chunk loops (D4 trips each) are counted too if the driver does not unroll them, so
-// an invocation runs at most ceil(Lk / 8) * (2 * D4 + 1) + 2 * D4 back-edges; `wide` adds ceil(nc / 2) per tile
-// for its q.k loop. The launcher checks this bound and refuses shapes that would exceed it.
+// ceil(Lk / 8) times; NIR unrolls constant loops of up to 32 trips (so D4 = 40 stays a loop), and the launcher's
+// bound counts every chunk loop as a loop: R * (ceil(Lk / 8) * (2 * D4 + 1) + 2 * D4) back-edges; `wide` adds
+// nc / 2 per tile for its q.k loop. The launcher refuses shapes over 60000.
 //
 // `main` needs d <= 4 * D4. `wide` (any d % 8 == 0, used for d > 160, e.g. the VAE's 512) streams q chunks
 // from memory for the logits and splits the output columns into slices of 4 * D4 (one slice per work group),
 // recomputing the logits per slice.
 
-// IEEE half bit patterns (low 16 bits) -> f32: normal numbers by rebiasing the exponent, subnormals as m * 2^-24
-// (f16 inf/NaN are not expected in attention inputs).
+// IEEE half bit patterns (low 16 bits) -> f32: normal numbers by rebiasing the exponent, subnormals as m * 2^-24,
+// inf/NaN kept (an overflowed input must not turn into a finite output). bitcast<vec2<f16>>(u32) compiled but
+// gave wrong values on lavapipe 22.3, and unpack2x16float needs a naga capability build.rs does not enable.
 fn halves_to_f32(b: vec4<u32>) -> vec4<f32> {
     let e = (b >> vec4<u32>(10u)) & vec4<u32>(0x1fu);
     let m = b & vec4<u32>(0x3ffu);
     let sgn = (b & vec4<u32>(0x8000u)) << vec4<u32>(16u);
     let normal = bitcast<vec4<f32>>(sgn | ((e + vec4<u32>(112u)) << vec4<u32>(23u)) | (m << vec4<u32>(13u)));
     let sub = bitcast<vec4<f32>>(sgn | vec4<u32>(0x3f800000u)) * vec4<f32>(m) * 5.9604645e-8;
-    return select(normal, sub, e == vec4<u32>(0u));
+    let special = bitcast<vec4<f32>>(sgn | vec4<u32>(0x7f800000u) | (m << vec4<u32>(13u)));
+    return select(select(normal, sub, e == vec4<u32>(0u)), special, e == vec4<u32>(31u));
 }
 
 struct AttnParams {
