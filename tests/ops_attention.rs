@@ -151,6 +151,51 @@ fn attention_matches_reference() {
     assert_no_validation_errors();
 }
 
+/// Logits of ~6e3 that share a per-query offset and differ by O(1) between keys: a non-trivial softmax that only
+/// max subtraction keeps finite (exp(6e3) overflows f32 and f64). q = 10 + U(-1, 1), k = 100 + 0.1 U(-1, 1), d 40.
+/// Rounding the logits in f32 (ulp(6e3) ~ 5e-4) perturbs the weights by ~1e-3 relative, so the tolerance is the
+/// problem's conditioning (1e-6; measured ~1e-7), not the 1e-8 of well-scaled inputs; NaN/Inf must never appear.
+#[test]
+fn attention_large_common_logit_offset() {
+    let Some(ctx) = ctx() else { return };
+    let (lq, lk, heads, d) = (40, 77, 8, 40);
+    let w = heads * d;
+    let q: Vec<f32> = uniform(lq * w, 1.0, 51).iter().map(|x| 10.0 + x).collect();
+    let k: Vec<f32> = uniform(lk * w, 0.1, 52).iter().map(|x| 100.0 + x).collect();
+    let v = uniform(lk * w, 1.0, 53);
+    for dtype in [DType::F32, DType::F16] {
+        let (qt, kt, vt) = (
+            upload(&ctx, &[1, lq, w], dtype, &q),
+            upload(&ctx, &[1, lk, w], dtype, &k),
+            upload(&ctx, &[1, lk, w], dtype, &v),
+        );
+        let out = empty(&ctx, &[1, lq, w], dtype);
+        run(&ctx, |rec| attention(rec, &qt, &kt, &vt, &out, heads, None));
+        let shape = AttnShape {
+            batch: 1,
+            lq,
+            lk,
+            heads,
+            head_dim: d,
+        };
+        let scale = (1.0 / (d as f32).sqrt()) as f64;
+        let (qs, ks, vs) = (stored(&q, dtype), stored(&k, dtype), stored(&v, dtype));
+        let logit0 = scale
+            * qs[..d]
+                .iter()
+                .zip(&ks[..d])
+                .map(|(a, b)| a * b)
+                .sum::<f64>();
+        let want = r::attention(&qs, &ks, &vs, shape, scale);
+        let got = out.to_f32(&ctx).unwrap();
+        assert!(got.iter().all(|x| x.is_finite()), "{dtype:?}: NaN/Inf");
+        let e = nmse(&got, &want);
+        eprintln!("attention logit offset {logit0:.0} {dtype:?}: nmse {e:.3e}");
+        assert!(e <= 1e-6, "{dtype:?}: nmse {e:e}");
+    }
+    assert_no_validation_errors();
+}
+
 /// Every kernel variant (not only the defaults) on a ragged shape at its full head dim and with padding.
 #[test]
 fn every_kernel_matches_reference() {
