@@ -6,6 +6,7 @@
 //! variant f32_d80: alias ST = f32; const D4: u32 = 20u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
 //! variant f32_d80r2: alias ST = f32; const D4: u32 = 20u; const R: u32 = 2u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
 //! variant f32_d160: alias ST = f32; const D4: u32 = 40u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f32_w128: alias ST = f32; const D4: u32 = 32u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
 //! variant f16_d8: enable f16; alias ST = f16; const D4: u32 = 2u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
 //! variant f16_d8r4: enable f16; alias ST = f16; const D4: u32 = 2u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
 //! variant f16_d40: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
@@ -14,6 +15,7 @@
 //! variant f16_d80: enable f16; alias ST = f16; const D4: u32 = 20u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
 //! variant f16_d80r2: enable f16; alias ST = f16; const D4: u32 = 20u; const R: u32 = 2u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
 //! variant f16_d160: enable f16; alias ST = f16; const D4: u32 = 40u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
+//! variant f16_w128: enable f16; alias ST = f16; const D4: u32 = 32u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
 //! variant f16p_d8r4: enable f16; alias ST = f16; const D4: u32 = 2u; const R: u32 = 4u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); }
 //! variant f16p_d40r2: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 2u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); }
 //! variant f16p_d40r4: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 4u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); }
@@ -46,9 +48,9 @@
 // bound counts every chunk loop as a loop: R * (ceil(Lk / 8) * (2 * D4 + 1) + 2 * D4) back-edges; `wide` adds
 // nc / 2 per tile for its q.k loop. The launcher refuses shapes over 60000.
 //
-// `main` needs d <= 4 * D4. `wide` (any d % 8 == 0, used for d > 160, e.g. the VAE's 512) streams q chunks
-// from memory for the logits and splits the output columns into slices of 4 * D4 (one slice per work group),
-// recomputing the logits per slice.
+// `main` needs d <= 4 * D4. `wide` (any d % 8 == 0, used for d > 160, e.g. the VAE's 512, from the w128
+// variants: D4 = 32 is the largest chunk loop NIR unrolls) streams q chunks from memory for the logits and splits
+// the output columns into slices of 4 * D4 (one slice per work group), recomputing the logits per slice.
 
 // IEEE half bit patterns (low 16 bits) -> f32: normal numbers by rebiasing the exponent, subnormals as m * 2^-24,
 // inf/NaN kept (an overflowed input must not turn into a finite output). bitcast<vec2<f16>>(u32) compiled but

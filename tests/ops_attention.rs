@@ -45,8 +45,8 @@ const CASES: &[Case] = &[
     case("unet_self_91_h8_d160", 1, 91, 91, 8, 160),
     case("unet_self_28_h8_d160", 2, 28, 28, 8, 160),
     case("unet_cross_28x77_h8_d160", 2, 28, 77, 8, 160),
-    // The VAE mid block at 224 x 400: one head of 512 over 28 x 50 tokens (the sliced `wide` kernel, 175 key
-    // tiles x (64 + 40) chunk trips: a truncated loop would show here).
+    // The VAE mid block at 224 x 400: one head of 512 over 28 x 50 tokens (the sliced `wide` kernel: 4 slices of
+    // 128 columns, 175 key tiles x 65 trips each; a truncated loop would show here).
     case("vae_mid_1400_h1_d512", 1, 1400, 1400, 1, 512),
     // Keys up to the loop budget of the d = 160 kernel (625 tiles x 81 trips ~ 50,600 of 65,535).
     case("long_keys_5000_h1_d160", 1, 16, 5000, 1, 160),

@@ -7,7 +7,7 @@
 //!
 //! Requirements: d = width / H with d % 4 == 0 (d % 8 == 0 when d > 160), any Lq, Lk >= 1, and Lk small
 //! enough for lavapipe's loop budget (see [`loop_trips`]: about 480,000 keys for d <= 80, 5,900 at d = 160 and
-//! 4,500 at d = 512 (the VAE at 224 x 400 has 1,400)).
+//! 7,300 at d = 512 (the VAE at 224 x 400 has 1,400)).
 use anyhow::{ensure, Result};
 
 use super::softmax::fold_groups;
@@ -61,7 +61,7 @@ pub const KERNELS: &[AttnKernel] = &[
     kern(K::AttentionF32D80r2, DType::F32, 80, 2, false, false),
     kern(K::AttentionF32D80, DType::F32, 80, 1, false, false),
     kern(K::AttentionF32D160, DType::F32, 160, 1, false, false),
-    kern(K::AttentionF32D160Wide, DType::F32, 160, 1, true, false),
+    kern(K::AttentionF32W128Wide, DType::F32, 128, 1, true, false),
     kern(K::AttentionF16pD8r4, DType::F16, 8, 4, false, true),
     kern(K::AttentionF16pD40r2, DType::F16, 40, 2, false, true),
     kern(K::AttentionF16pD40r4, DType::F16, 40, 4, false, true),
@@ -74,7 +74,7 @@ pub const KERNELS: &[AttnKernel] = &[
     kern(K::AttentionF16D80r2, DType::F16, 80, 2, false, false),
     kern(K::AttentionF16D80, DType::F16, 80, 1, false, false),
     kern(K::AttentionF16D160, DType::F16, 160, 1, false, false),
-    kern(K::AttentionF16D160Wide, DType::F16, 160, 1, true, false),
+    kern(K::AttentionF16W128Wide, DType::F16, 128, 1, true, false),
 ];
 
 impl AttnKernel {
@@ -95,8 +95,9 @@ impl AttnKernel {
         let d4 = self.cols / 4;
         let tiles = lk.div_ceil(8);
         if self.wide {
-            // q.k: a runtime loop of nc / 2 trips; values: D4 = 40 chunk trips; plus the key loop.
-            tiles * (d / 8 + d4 + 1) + 2 * d4
+            // q.k: a runtime loop of nc / 2 trips; values: D4 chunk trips unless unrolled; plus the key loop.
+            let values = if d4 <= MAX_UNROLL { 0 } else { d4 };
+            tiles * (d / 8 + values + 1) + 2 * d4
         } else if d4 <= MAX_UNROLL {
             tiles + 1
         } else {
