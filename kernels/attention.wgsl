@@ -44,9 +44,10 @@
 // narrower than 8 are not supported.
 //
 // Loop budget (lavapipe: 65535 loop back-edges per invocation, then loops silently exit): the key loop runs
-// ceil(Lk / 8) times; NIR unrolls constant loops of up to 32 trips (so D4 = 40 stays a loop), and the launcher's
-// bound counts every chunk loop as a loop: R * (ceil(Lk / 8) * (2 * D4 + 1) + 2 * D4) back-edges; `wide` adds
-// nc / 2 per tile for its q.k loop. The launcher refuses shapes over 60000.
+// ceil(Lk / 8) times. lavapipe's NIR unrolls constant loops of up to 32 trips, so for D4 <= 32 the chunk and row
+// loops disappear; D4 = 40 keeps its chunk loops (R * (ceil(Lk / 8) * (2 D4 + 1) + 2 D4) back-edges), `wide`
+// adds its runtime q.k loop (nc / 2 a tile). The launcher refuses shapes over 60000; tests run a shape near the
+// bound for each kind (440,000 keys at d 40, 5,000 at d 160) and would see a truncated loop.
 //
 // `main` needs d <= 4 * D4. `wide` (any d % 8 == 0, used for d > 160, e.g. the VAE's 512, from the w128
 // variants: D4 = 32 is the largest chunk loop NIR unrolls) streams q chunks from memory for the logits and splits
