@@ -2,7 +2,9 @@
 //! picks the pipeline variant, computes the grid, pushes the parameters and records one or more dispatches into
 //! a [`Recorder`]. Outputs are caller-allocated so whole models can be planned once and replayed.
 //! Plain CPU f64 references for every op live in [`reference`].
+pub mod conv2d;
 pub mod elementwise;
+pub mod matmul;
 pub mod reference;
 
 use anyhow::{ensure, Result};

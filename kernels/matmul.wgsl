@@ -1,0 +1,216 @@
+//! variant f32: alias ST = f32; const IS_F16: bool = false; fn note_overflow() {}
+//! variant f16: enable f16; alias ST = f16; const IS_F16: bool = true; fn note_overflow() {}
+//! variant f16chk: enable f16; alias ST = f16; const IS_F16: bool = true; @group(0) @binding(4) var<storage, read_write> flag: array<u32>; fn note_overflow() { flag[0] = 0x3f800000u; }
+// Batched matmul C = A B (+ bias), register-tiled for llvmpipe (lavapipe), storage ST, arithmetic f32.
+//
+// Mapping: 8 consecutive invocations (an "octet", one llvmpipe SIMD vector) share TM output rows; lane l of the
+// octet owns 4 output columns. Per chunk of 8 k values each lane loads ONE A value per row (A[m, k0 + l]) and
+// the 8 values are broadcast to all lanes with subgroupShuffle (constant lane index after unrolling: llvmpipe
+// turns it into a register broadcast). B values differ per lane. Every storage load on lavapipe 22.3 is a
+// per-lane scalar loop (load_ssbo in gallivm), so the design minimises load instructions per FMA: vec4 loads
+// where the layout allows, and TM rows reusing each B value. No shared memory (work-group barriers are slow).
+// Edges: row and k indices are clamped for loads (A masked to 0 past K), stores are guarded.
+// Loop budget (lavapipe: 65535 back-edges per invocation): one back-edge per 8 k (K = 23040 -> 2880); the
+// inner loops have constant trip counts and are unrolled by NIR.
+// f16 outputs saturate at +-65504 (never Inf from overflow; NaN stays NaN); variant f16chk also sets flag[0] to the bits of 1.0f.
+
+struct MatmulParams {
+    m: u32, n: u32, k: u32,
+    // batch strides (elements) of A and B; 0 broadcasts the operand over the batch
+    sa: u32, sb: u32,
+    // 0 none, 1 bias[n] per column (linear), 2 bias[m] per row (conv as GEMM)
+    bias_mode: u32,
+    // batch count (grid z)
+    batch: u32,
+}
+
+@group(0) @binding(0) var<storage, read> a: array<ST>;
+@group(0) @binding(1) var<storage, read> b: array<ST>;
+@group(0) @binding(1) var<storage, read> b4: array<vec4<ST>>;
+@group(0) @binding(2) var<storage, read> bias: array<ST>;
+@group(0) @binding(3) var<storage, read_write> c: array<ST>;
+var<immediate> p: MatmulParams;
+
+const TM: u32 = 8u;
+const WG: u32 = 64u;
+
+var<private> acc: array<vec4<f32>, TM>;
+var<private> av: array<f32, TM>;
+var<private> aoff: array<u32, TM>;
+
+const F16_MAX: f32 = 65504.0;
+
+fn out_val(x: f32) -> ST {
+    if (IS_F16 && abs(x) > F16_MAX) {
+        note_overflow();
+        return ST(clamp(x, -F16_MAX, F16_MAX));
+    }
+    return ST(x);
+}
+
+// Row offsets of this invocation's TM rows (clamped into the matrix), accumulators zeroed.
+fn setup_rows(abase: u32, row0: u32) {
+    for (var r = 0u; r < TM; r++) {
+        aoff[r] = abase + min(row0 + r, p.m - 1u) * p.k;
+        acc[r] = vec4<f32>(0.0);
+    }
+}
+
+// Lane `lane` loads A[m_r, k0 + lane] for its TM rows (0 past K).
+fn load_a(k0: u32, lane: u32) {
+    let k = k0 + lane;
+    let kc = min(k, p.k - 1u);
+    for (var r = 0u; r < TM; r++) {
+        av[r] = select(0.0, f32(a[aoff[r] + kc]), k < p.k);
+    }
+}
+
+// acc[r] += A[m_r, k0 + kk] * bv, A broadcast from lane (src | kk) of the octet.
+fn fma_rows(bv: vec4<f32>, src: u32, kk: u32) {
+    for (var r = 0u; r < TM; r++) {
+        acc[r] = fma(vec4<f32>(subgroupShuffle(av[r], src | kk)), bv, acc[r]);
+    }
+}
+
+// C[m, col0 + j * cs] for j < 4 (+ bias), guarded.
+fn store_tile(cbase: u32, row0: u32, col0: u32, cs: u32) {
+    for (var r = 0u; r < TM; r++) {
+        let m = row0 + r;
+        if (m >= p.m) { return; }
+        for (var j = 0u; j < 4u; j++) {
+            let n = col0 + j * cs;
+            if (n < p.n) {
+                var v = acc[r][j];
+                if (p.bias_mode == 1u) { v += f32(bias[n]); }
+                if (p.bias_mode == 2u) { v += f32(bias[m]); }
+                c[cbase + m * p.n + n] = out_val(v);
+            }
+        }
+    }
+}
+
+// B row k (clamped), 4 consecutive columns starting at col (clamped to N - 1 each).
+fn b_row_scalar(bbase: u32, k: u32, cols: vec4<u32>) -> vec4<f32> {
+    let o = bbase + min(k, p.k - 1u) * p.n;
+    return vec4<f32>(f32(b[o + cols.x]), f32(b[o + cols.y]), f32(b[o + cols.z]), f32(b[o + cols.w]));
+}
+
+// A: (B?, M, K), B: (B?, K, N) -> C: (B, M, N). Work groups: (ceil(N / 32), ceil(M / (8 TM)), batch).
+// `nn4` needs N % 4 == 0 (vec4 loads of B); `nn` takes any N.
+@compute @workgroup_size(WG)
+fn nn(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
+      @builtin(subgroup_invocation_id) sid: u32) {
+    let lane = sid & 7u;
+    let src = sid & ~7u;
+    let row0 = (wid.y * (WG / 8u) + li / 8u) * TM;
+    let col0 = wid.x * 32u + lane * 4u;
+    let nm = p.n - 1u;
+    let cols = vec4<u32>(min(col0, nm), min(col0 + 1u, nm), min(col0 + 2u, nm), min(col0 + 3u, nm));
+    let bbase = wid.z * p.sb;
+    setup_rows(wid.z * p.sa, row0);
+    for (var k0 = 0u; k0 < p.k; k0 += 8u) {
+        load_a(k0, lane);
+        fma_rows(b_row_scalar(bbase, k0, cols), src, 0u);
+        fma_rows(b_row_scalar(bbase, k0 + 1u, cols), src, 1u);
+        fma_rows(b_row_scalar(bbase, k0 + 2u, cols), src, 2u);
+        fma_rows(b_row_scalar(bbase, k0 + 3u, cols), src, 3u);
+        fma_rows(b_row_scalar(bbase, k0 + 4u, cols), src, 4u);
+        fma_rows(b_row_scalar(bbase, k0 + 5u, cols), src, 5u);
+        fma_rows(b_row_scalar(bbase, k0 + 6u, cols), src, 6u);
+        fma_rows(b_row_scalar(bbase, k0 + 7u, cols), src, 7u);
+    }
+    store_tile(wid.z * p.m * p.n, row0, col0, 1u);
+}
+
+fn b_row_vec4(bbase4: u32, k: u32, col4: u32) -> vec4<f32> {
+    return vec4<f32>(b4[bbase4 + min(k, p.k - 1u) * (p.n / 4u) + col4]);
+}
+
+@compute @workgroup_size(WG)
+fn nn4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
+       @builtin(subgroup_invocation_id) sid: u32) {
+    let lane = sid & 7u;
+    let src = sid & ~7u;
+    let row0 = (wid.y * (WG / 8u) + li / 8u) * TM;
+    let col0 = wid.x * 32u + lane * 4u;
+    let col4 = min(col0, p.n - 4u) / 4u;
+    let bbase4 = wid.z * p.sb / 4u;
+    setup_rows(wid.z * p.sa, row0);
+    for (var k0 = 0u; k0 < p.k; k0 += 8u) {
+        load_a(k0, lane);
+        fma_rows(b_row_vec4(bbase4, k0, col4), src, 0u);
+        fma_rows(b_row_vec4(bbase4, k0 + 1u, col4), src, 1u);
+        fma_rows(b_row_vec4(bbase4, k0 + 2u, col4), src, 2u);
+        fma_rows(b_row_vec4(bbase4, k0 + 3u, col4), src, 3u);
+        fma_rows(b_row_vec4(bbase4, k0 + 4u, col4), src, 4u);
+        fma_rows(b_row_vec4(bbase4, k0 + 5u, col4), src, 5u);
+        fma_rows(b_row_vec4(bbase4, k0 + 6u, col4), src, 6u);
+        fma_rows(b_row_vec4(bbase4, k0 + 7u, col4), src, 7u);
+    }
+    store_tile(wid.z * p.m * p.n, row0, col0, 1u);
+}
+
+// W[n, k0 .. k0 + 4] (clamped; the A side is 0 past K). Scalar loads, any K.
+fn w_quad_scalar(o: u32, k0: u32) -> vec4<f32> {
+    let km = p.k - 1u;
+    return vec4<f32>(f32(b[o + min(k0, km)]), f32(b[o + min(k0 + 1u, km)]),
+                     f32(b[o + min(k0 + 2u, km)]), f32(b[o + min(k0 + 3u, km)]));
+}
+
+// One vec4 load; needs K % 4 == 0 and o % 4 == 0.
+fn w_quad_vec4(o: u32, k0: u32) -> vec4<f32> {
+    return vec4<f32>(b4[(o + min(k0, p.k - 4u)) / 4u]);
+}
+
+// 8 k steps from the four columns' W values w0..w3 (each 2 quads: k0..k0+3, k0+4..k0+7).
+fn fma_nt(w0a: vec4<f32>, w0b: vec4<f32>, w1a: vec4<f32>, w1b: vec4<f32>,
+          w2a: vec4<f32>, w2b: vec4<f32>, w3a: vec4<f32>, w3b: vec4<f32>, src: u32) {
+    fma_rows(vec4<f32>(w0a.x, w1a.x, w2a.x, w3a.x), src, 0u);
+    fma_rows(vec4<f32>(w0a.y, w1a.y, w2a.y, w3a.y), src, 1u);
+    fma_rows(vec4<f32>(w0a.z, w1a.z, w2a.z, w3a.z), src, 2u);
+    fma_rows(vec4<f32>(w0a.w, w1a.w, w2a.w, w3a.w), src, 3u);
+    fma_rows(vec4<f32>(w0b.x, w1b.x, w2b.x, w3b.x), src, 4u);
+    fma_rows(vec4<f32>(w0b.y, w1b.y, w2b.y, w3b.y), src, 5u);
+    fma_rows(vec4<f32>(w0b.z, w1b.z, w2b.z, w3b.z), src, 6u);
+    fma_rows(vec4<f32>(w0b.w, w1b.w, w2b.w, w3b.w), src, 7u);
+}
+
+// A: (B?, M, K), W: (B?, N, K) (PyTorch Linear weight) -> C = A W^T: (B, M, N).
+// Lane l owns columns col0 + l + 8 j (j < 4). Work groups as for `nn`. `nt4` needs K % 4 == 0.
+@compute @workgroup_size(WG)
+fn nt(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
+      @builtin(subgroup_invocation_id) sid: u32) {
+    let lane = sid & 7u;
+    let src = sid & ~7u;
+    let row0 = (wid.y * (WG / 8u) + li / 8u) * TM;
+    let col0 = wid.x * 32u + lane;
+    let bbase = wid.z * p.sb;
+    let nm = p.n - 1u;
+    let wo = vec4<u32>(min(col0, nm), min(col0 + 8u, nm), min(col0 + 16u, nm), min(col0 + 24u, nm)) * p.k + bbase;
+    setup_rows(wid.z * p.sa, row0);
+    for (var k0 = 0u; k0 < p.k; k0 += 8u) {
+        load_a(k0, lane);
+        fma_nt(w_quad_scalar(wo.x, k0), w_quad_scalar(wo.x, k0 + 4u), w_quad_scalar(wo.y, k0), w_quad_scalar(wo.y, k0 + 4u),
+               w_quad_scalar(wo.z, k0), w_quad_scalar(wo.z, k0 + 4u), w_quad_scalar(wo.w, k0), w_quad_scalar(wo.w, k0 + 4u), src);
+    }
+    store_tile(wid.z * p.m * p.n, row0, col0, 8u);
+}
+
+@compute @workgroup_size(WG)
+fn nt4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
+       @builtin(subgroup_invocation_id) sid: u32) {
+    let lane = sid & 7u;
+    let src = sid & ~7u;
+    let row0 = (wid.y * (WG / 8u) + li / 8u) * TM;
+    let col0 = wid.x * 32u + lane;
+    let bbase = wid.z * p.sb;
+    let nm = p.n - 1u;
+    let wo = vec4<u32>(min(col0, nm), min(col0 + 8u, nm), min(col0 + 16u, nm), min(col0 + 24u, nm)) * p.k + bbase;
+    setup_rows(wid.z * p.sa, row0);
+    for (var k0 = 0u; k0 < p.k; k0 += 8u) {
+        load_a(k0, lane);
+        fma_nt(w_quad_vec4(wo.x, k0), w_quad_vec4(wo.x, k0 + 4u), w_quad_vec4(wo.y, k0), w_quad_vec4(wo.y, k0 + 4u),
+               w_quad_vec4(wo.z, k0), w_quad_vec4(wo.z, k0 + 4u), w_quad_vec4(wo.w, k0), w_quad_vec4(wo.w, k0 + 4u), src);
+    }
+    store_tile(wid.z * p.m * p.n, row0, col0, 8u);
+}
