@@ -1,8 +1,8 @@
 //! variant f32: alias ST = f32; const IS_F16: bool = false;
 //! variant f16: enable f16; alias ST = f16; const IS_F16: bool = true;
 // conv2d as an implicit GEMM (im2col on the fly), tiled like matmul.wgsl (read its header first):
-// rows = output channels O (weights, broadcast from one lane per k with subgroupShuffle), columns = output
-// positions p = oy * OW + ox (lane l of an octet owns p0 + l + 8 j, j < 4), k = (kh, kw, c) with c innermost
+// rows = output channels O (weights, lanes 0..7 load 8 k values, subgroupBroadcast gives them to all lanes),
+// columns = output positions p = oy * OW + ox (lane l owns p0 + l + SG j, j < 4), k = (kh, kw, c), c innermost
 // in chunks of 8. Padding: input reads outside the image are masked to 0 (index clamped in bounds).
 // Loop budget: KH KW (ceil(C / 8) + 1) + KH back-edges per invocation (3x3, C = 2560: 2910).
 // f16 outputs saturate at +-65504 (see matmul.rs).
@@ -22,7 +22,7 @@ struct Conv2dParams {
 @group(0) @binding(3) var<storage, read_write> y: array<ST>;
 var<immediate> p: Conv2dParams;
 
-const TM: u32 = 8u;
+const TM: u32 = 16u;
 const WG: u32 = 64u;
 
 var<private> acc: array<vec4<f32>, TM>;
@@ -36,11 +36,15 @@ fn out_val(v: f32) -> ST {
     return ST(v);
 }
 
-fn fma_rows(bv: vec4<f32>, src: u32, kk: u32) {
-    for (var r = 0u; r < TM; r++) {
-        acc[r] = fma(vec4<f32>(subgroupShuffle(av[r], src | kk)), bv, acc[r]);
-    }
-}
+// acc[r] += W[o_r, k_j] * bv for j = 0..7, the weight broadcast from lane j (constant lane: see matmul.wgsl).
+fn fma_k0(bv: vec4<f32>) { for (var r = 0u; r < TM; r++) { acc[r] = fma(vec4<f32>(subgroupBroadcast(av[r], 0u)), bv, acc[r]); } }
+fn fma_k1(bv: vec4<f32>) { for (var r = 0u; r < TM; r++) { acc[r] = fma(vec4<f32>(subgroupBroadcast(av[r], 1u)), bv, acc[r]); } }
+fn fma_k2(bv: vec4<f32>) { for (var r = 0u; r < TM; r++) { acc[r] = fma(vec4<f32>(subgroupBroadcast(av[r], 2u)), bv, acc[r]); } }
+fn fma_k3(bv: vec4<f32>) { for (var r = 0u; r < TM; r++) { acc[r] = fma(vec4<f32>(subgroupBroadcast(av[r], 3u)), bv, acc[r]); } }
+fn fma_k4(bv: vec4<f32>) { for (var r = 0u; r < TM; r++) { acc[r] = fma(vec4<f32>(subgroupBroadcast(av[r], 4u)), bv, acc[r]); } }
+fn fma_k5(bv: vec4<f32>) { for (var r = 0u; r < TM; r++) { acc[r] = fma(vec4<f32>(subgroupBroadcast(av[r], 5u)), bv, acc[r]); } }
+fn fma_k6(bv: vec4<f32>) { for (var r = 0u; r < TM; r++) { acc[r] = fma(vec4<f32>(subgroupBroadcast(av[r], 6u)), bv, acc[r]); } }
+fn fma_k7(bv: vec4<f32>) { for (var r = 0u; r < TM; r++) { acc[r] = fma(vec4<f32>(subgroupBroadcast(av[r], 7u)), bv, acc[r]); } }
 
 // Input value of channel c at the 4 columns' offsets `off` (0 where `ok` is false).
 fn x_quad(xb: u32, c: u32, off: vec4<u32>, ok: vec4<bool>) -> vec4<f32> {
@@ -49,16 +53,14 @@ fn x_quad(xb: u32, c: u32, off: vec4<u32>, ok: vec4<bool>) -> vec4<f32> {
 }
 
 // x: (N, C, H, W), wt: (O, C, KH, KW), bias: (O) -> y: (N, O, OH, OW).
-// Work groups: (ceil(OH OW / 32), ceil(O / (8 TM)), N).
+// Work groups: (ceil(OH OW / 4 SG), ceil(O / (WG / SG) TM), N).
 @compute @workgroup_size(WG)
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
-        @builtin(subgroup_invocation_id) sid: u32) {
-    let lane = sid & 7u;
-    let src = sid & ~7u;
-    let row0 = (wid.y * (WG / 8u) + li / 8u) * TM;
+        @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
+    let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
     let np = p.oh * p.ow;
-    let col0 = wid.x * 32u + lane;
-    let cols = min(vec4<u32>(col0, col0 + 8u, col0 + 16u, col0 + 24u), vec4<u32>(np - 1u));
+    let col0 = wid.x * 4u * sgs + lane;
+    let cols = min(vec4<u32>(col0, col0 + sgs, col0 + 2u * sgs, col0 + 3u * sgs), vec4<u32>(np - 1u));
     // top-left input corner of each column's window (may be negative: i32)
     let iy0 = vec4<i32>((cols / p.ow) * p.stride) - i32(p.pt);
     let ix0 = vec4<i32>((cols % p.ow) * p.stride) - i32(p.pl);
@@ -77,19 +79,19 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             let off = select(vec4<u32>(0u), vec4<u32>(iy * i32(p.w) + ix), ok);
             let kt = ky * p.kw + kx;
             for (var c0 = 0u; c0 < p.c; c0 += 8u) {
-                let cl = c0 + lane;
+                let cl = c0 + (lane & 7u);
                 let wk = min(cl, p.c - 1u) * ksz + kt;
                 for (var r = 0u; r < TM; r++) {
                     av[r] = select(0.0, f32(wt[aoff[r] + wk]), cl < p.c);
                 }
-                fma_rows(x_quad(xb, c0, off, ok), src, 0u);
-                fma_rows(x_quad(xb, c0 + 1u, off, ok), src, 1u);
-                fma_rows(x_quad(xb, c0 + 2u, off, ok), src, 2u);
-                fma_rows(x_quad(xb, c0 + 3u, off, ok), src, 3u);
-                fma_rows(x_quad(xb, c0 + 4u, off, ok), src, 4u);
-                fma_rows(x_quad(xb, c0 + 5u, off, ok), src, 5u);
-                fma_rows(x_quad(xb, c0 + 6u, off, ok), src, 6u);
-                fma_rows(x_quad(xb, c0 + 7u, off, ok), src, 7u);
+                fma_k0(x_quad(xb, c0, off, ok));
+                fma_k1(x_quad(xb, c0 + 1u, off, ok));
+                fma_k2(x_quad(xb, c0 + 2u, off, ok));
+                fma_k3(x_quad(xb, c0 + 3u, off, ok));
+                fma_k4(x_quad(xb, c0 + 4u, off, ok));
+                fma_k5(x_quad(xb, c0 + 5u, off, ok));
+                fma_k6(x_quad(xb, c0 + 6u, off, ok));
+                fma_k7(x_quad(xb, c0 + 7u, off, ok));
             }
         }
     }
@@ -100,7 +102,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         var bv = 0.0;
         if (p.has_bias != 0u) { bv = f32(bias[oc]); }
         for (var j = 0u; j < 4u; j++) {
-            let q = col0 + 8u * j;
+            let q = col0 + sgs * j;
             if (q < np) { y[yb + oc * np + q] = out_val(acc[r][j] + bv); }
         }
     }

@@ -3,12 +3,13 @@
 //! variant f16chk: enable f16; alias ST = f16; const IS_F16: bool = true; @group(0) @binding(4) var<storage, read_write> flag: array<u32>; fn note_overflow() { flag[0] = 0x3f800000u; }
 // Batched matmul C = A B (+ bias), register-tiled for llvmpipe (lavapipe), storage ST, arithmetic f32.
 //
-// Mapping: 8 consecutive invocations (an "octet", one llvmpipe SIMD vector) share TM output rows; lane l of the
-// octet owns 4 output columns. Per chunk of 8 k values each lane loads ONE A value per row (A[m, k0 + l]) and
-// the 8 values are broadcast to all lanes with subgroupShuffle (constant lane index after unrolling: llvmpipe
-// turns it into a register broadcast). B values differ per lane. Every storage load on lavapipe 22.3 is a
-// per-lane scalar loop (load_ssbo in gallivm), so the design minimises load instructions per FMA: vec4 loads
-// where the layout allows, and TM rows reusing each B value. No shared memory (work-group barriers are slow).
+// Mapping: the invocations of one subgroup (SG lanes; 8 on lavapipe = one llvmpipe SIMD vector) share TM
+// output rows; each lane owns 4 output columns. Per chunk of 8 k values lanes 0..7 each load ONE A value per
+// row (A[m, k0 + lane]) and subgroupBroadcast with a constant lane gives it to every lane (llvmpipe: one
+// extract + broadcast; subgroupShuffle is a per-lane loop there and was 2x slower). B values differ per lane.
+// Every storage load on lavapipe 22.3 is a per-lane scalar loop (gallivm's load_ssbo), so the design
+// minimises load instructions per FMA: vec4 loads where the layout allows, TM rows reusing each B value.
+// No shared memory (work-group barriers are slow on llvmpipe). Work-group tile: (WG / SG) TM rows x 4 SG columns.
 // Edges: row and k indices are clamped for loads (A masked to 0 past K), stores are guarded.
 // Loop budget (lavapipe: 65535 back-edges per invocation): one back-edge per 8 k (K = 23040 -> 2880); the
 // inner loops have constant trip counts and are unrolled by NIR.
@@ -31,7 +32,7 @@ struct MatmulParams {
 @group(0) @binding(3) var<storage, read_write> c: array<ST>;
 var<immediate> p: MatmulParams;
 
-const TM: u32 = 8u;
+const TM: u32 = 16u;
 const WG: u32 = 64u;
 
 var<private> acc: array<vec4<f32>, TM>;
@@ -65,12 +66,15 @@ fn load_a(k0: u32, lane: u32) {
     }
 }
 
-// acc[r] += A[m_r, k0 + kk] * bv, A broadcast from lane (src | kk) of the octet.
-fn fma_rows(bv: vec4<f32>, src: u32, kk: u32) {
-    for (var r = 0u; r < TM; r++) {
-        acc[r] = fma(vec4<f32>(subgroupShuffle(av[r], src | kk)), bv, acc[r]);
-    }
-}
+// acc[r] += A[m_r, k0 + j] * bv for j = 0..7, A broadcast from lane j (subgroupBroadcast needs a constant lane).
+fn fma_k0(bv: vec4<f32>) { for (var r = 0u; r < TM; r++) { acc[r] = fma(vec4<f32>(subgroupBroadcast(av[r], 0u)), bv, acc[r]); } }
+fn fma_k1(bv: vec4<f32>) { for (var r = 0u; r < TM; r++) { acc[r] = fma(vec4<f32>(subgroupBroadcast(av[r], 1u)), bv, acc[r]); } }
+fn fma_k2(bv: vec4<f32>) { for (var r = 0u; r < TM; r++) { acc[r] = fma(vec4<f32>(subgroupBroadcast(av[r], 2u)), bv, acc[r]); } }
+fn fma_k3(bv: vec4<f32>) { for (var r = 0u; r < TM; r++) { acc[r] = fma(vec4<f32>(subgroupBroadcast(av[r], 3u)), bv, acc[r]); } }
+fn fma_k4(bv: vec4<f32>) { for (var r = 0u; r < TM; r++) { acc[r] = fma(vec4<f32>(subgroupBroadcast(av[r], 4u)), bv, acc[r]); } }
+fn fma_k5(bv: vec4<f32>) { for (var r = 0u; r < TM; r++) { acc[r] = fma(vec4<f32>(subgroupBroadcast(av[r], 5u)), bv, acc[r]); } }
+fn fma_k6(bv: vec4<f32>) { for (var r = 0u; r < TM; r++) { acc[r] = fma(vec4<f32>(subgroupBroadcast(av[r], 6u)), bv, acc[r]); } }
+fn fma_k7(bv: vec4<f32>) { for (var r = 0u; r < TM; r++) { acc[r] = fma(vec4<f32>(subgroupBroadcast(av[r], 7u)), bv, acc[r]); } }
 
 // C[m, col0 + j * cs] for j < 4 (+ bias), guarded.
 fn store_tile(cbase: u32, row0: u32, col0: u32, cs: u32) {
@@ -95,29 +99,27 @@ fn b_row_scalar(bbase: u32, k: u32, cols: vec4<u32>) -> vec4<f32> {
     return vec4<f32>(f32(b[o + cols.x]), f32(b[o + cols.y]), f32(b[o + cols.z]), f32(b[o + cols.w]));
 }
 
-// A: (B?, M, K), B: (B?, K, N) -> C: (B, M, N). Work groups: (ceil(N / 32), ceil(M / (8 TM)), batch).
+// A: (B?, M, K), B: (B?, K, N) -> C: (B, M, N). Work groups: (ceil(N / 4 SG), ceil(M / (WG / SG) TM), batch).
 // `nn4` needs N % 4 == 0 (vec4 loads of B); `nn` takes any N.
 @compute @workgroup_size(WG)
 fn nn(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
-      @builtin(subgroup_invocation_id) sid: u32) {
-    let lane = sid & 7u;
-    let src = sid & ~7u;
-    let row0 = (wid.y * (WG / 8u) + li / 8u) * TM;
-    let col0 = wid.x * 32u + lane * 4u;
+      @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
+    let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
+    let col0 = (wid.x * sgs + lane) * 4u;
     let nm = p.n - 1u;
     let cols = vec4<u32>(min(col0, nm), min(col0 + 1u, nm), min(col0 + 2u, nm), min(col0 + 3u, nm));
     let bbase = wid.z * p.sb;
     setup_rows(wid.z * p.sa, row0);
     for (var k0 = 0u; k0 < p.k; k0 += 8u) {
-        load_a(k0, lane);
-        fma_rows(b_row_scalar(bbase, k0, cols), src, 0u);
-        fma_rows(b_row_scalar(bbase, k0 + 1u, cols), src, 1u);
-        fma_rows(b_row_scalar(bbase, k0 + 2u, cols), src, 2u);
-        fma_rows(b_row_scalar(bbase, k0 + 3u, cols), src, 3u);
-        fma_rows(b_row_scalar(bbase, k0 + 4u, cols), src, 4u);
-        fma_rows(b_row_scalar(bbase, k0 + 5u, cols), src, 5u);
-        fma_rows(b_row_scalar(bbase, k0 + 6u, cols), src, 6u);
-        fma_rows(b_row_scalar(bbase, k0 + 7u, cols), src, 7u);
+        load_a(k0, lane & 7u);
+        fma_k0(b_row_scalar(bbase, k0, cols));
+        fma_k1(b_row_scalar(bbase, k0 + 1u, cols));
+        fma_k2(b_row_scalar(bbase, k0 + 2u, cols));
+        fma_k3(b_row_scalar(bbase, k0 + 3u, cols));
+        fma_k4(b_row_scalar(bbase, k0 + 4u, cols));
+        fma_k5(b_row_scalar(bbase, k0 + 5u, cols));
+        fma_k6(b_row_scalar(bbase, k0 + 6u, cols));
+        fma_k7(b_row_scalar(bbase, k0 + 7u, cols));
     }
     store_tile(wid.z * p.m * p.n, row0, col0, 1u);
 }
@@ -128,24 +130,22 @@ fn b_row_vec4(bbase4: u32, k: u32, col4: u32) -> vec4<f32> {
 
 @compute @workgroup_size(WG)
 fn nn4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
-       @builtin(subgroup_invocation_id) sid: u32) {
-    let lane = sid & 7u;
-    let src = sid & ~7u;
-    let row0 = (wid.y * (WG / 8u) + li / 8u) * TM;
-    let col0 = wid.x * 32u + lane * 4u;
+       @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
+    let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
+    let col0 = (wid.x * sgs + lane) * 4u;
     let col4 = min(col0, p.n - 4u) / 4u;
     let bbase4 = wid.z * p.sb / 4u;
     setup_rows(wid.z * p.sa, row0);
     for (var k0 = 0u; k0 < p.k; k0 += 8u) {
-        load_a(k0, lane);
-        fma_rows(b_row_vec4(bbase4, k0, col4), src, 0u);
-        fma_rows(b_row_vec4(bbase4, k0 + 1u, col4), src, 1u);
-        fma_rows(b_row_vec4(bbase4, k0 + 2u, col4), src, 2u);
-        fma_rows(b_row_vec4(bbase4, k0 + 3u, col4), src, 3u);
-        fma_rows(b_row_vec4(bbase4, k0 + 4u, col4), src, 4u);
-        fma_rows(b_row_vec4(bbase4, k0 + 5u, col4), src, 5u);
-        fma_rows(b_row_vec4(bbase4, k0 + 6u, col4), src, 6u);
-        fma_rows(b_row_vec4(bbase4, k0 + 7u, col4), src, 7u);
+        load_a(k0, lane & 7u);
+        fma_k0(b_row_vec4(bbase4, k0, col4));
+        fma_k1(b_row_vec4(bbase4, k0 + 1u, col4));
+        fma_k2(b_row_vec4(bbase4, k0 + 2u, col4));
+        fma_k3(b_row_vec4(bbase4, k0 + 3u, col4));
+        fma_k4(b_row_vec4(bbase4, k0 + 4u, col4));
+        fma_k5(b_row_vec4(bbase4, k0 + 5u, col4));
+        fma_k6(b_row_vec4(bbase4, k0 + 6u, col4));
+        fma_k7(b_row_vec4(bbase4, k0 + 7u, col4));
     }
     store_tile(wid.z * p.m * p.n, row0, col0, 1u);
 }
@@ -164,53 +164,49 @@ fn w_quad_vec4(o: u32, k0: u32) -> vec4<f32> {
 
 // 8 k steps from the four columns' W values w0..w3 (each 2 quads: k0..k0+3, k0+4..k0+7).
 fn fma_nt(w0a: vec4<f32>, w0b: vec4<f32>, w1a: vec4<f32>, w1b: vec4<f32>,
-          w2a: vec4<f32>, w2b: vec4<f32>, w3a: vec4<f32>, w3b: vec4<f32>, src: u32) {
-    fma_rows(vec4<f32>(w0a.x, w1a.x, w2a.x, w3a.x), src, 0u);
-    fma_rows(vec4<f32>(w0a.y, w1a.y, w2a.y, w3a.y), src, 1u);
-    fma_rows(vec4<f32>(w0a.z, w1a.z, w2a.z, w3a.z), src, 2u);
-    fma_rows(vec4<f32>(w0a.w, w1a.w, w2a.w, w3a.w), src, 3u);
-    fma_rows(vec4<f32>(w0b.x, w1b.x, w2b.x, w3b.x), src, 4u);
-    fma_rows(vec4<f32>(w0b.y, w1b.y, w2b.y, w3b.y), src, 5u);
-    fma_rows(vec4<f32>(w0b.z, w1b.z, w2b.z, w3b.z), src, 6u);
-    fma_rows(vec4<f32>(w0b.w, w1b.w, w2b.w, w3b.w), src, 7u);
+          w2a: vec4<f32>, w2b: vec4<f32>, w3a: vec4<f32>, w3b: vec4<f32>) {
+    fma_k0(vec4<f32>(w0a.x, w1a.x, w2a.x, w3a.x));
+    fma_k1(vec4<f32>(w0a.y, w1a.y, w2a.y, w3a.y));
+    fma_k2(vec4<f32>(w0a.z, w1a.z, w2a.z, w3a.z));
+    fma_k3(vec4<f32>(w0a.w, w1a.w, w2a.w, w3a.w));
+    fma_k4(vec4<f32>(w0b.x, w1b.x, w2b.x, w3b.x));
+    fma_k5(vec4<f32>(w0b.y, w1b.y, w2b.y, w3b.y));
+    fma_k6(vec4<f32>(w0b.z, w1b.z, w2b.z, w3b.z));
+    fma_k7(vec4<f32>(w0b.w, w1b.w, w2b.w, w3b.w));
 }
 
 // A: (B?, M, K), W: (B?, N, K) (PyTorch Linear weight) -> C = A W^T: (B, M, N).
-// Lane l owns columns col0 + l + 8 j (j < 4). Work groups as for `nn`. `nt4` needs K % 4 == 0.
+// Lane l owns columns col0 + l + SG j (j < 4). Work groups as for `nn`. `nt4` needs K % 4 == 0.
 @compute @workgroup_size(WG)
 fn nt(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
-      @builtin(subgroup_invocation_id) sid: u32) {
-    let lane = sid & 7u;
-    let src = sid & ~7u;
-    let row0 = (wid.y * (WG / 8u) + li / 8u) * TM;
-    let col0 = wid.x * 32u + lane;
+      @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
+    let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
+    let col0 = wid.x * 4u * sgs + lane;
     let bbase = wid.z * p.sb;
     let nm = p.n - 1u;
-    let wo = vec4<u32>(min(col0, nm), min(col0 + 8u, nm), min(col0 + 16u, nm), min(col0 + 24u, nm)) * p.k + bbase;
+    let wo = min(vec4<u32>(col0, col0 + sgs, col0 + 2u * sgs, col0 + 3u * sgs), vec4<u32>(nm)) * p.k + bbase;
     setup_rows(wid.z * p.sa, row0);
     for (var k0 = 0u; k0 < p.k; k0 += 8u) {
-        load_a(k0, lane);
+        load_a(k0, lane & 7u);
         fma_nt(w_quad_scalar(wo.x, k0), w_quad_scalar(wo.x, k0 + 4u), w_quad_scalar(wo.y, k0), w_quad_scalar(wo.y, k0 + 4u),
-               w_quad_scalar(wo.z, k0), w_quad_scalar(wo.z, k0 + 4u), w_quad_scalar(wo.w, k0), w_quad_scalar(wo.w, k0 + 4u), src);
+               w_quad_scalar(wo.z, k0), w_quad_scalar(wo.z, k0 + 4u), w_quad_scalar(wo.w, k0), w_quad_scalar(wo.w, k0 + 4u));
     }
-    store_tile(wid.z * p.m * p.n, row0, col0, 8u);
+    store_tile(wid.z * p.m * p.n, row0, col0, sgs);
 }
 
 @compute @workgroup_size(WG)
 fn nt4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
-       @builtin(subgroup_invocation_id) sid: u32) {
-    let lane = sid & 7u;
-    let src = sid & ~7u;
-    let row0 = (wid.y * (WG / 8u) + li / 8u) * TM;
-    let col0 = wid.x * 32u + lane;
+       @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
+    let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
+    let col0 = wid.x * 4u * sgs + lane;
     let bbase = wid.z * p.sb;
     let nm = p.n - 1u;
-    let wo = vec4<u32>(min(col0, nm), min(col0 + 8u, nm), min(col0 + 16u, nm), min(col0 + 24u, nm)) * p.k + bbase;
+    let wo = min(vec4<u32>(col0, col0 + sgs, col0 + 2u * sgs, col0 + 3u * sgs), vec4<u32>(nm)) * p.k + bbase;
     setup_rows(wid.z * p.sa, row0);
     for (var k0 = 0u; k0 < p.k; k0 += 8u) {
-        load_a(k0, lane);
+        load_a(k0, lane & 7u);
         fma_nt(w_quad_vec4(wo.x, k0), w_quad_vec4(wo.x, k0 + 4u), w_quad_vec4(wo.y, k0), w_quad_vec4(wo.y, k0 + 4u),
-               w_quad_vec4(wo.z, k0), w_quad_vec4(wo.z, k0 + 4u), w_quad_vec4(wo.w, k0), w_quad_vec4(wo.w, k0 + 4u), src);
+               w_quad_vec4(wo.z, k0), w_quad_vec4(wo.z, k0 + 4u), w_quad_vec4(wo.w, k0), w_quad_vec4(wo.w, k0 + 4u));
     }
-    store_tile(wid.z * p.m * p.n, row0, col0, 8u);
+    store_tile(wid.z * p.m * p.n, row0, col0, sgs);
 }

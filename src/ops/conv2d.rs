@@ -2,12 +2,12 @@
 //! (top, bottom, left, right), fused bias; f32 or f16 storage with f32 accumulation.
 //!
 //! Paths: 1x1 stride-1 unpadded convs run as a GEMM (`matmul::gemm`, weights shared over the batch); other
-//! convs run the implicit-GEMM kernel (`kernels/conv2d.wgsl`, needs lane shuffles in groups of 8); the direct
+//! convs run the implicit-GEMM kernel (`kernels/conv2d.wgsl`, needs subgroups of 8..64 lanes); the direct
 //! kernel (`kernels/conv2d_direct.wgsl`) is the fallback and the tests' oracle for both. f16 outputs saturate at
 //! +-65504 (see [`super::matmul`]).
 use anyhow::{ensure, Result};
 
-use super::matmul::{gemm, tiled_supported, Gemm, MatmulPath};
+use super::matmul::{gemm, tile_shape, tiled_supported, Gemm, MatmulPath};
 use super::{expect_shape, same_dtype, Recorder};
 use crate::kernels::params::Conv2dParams;
 use crate::kernels::KernelId as K;
@@ -27,9 +27,6 @@ pub enum ConvPath {
     Direct,
 }
 
-/// Output channels per work group (8 octets x TM = 8 rows) and output positions per work group.
-const TILE_ROWS: usize = 64;
-const TILE_COLS: usize = 32;
 /// lavapipe stops every loop of an invocation after 65535 back-edges in total: stay well below.
 const LOOP_BUDGET: usize = 60_000;
 
@@ -148,18 +145,15 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
     let (id, groups, edges) = if fast {
         ensure!(
             tiled_supported(rec),
-            "conv2d: the implicit-GEMM kernel needs subgroup shuffles in groups of 8, which {:?} lacks",
+            "conv2d: the implicit-GEMM kernel needs subgroups of 8 to 64 lanes, which {:?} lacks",
             rec.context().info().name
         );
         let id = match d {
             DType::F32 => K::Conv2dF32,
             DType::F16 => K::Conv2dF16,
         };
-        let g = [
-            np.div_ceil(TILE_COLS) as u32,
-            o.div_ceil(TILE_ROWS) as u32,
-            n as u32,
-        ];
+        let (rows, cols) = tile_shape(rec);
+        let g = [np.div_ceil(cols) as u32, o.div_ceil(rows) as u32, n as u32];
         (id, g, kh * kw * (c.div_ceil(8) + 1) + kh)
     } else {
         let id = match d {

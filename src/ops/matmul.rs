@@ -1,7 +1,7 @@
 //! Matmul / linear launchers: batched C = A B (+ bias) with B as (K, N) or transposed (N, K) (PyTorch Linear
 //! weight layout), f32 or f16 storage with f32 accumulation.
 //!
-//! Two kernels: the register-tiled one (`kernels/matmul.wgsl`, needs lane shuffles in groups of 8) and the
+//! Two kernels: the register-tiled one (`kernels/matmul.wgsl`, needs subgroups of 8..64 lanes) and the
 //! direct one (`kernels/matmul_direct.wgsl`, one output per invocation), kept as fallback and test oracle.
 //!
 //! f16 overflow policy: kernels accumulate in f32; an f16 output whose value exceeds 65504 in magnitude is
@@ -28,9 +28,15 @@ pub enum MatmulPath {
     Direct,
 }
 
-/// Rows per invocation (TM) and rows/columns per work group of the tiled kernel (see matmul.wgsl).
-const TILE_ROWS: usize = 8 * 8;
-const TILE_COLS: usize = 32;
+/// Work-group size and rows per subgroup (TM) of the tiled kernels (matmul.wgsl, conv2d.wgsl).
+pub(crate) const TILED_WG: usize = 64;
+pub(crate) const TILED_TM: usize = 16;
+
+/// (rows, columns) of one work group's output tile: (WG / SG) TM rows x 4 SG columns.
+pub(crate) fn tile_shape(rec: &Recorder) -> (usize, usize) {
+    let sg = rec.context().info().subgroup_size as usize;
+    (TILED_WG / sg * TILED_TM, 4 * sg)
+}
 
 /// A GEMM on raw buffers: C[z] = A[z] B[z] (+ bias); used by [`matmul_ex`] and by conv2d (1x1 convs).
 #[derive(Clone, Copy, Debug)]
@@ -73,10 +79,11 @@ fn ids(d: DType, checked: bool, tiled: bool, trans: bool, vec4: bool) -> K {
     }
 }
 
-/// Whether the tiled kernels can run here (lane shuffles in groups of 8).
+/// Whether the tiled kernels can run here (subgroup broadcast, 8 <= subgroup size <= 64 dividing 64).
 pub fn tiled_supported(rec: &Recorder) -> bool {
     let ctx = rec.context();
-    ctx.supports(K::MatmulF32Nn) && ctx.info().subgroup_size % 8 == 0
+    let sg = ctx.info().subgroup_size as usize;
+    ctx.supports(K::MatmulF32Nn) && sg >= 8 && sg <= TILED_WG && TILED_WG % sg == 0
 }
 
 /// Records one GEMM. Buffers: a, b, bias (any buffer when bias_mode == 0), c, optional overflow flag.
@@ -92,7 +99,7 @@ pub(crate) fn gemm(
         MatmulPath::Tiled => {
             ensure!(
                 tiled_supported(rec),
-                "{op}: the tiled matmul needs subgroup shuffles in groups of 8, which {:?} lacks",
+                "{op}: the tiled matmul needs subgroups of 8 to 64 lanes, which {:?} lacks",
                 rec.context().info().name
             );
             true
@@ -120,9 +127,10 @@ pub(crate) fn gemm(
         batch: g.batch as u32,
     };
     let groups = if tiled {
+        let (rows, cols) = tile_shape(rec);
         [
-            g.n.div_ceil(TILE_COLS) as u32,
-            g.m.div_ceil(TILE_ROWS) as u32,
+            g.n.div_ceil(cols) as u32,
+            g.m.div_ceil(rows) as u32,
             g.batch as u32,
         ]
     } else {
