@@ -1,6 +1,6 @@
-//! variant f32: alias ST = f32; const IS_F16: bool = false; fn note_overflow() {}
-//! variant f16: enable f16; alias ST = f16; const IS_F16: bool = true; fn note_overflow() {}
-//! variant f16chk: enable f16; alias ST = f16; const IS_F16: bool = true; @group(0) @binding(4) var<storage, read_write> flag: array<u32>; fn note_overflow() { flag[0] = 0x3f800000u; }
+//! variant f32: alias ST = f32; const IS_F16: bool = false; fn note_overflow() {} fn ld4(i: u32) -> vec4<f32> { return vec4<f32>(b4[i]); } fn ld8(i: u32) -> mat2x4<f32> { return mat2x4<f32>(vec4<f32>(b4[2u * i]), vec4<f32>(b4[2u * i + 1u])); }
+//! variant f16: enable f16; alias ST = f16; const IS_F16: bool = true; fn note_overflow() {} fn ld4(i: u32) -> vec4<f32> { let q = bq2[i]; return vec4<f32>(vec2<f32>(bitcast<vec2<f16>>(q.x)), vec2<f32>(bitcast<vec2<f16>>(q.y))); } fn ld8(i: u32) -> mat2x4<f32> { let q = bq4[i]; return mat2x4<f32>(vec4<f32>(vec2<f32>(bitcast<vec2<f16>>(q.x)), vec2<f32>(bitcast<vec2<f16>>(q.y))), vec4<f32>(vec2<f32>(bitcast<vec2<f16>>(q.z)), vec2<f32>(bitcast<vec2<f16>>(q.w)))); }
+//! variant f16chk: enable f16; alias ST = f16; const IS_F16: bool = true; @group(0) @binding(4) var<storage, read_write> flag: array<u32>; fn note_overflow() { flag[0] = 0x3f800000u; } fn ld4(i: u32) -> vec4<f32> { let q = bq2[i]; return vec4<f32>(vec2<f32>(bitcast<vec2<f16>>(q.x)), vec2<f32>(bitcast<vec2<f16>>(q.y))); } fn ld8(i: u32) -> mat2x4<f32> { let q = bq4[i]; return mat2x4<f32>(vec4<f32>(vec2<f32>(bitcast<vec2<f16>>(q.x)), vec2<f32>(bitcast<vec2<f16>>(q.y))), vec4<f32>(vec2<f32>(bitcast<vec2<f16>>(q.z)), vec2<f32>(bitcast<vec2<f16>>(q.w)))); }
 // Batched matmul C = A B (+ bias), register-tiled for llvmpipe (lavapipe), storage ST, arithmetic f32.
 //
 // Mapping: the invocations of one subgroup (SG lanes; 8 on lavapipe = one llvmpipe SIMD vector) share TM
@@ -27,7 +27,11 @@ struct MatmulParams {
 
 @group(0) @binding(0) var<storage, read> a: array<ST>;
 @group(0) @binding(1) var<storage, read> b: array<ST>;
+// vector views of B: ld4(i) = elements 4i..4i+3, ld8(i) = 8i..8i+7 (defined per variant; f16 reads packed u32
+// pairs, halving the load instructions, which dominate on lavapipe)
 @group(0) @binding(1) var<storage, read> b4: array<vec4<ST>>;
+@group(0) @binding(1) var<storage, read> bq2: array<vec2<u32>>;
+@group(0) @binding(1) var<storage, read> bq4: array<vec4<u32>>;
 @group(0) @binding(2) var<storage, read> bias: array<ST>;
 @group(0) @binding(3) var<storage, read_write> c: array<ST>;
 var<immediate> p: MatmulParams;
@@ -125,7 +129,7 @@ fn nn(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li
 }
 
 fn b_row_vec4(bbase4: u32, k: u32, col4: u32) -> vec4<f32> {
-    return vec4<f32>(b4[bbase4 + min(k, p.k - 1u) * (p.n / 4u) + col4]);
+    return ld4(bbase4 + min(k, p.k - 1u) * (p.n / 4u) + col4);
 }
 
 @compute @workgroup_size(WG)
@@ -159,7 +163,7 @@ fn w_quad_scalar(o: u32, k0: u32) -> vec4<f32> {
 
 // One vec4 load; needs K % 4 == 0 and o % 4 == 0.
 fn w_quad_vec4(o: u32, k0: u32) -> vec4<f32> {
-    return vec4<f32>(b4[(o + min(k0, p.k - 4u)) / 4u]);
+    return ld4((o + min(k0, p.k - 4u)) / 4u);
 }
 
 // 8 k steps from the four columns' W values w0..w3 (each 2 quads: k0..k0+3, k0+4..k0+7).
@@ -207,6 +211,27 @@ fn nt4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) l
         load_a(k0, lane & 7u);
         fma_nt(w_quad_vec4(wo.x, k0), w_quad_vec4(wo.x, k0 + 4u), w_quad_vec4(wo.y, k0), w_quad_vec4(wo.y, k0 + 4u),
                w_quad_vec4(wo.z, k0), w_quad_vec4(wo.z, k0 + 4u), w_quad_vec4(wo.w, k0), w_quad_vec4(wo.w, k0 + 4u));
+    }
+    store_tile(wid.z * p.m * p.n, row0, col0, sgs);
+}
+
+// `nt` with K % 8 == 0: one ld8 per column and chunk (f16: a single vec4<u32> load).
+@compute @workgroup_size(WG)
+fn nt8(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
+       @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
+    let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
+    let col0 = wid.x * 4u * sgs + lane;
+    let nm = p.n - 1u;
+    let wo = (min(vec4<u32>(col0, col0 + sgs, col0 + 2u * sgs, col0 + 3u * sgs), vec4<u32>(nm)) * p.k + wid.z * p.sb) / 8u;
+    setup_rows(wid.z * p.sa, row0);
+    for (var k0 = 0u; k0 < p.k; k0 += 8u) {
+        load_a(k0, lane & 7u);
+        let k8 = k0 / 8u;
+        let w0 = ld8(wo.x + k8);
+        let w1 = ld8(wo.y + k8);
+        let w2 = ld8(wo.z + k8);
+        let w3 = ld8(wo.w + k8);
+        fma_nt(w0[0], w0[1], w1[0], w1[1], w2[0], w2[1], w3[0], w3[1]);
     }
     store_tile(wid.z * p.m * p.n, row0, col0, sgs);
 }

@@ -56,26 +56,57 @@ pub(crate) struct Gemm {
     pub path: MatmulPath,
 }
 
-fn ids(d: DType, checked: bool, tiled: bool, trans: bool, vec4: bool) -> K {
-    match (d, checked, tiled, trans, vec4) {
-        (DType::F32, _, true, false, false) => K::MatmulF32Nn,
-        (DType::F32, _, true, false, true) => K::MatmulF32Nn4,
-        (DType::F32, _, true, true, false) => K::MatmulF32Nt,
-        (DType::F32, _, true, true, true) => K::MatmulF32Nt4,
-        (DType::F16, false, true, false, false) => K::MatmulF16Nn,
-        (DType::F16, false, true, false, true) => K::MatmulF16Nn4,
-        (DType::F16, false, true, true, false) => K::MatmulF16Nt,
-        (DType::F16, false, true, true, true) => K::MatmulF16Nt4,
-        (DType::F16, true, true, false, false) => K::MatmulF16chkNn,
-        (DType::F16, true, true, false, true) => K::MatmulF16chkNn4,
-        (DType::F16, true, true, true, false) => K::MatmulF16chkNt,
-        (DType::F16, true, true, true, true) => K::MatmulF16chkNt4,
-        (DType::F32, _, false, false, _) => K::MatmulDirectF32Nn,
-        (DType::F32, _, false, true, _) => K::MatmulDirectF32Nt,
-        (DType::F16, false, false, false, _) => K::MatmulDirectF16Nn,
-        (DType::F16, false, false, true, _) => K::MatmulDirectF16Nt,
-        (DType::F16, true, false, false, _) => K::MatmulDirectF16chkNn,
-        (DType::F16, true, false, true, _) => K::MatmulDirectF16chkNt,
+/// B load width of the tiled kernels: scalar, 4-element (vec4) or 8-element rows.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Width {
+    W1,
+    W4,
+    W8,
+}
+
+fn ids(d: DType, checked: bool, tiled: bool, trans: bool, w: Width) -> K {
+    use Width::*;
+    let f16 = d == DType::F16;
+    if !tiled {
+        return match (f16, checked, trans) {
+            (false, _, false) => K::MatmulDirectF32Nn,
+            (false, _, true) => K::MatmulDirectF32Nt,
+            (true, false, false) => K::MatmulDirectF16Nn,
+            (true, false, true) => K::MatmulDirectF16Nt,
+            (true, true, false) => K::MatmulDirectF16chkNn,
+            (true, true, true) => K::MatmulDirectF16chkNt,
+        };
+    }
+    // [nn, nn4, nt, nt4, nt8] per variant
+    let v = match (f16, checked) {
+        (false, _) => [
+            K::MatmulF32Nn,
+            K::MatmulF32Nn4,
+            K::MatmulF32Nt,
+            K::MatmulF32Nt4,
+            K::MatmulF32Nt8,
+        ],
+        (true, false) => [
+            K::MatmulF16Nn,
+            K::MatmulF16Nn4,
+            K::MatmulF16Nt,
+            K::MatmulF16Nt4,
+            K::MatmulF16Nt8,
+        ],
+        (true, true) => [
+            K::MatmulF16chkNn,
+            K::MatmulF16chkNn4,
+            K::MatmulF16chkNt,
+            K::MatmulF16chkNt4,
+            K::MatmulF16chkNt8,
+        ],
+    };
+    match (trans, w) {
+        (false, W1) => v[0],
+        (false, _) => v[1],
+        (true, W1) => v[2],
+        (true, W4) => v[3],
+        (true, W8) => v[4],
     }
 }
 
@@ -83,7 +114,7 @@ fn ids(d: DType, checked: bool, tiled: bool, trans: bool, vec4: bool) -> K {
 pub fn tiled_supported(rec: &Recorder) -> bool {
     let ctx = rec.context();
     let sg = ctx.info().subgroup_size as usize;
-    ctx.supports(K::MatmulF32Nn) && sg >= 8 && sg <= TILED_WG && TILED_WG % sg == 0
+    ctx.supports(K::MatmulF32Nn) && (8..=TILED_WG).contains(&sg) && TILED_WG % sg == 0
 }
 
 /// Records one GEMM. Buffers: a, b, bias (any buffer when bias_mode == 0), c, optional overflow flag.
@@ -106,17 +137,20 @@ pub(crate) fn gemm(
         }
         MatmulPath::Auto => tiled_supported(rec),
     };
-    // vec4 loads need 4-aligned rows (and batch strides) of B.
-    let vec4 = if g.trans_b {
-        g.k % 4 == 0 && g.sb % 4 == 0
+    // vector loads need rows (and batch strides) of B aligned to their width
+    let row = if g.trans_b { g.k } else { g.n };
+    let width = if g.trans_b && row % 8 == 0 && g.sb % 8 == 0 {
+        Width::W8
+    } else if row % 4 == 0 && g.sb % 4 == 0 {
+        Width::W4
     } else {
-        g.n % 4 == 0 && g.sb % 4 == 0
+        Width::W1
     };
     ensure!(
         g.dtype == DType::F16 || flag.is_none(),
         "{op}: an overflow flag is only meaningful for f16 outputs"
     );
-    let id = ids(g.dtype, flag.is_some(), tiled, g.trans_b, vec4);
+    let id = ids(g.dtype, flag.is_some(), tiled, g.trans_b, width);
     let p = MatmulParams {
         m: g.m as u32,
         n: g.n as u32,
