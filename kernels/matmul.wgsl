@@ -1,6 +1,6 @@
 //! variant f32: alias ST = f32; const IS_F16: bool = false; fn note_overflow() {} fn ld4(i: u32) -> vec4<f32> { return vec4<f32>(b4[i]); } fn ld8(i: u32) -> mat2x4<f32> { return mat2x4<f32>(vec4<f32>(b4[2u * i]), vec4<f32>(b4[2u * i + 1u])); }
-//! variant f16: enable f16; alias ST = f16; const IS_F16: bool = true; fn note_overflow() {} fn ld4(i: u32) -> vec4<f32> { let q = bq2[i]; return vec4<f32>(vec2<f32>(bitcast<vec2<f16>>(q.x)), vec2<f32>(bitcast<vec2<f16>>(q.y))); } fn ld8(i: u32) -> mat2x4<f32> { let q = bq4[i]; return mat2x4<f32>(vec4<f32>(vec2<f32>(bitcast<vec2<f16>>(q.x)), vec2<f32>(bitcast<vec2<f16>>(q.y))), vec4<f32>(vec2<f32>(bitcast<vec2<f16>>(q.z)), vec2<f32>(bitcast<vec2<f16>>(q.w)))); }
-//! variant f16chk: enable f16; alias ST = f16; const IS_F16: bool = true; @group(0) @binding(4) var<storage, read_write> flag: array<u32>; fn note_overflow() { flag[0] = 0x3f800000u; } fn ld4(i: u32) -> vec4<f32> { let q = bq2[i]; return vec4<f32>(vec2<f32>(bitcast<vec2<f16>>(q.x)), vec2<f32>(bitcast<vec2<f16>>(q.y))); } fn ld8(i: u32) -> mat2x4<f32> { let q = bq4[i]; return mat2x4<f32>(vec4<f32>(vec2<f32>(bitcast<vec2<f16>>(q.x)), vec2<f32>(bitcast<vec2<f16>>(q.y))), vec4<f32>(vec2<f32>(bitcast<vec2<f16>>(q.z)), vec2<f32>(bitcast<vec2<f16>>(q.w)))); }
+//! variant f16: enable f16; alias ST = f16; const IS_F16: bool = true; fn note_overflow() {} fn ld4(i: u32) -> vec4<f32> { let q = bq2[i]; return vec4<f32>(f16x2(q.x), f16x2(q.y)); } fn ld8(i: u32) -> mat2x4<f32> { let q = bq4[i]; return mat2x4<f32>(vec4<f32>(f16x2(q.x), f16x2(q.y)), vec4<f32>(f16x2(q.z), f16x2(q.w))); }
+//! variant f16chk: enable f16; alias ST = f16; const IS_F16: bool = true; @group(0) @binding(4) var<storage, read_write> flag: array<u32>; fn note_overflow() { flag[0] = 0x3f800000u; } fn ld4(i: u32) -> vec4<f32> { let q = bq2[i]; return vec4<f32>(f16x2(q.x), f16x2(q.y)); } fn ld8(i: u32) -> mat2x4<f32> { let q = bq4[i]; return mat2x4<f32>(vec4<f32>(f16x2(q.x), f16x2(q.y)), vec4<f32>(f16x2(q.z), f16x2(q.w))); }
 // Batched matmul C = A B (+ bias), register-tiled for llvmpipe (lavapipe), storage ST, arithmetic f32.
 //
 // Mapping: the invocations of one subgroup (SG lanes; 8 on lavapipe = one llvmpipe SIMD vector) share TM
@@ -35,6 +35,17 @@ struct MatmulParams {
 @group(0) @binding(2) var<storage, read> bias: array<ST>;
 @group(0) @binding(3) var<storage, read_write> c: array<ST>;
 var<immediate> p: MatmulParams;
+
+// Two f16 (low half first) from their packed bits, exactly (denormals included unless the device flushes them;
+// Inf/NaN kept). Arithmetic instead of bitcast<vec2<f16>>(u32): lavapipe 22.3 returned garbage for the bitcast.
+fn f16x2(u: u32) -> vec2<f32> {
+    let h = vec2<u32>(u & 0xffffu, u >> 16u);
+    let e = h & vec2<u32>(0x7c00u);
+    let mag = bitcast<vec2<f32>>((h & vec2<u32>(0x7fffu)) << vec2<u32>(13u)) * 5.192296858534828e33;
+    let special = bitcast<vec2<f32>>(vec2<u32>(0x7f800000u) | ((h & vec2<u32>(0x3ffu)) << vec2<u32>(13u)));
+    let v = select(mag, special, e == vec2<u32>(0x7c00u));
+    return select(v, -v, (h & vec2<u32>(0x8000u)) != vec2<u32>(0u));
+}
 
 const TM: u32 = 16u;
 const WG: u32 = 64u;
