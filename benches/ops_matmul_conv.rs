@@ -91,6 +91,7 @@ fn conv_case(
             stride: 1,
             pad: [p; 4],
             path,
+            packed_w: None,
         },
     )
     .expect("conv2d");

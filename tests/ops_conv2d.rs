@@ -113,6 +113,7 @@ fn run_case(ctx: &b2dr::vk::Context, c: &Case, dtype: DType, path: ConvPath, see
                 stride: c.stride,
                 pad: c.pad,
                 path,
+                packed_w: None,
             },
         )
     });

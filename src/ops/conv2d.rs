@@ -2,14 +2,16 @@
 //! (top, bottom, left, right), fused bias; f32 or f16 storage with f32 accumulation.
 //!
 //! Paths: 1x1 stride-1 unpadded convs run as a GEMM (`matmul::gemm`, weights shared over the batch); other
-//! convs run the implicit-GEMM kernel (`kernels/conv2d.wgsl`, needs subgroups of 8..64 lanes); the direct
+//! convs with O % 4 == 0 run the implicit GEMM on repacked weights (`kernels/conv2d_packed.wgsl`, fastest on
+//! lavapipe), other O the implicit GEMM on PyTorch-layout weights (`kernels/conv2d.wgsl`); both need subgroups
+//! of 8..64 lanes. The direct
 //! kernel (`kernels/conv2d_direct.wgsl`) is the fallback and the tests' oracle for both. f16 outputs saturate at
 //! +-65504 (see [`super::matmul`]).
 use anyhow::{ensure, Result};
 
 use super::matmul::{gemm, tile_shape, tiled_supported, Gemm, MatmulPath};
 use super::{expect_shape, same_dtype, Recorder};
-use crate::kernels::params::Conv2dParams;
+use crate::kernels::params::{Conv2dParams, PackParams};
 use crate::kernels::KernelId as K;
 use crate::tensor::{DType, Tensor};
 
@@ -45,6 +47,9 @@ pub struct Conv2dArgs<'a> {
     /// (top, bottom, left, right)
     pub pad: [usize; 4],
     pub path: ConvPath,
+    /// `w` already repacked by [`pack_weight`] ((KH, KW, C, O)); without it the fast path repacks into a
+    /// temporary on every call (cheap next to the conv: O C KH KW elements).
+    pub packed_w: Option<&'a Tensor>,
 }
 
 /// Output shape of x: (N, C, H, W) convolved with w: (O, C, KH, KW), with checks naming the shapes.
@@ -85,6 +90,39 @@ pub fn conv2d_out_shape(
         (hp - w[2]) / stride + 1,
         (wp - w[3]) / stride + 1,
     ])
+}
+
+/// w: (O, C, KH, KW) -> packed: (KH, KW, C, O), the weight layout of the fast conv kernel (conv2d_packed.wgsl).
+pub fn pack_weight(rec: &mut Recorder, w: &Tensor, packed: &Tensor) -> Result<()> {
+    let d = same_dtype("conv2d pack_weight", &[w, packed])?;
+    let ws = w.shape();
+    ensure!(
+        ws.len() == 4,
+        "conv2d pack_weight: w {ws:?} must be (O, C, KH, KW)"
+    );
+    expect_shape(
+        "conv2d pack_weight",
+        "packed",
+        packed,
+        &[ws[2], ws[3], ws[1], ws[0]],
+    )?;
+    let p = PackParams {
+        o: ws[0] as u32,
+        c: ws[1] as u32,
+        kk: (ws[2] * ws[3]) as u32,
+    };
+    let id = match d {
+        DType::F32 => K::Conv2dPackedF32Pack,
+        DType::F16 => K::Conv2dPackedF16Pack,
+    };
+    let g = super::grid_1d("conv2d pack_weight", w.numel())?;
+    rec.dispatch(
+        id,
+        &[w.buffer(), packed.buffer()],
+        bytemuck::bytes_of(&p),
+        g,
+        "conv2d pack_weight",
+    )
 }
 
 /// out = conv2d(x, w) (+ bias), see [`Conv2dArgs`].
@@ -141,8 +179,35 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
         pl: a.pad[2] as u32,
         has_bias: a.bias.is_some() as u32,
     };
-    let bufs = [a.x.buffer(), a.w.buffer(), bias.buffer(), a.out.buffer()];
-    let (id, groups, edges) = if fast {
+    let mut bufs = [a.x.buffer(), a.w.buffer(), bias.buffer(), a.out.buffer()];
+    let tmp;
+    let (id, groups, edges) = if fast && o % 4 == 0 {
+        ensure!(
+            tiled_supported(rec),
+            "conv2d: the implicit-GEMM kernel needs subgroups of 8 to 64 lanes, which {:?} lacks",
+            rec.context().info().name
+        );
+        let packed = match a.packed_w {
+            Some(pw) => {
+                expect_shape("conv2d", "packed_w", pw, &[kh, kw, c, o])?;
+                ensure!(pw.dtype() == d, "conv2d: packed_w dtype differs from x");
+                pw
+            }
+            None => {
+                tmp = Tensor::empty(rec.context(), &[kh, kw, c, o], d, "conv2d-packed-w")?;
+                pack_weight(rec, a.w, &tmp)?;
+                &tmp
+            }
+        };
+        bufs[1] = packed.buffer();
+        let id = match d {
+            DType::F32 => K::Conv2dPackedF32,
+            DType::F16 => K::Conv2dPackedF16,
+        };
+        let (rows, cols) = tile_shape(rec);
+        let g = [o.div_ceil(cols) as u32, np.div_ceil(rows) as u32, n as u32];
+        (id, g, kh * kw * (c.div_ceil(8) + 1) + kh)
+    } else if fast {
         ensure!(
             tiled_supported(rec),
             "conv2d: the implicit-GEMM kernel needs subgroups of 8 to 64 lanes, which {:?} lacks",
@@ -194,6 +259,7 @@ pub fn conv2d(
             stride,
             pad,
             path: ConvPath::Auto,
+            packed_w: None,
         },
     )
 }
