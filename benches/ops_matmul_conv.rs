@@ -7,7 +7,7 @@
 //! - `matmul_<dt>_1400x1280x320_nn`: the same with B given as (K, N).
 //! - `conv2d_<dt>_3x3_320to320_28x50`: batch 1, 320 -> 320 channels, 3x3, stride 1, pad 1, + bias.
 //! - `conv2d_<dt>_1x1_320to320_28x50`: the 1x1 conv (runs as a GEMM).
-//! - `conv2d_f32_3x3_320to320_28x50_direct`: the direct (fallback) conv kernel.
+//! - `conv2d_f32_3x3_64to64_28x50[_direct]`: fast path vs the direct (fallback) kernel on a smaller conv.
 //!
 //! lavapipe's thread count is `LP_NUM_THREADS` (default: CPU count); try `LP_NUM_THREADS=4 cargo bench ...`.
 //! `B2DR_BENCH_QUICK=1` skips criterion's statistics and prints only the GFLOP/s lines.
@@ -122,7 +122,8 @@ fn cases(ctx: &Context) -> Vec<Bench> {
         v.push(conv_case(ctx, dt, 3, 320, 28, 50, ConvPath::Auto));
         v.push(conv_case(ctx, dt, 1, 320, 28, 50, ConvPath::Auto));
     }
-    v.push(conv_case(ctx, DType::F32, 3, 320, 28, 50, ConvPath::Direct));
+    v.push(conv_case(ctx, DType::F32, 3, 64, 28, 50, ConvPath::Auto));
+    v.push(conv_case(ctx, DType::F32, 3, 64, 28, 50, ConvPath::Direct));
     v
 }
 

@@ -159,6 +159,8 @@ fn long_reductions_are_not_truncated() {
     let Some(ctx) = ctx() else { return };
     let cases = [
         case("unet_up_3x3_2560to16_7x13", 2560, 16, 7, 13, 3, 1),
+        // O % 4 != 0: the kernel on PyTorch-layout weights
+        case("unet_up_3x3_2560to6_7x13", 2560, 6, 7, 13, 3, 1),
         case("vae_3x3_512to8_14x25", 512, 8, 14, 25, 3, 1),
     ];
     for c in &cases {
@@ -167,6 +169,58 @@ fn long_reductions_are_not_truncated() {
             eprintln!("{} {path:?}: nmse {e:.2e}", c.name);
             assert!(e <= 1e-6, "{} {path:?}: nmse {e:e}", c.name);
         }
+    }
+    assert_no_validation_errors();
+}
+
+/// Weights packed once by `pack_weight` (what a model does at load time) give the same result.
+#[test]
+fn prepacked_weights_match() {
+    let Some(ctx) = ctx() else { return };
+    for dtype in [DType::F32, DType::F16] {
+        let (x, w) = (
+            uniform(2 * 12 * 9 * 11, 1.0, 1),
+            uniform(16 * 12 * 9, 1.0, 2),
+        );
+        let tx = upload(&ctx, &[2, 12, 9, 11], dtype, &x);
+        let tw = upload(&ctx, &[16, 12, 3, 3], dtype, &w);
+        let packed = empty(&ctx, &[3, 3, 12, 16], dtype);
+        let out = empty(&ctx, &[2, 16, 5, 6], dtype);
+        run(&ctx, |rec| {
+            cv::pack_weight(rec, &tw, &packed)?;
+            cv::conv2d_ex(
+                rec,
+                &Conv2dArgs {
+                    x: &tx,
+                    w: &tw,
+                    bias: None,
+                    out: &out,
+                    stride: 2,
+                    pad: [1, 1, 1, 1],
+                    path: ConvPath::Fast,
+                    packed_w: Some(&packed),
+                },
+            )
+        });
+        let g = ConvGeom {
+            kh: 3,
+            kw: 3,
+            stride: 2,
+            pad: [1; 4],
+        };
+        let want = rc::conv2d(
+            &stored(&x, dtype),
+            &stored(&w, dtype),
+            None,
+            (2, 12, 9, 11),
+            16,
+            g,
+        );
+        let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
+        assert!(
+            e <= if dtype == DType::F32 { 1e-6 } else { 5e-4 },
+            "{dtype:?}: nmse {e:e}"
+        );
     }
     assert_no_validation_errors();
 }
