@@ -62,6 +62,8 @@ enum Width {
     W1,
     W4,
     W8,
+    /// W4 (nn) / W8 (nt) plus vec4 loads of A (K % 4 == 0): 32-k chunks
+    Wide,
 }
 
 fn ids(d: DType, checked: bool, tiled: bool, trans: bool, w: Width) -> K {
@@ -77,36 +79,44 @@ fn ids(d: DType, checked: bool, tiled: bool, trans: bool, w: Width) -> K {
             (true, true, true) => K::MatmulDirectF16chkNt,
         };
     }
-    // [nn, nn4, nt, nt4, nt8] per variant
+    // [nn, nn4, nn4a, nt, nt4, nt8, nt8a] per variant
     let v = match (f16, checked) {
         (false, _) => [
             K::MatmulF32Nn,
             K::MatmulF32Nn4,
+            K::MatmulF32Nn4a,
             K::MatmulF32Nt,
             K::MatmulF32Nt4,
             K::MatmulF32Nt8,
+            K::MatmulF32Nt8a,
         ],
         (true, false) => [
             K::MatmulF16Nn,
             K::MatmulF16Nn4,
+            K::MatmulF16Nn4a,
             K::MatmulF16Nt,
             K::MatmulF16Nt4,
             K::MatmulF16Nt8,
+            K::MatmulF16Nt8a,
         ],
         (true, true) => [
             K::MatmulF16chkNn,
             K::MatmulF16chkNn4,
+            K::MatmulF16chkNn4a,
             K::MatmulF16chkNt,
             K::MatmulF16chkNt4,
             K::MatmulF16chkNt8,
+            K::MatmulF16chkNt8a,
         ],
     };
     match (trans, w) {
         (false, W1) => v[0],
-        (false, _) => v[1],
-        (true, W1) => v[2],
-        (true, W4) => v[3],
-        (true, W8) => v[4],
+        (false, W4 | W8) => v[1],
+        (false, Wide) => v[2],
+        (true, W1) => v[3],
+        (true, W4) => v[4],
+        (true, W8) => v[5],
+        (true, Wide) => v[6],
     }
 }
 
@@ -139,10 +149,19 @@ pub(crate) fn gemm(
     };
     // vector loads need rows (and batch strides) of B aligned to their width
     let row = if g.trans_b { g.k } else { g.n };
+    let a_vec4 = g.k % 4 == 0 && g.sa % 4 == 0;
     let width = if g.trans_b && row % 8 == 0 && g.sb % 8 == 0 {
-        Width::W8
+        if a_vec4 {
+            Width::Wide
+        } else {
+            Width::W8
+        }
     } else if row % 4 == 0 && g.sb % 4 == 0 {
-        Width::W4
+        if !g.trans_b && a_vec4 {
+            Width::Wide
+        } else {
+            Width::W4
+        }
     } else {
         Width::W1
     };
