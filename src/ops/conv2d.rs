@@ -181,6 +181,7 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
     };
     let mut bufs = [a.x.buffer(), a.w.buffer(), bias.buffer(), a.out.buffer()];
     let tmp;
+    let xt;
     let (id, groups, edges) = if fast && o % 4 == 0 {
         ensure!(
             tiled_supported(rec),
@@ -200,13 +201,36 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
             }
         };
         bufs[1] = packed.buffer();
-        let id = match d {
-            DType::F32 => K::Conv2dPackedF32,
-            DType::F16 => K::Conv2dPackedF16,
-        };
         let (rows, cols) = tile_shape(rec);
         let g = [o.div_ceil(cols) as u32, np.div_ceil(rows) as u32, n as u32];
-        (id, g, kh * kw * (c.div_ceil(8) + 1) + kh)
+        if c % 4 == 0 {
+            // input transposed to (H, W, N, C) so channels load as vectors (conv2d_packed.wgsl `hwnc`)
+            xt = Tensor::empty(rec.context(), &[h, w, n, c], d, "conv2d-x-hwnc")?;
+            let pp = PackParams {
+                o: (n * c) as u32,
+                c: 1,
+                kk: (h * w) as u32,
+            };
+            let pid = match d {
+                DType::F32 => K::Conv2dPackedF32Pack,
+                DType::F16 => K::Conv2dPackedF16Pack,
+            };
+            let pg = super::grid_1d("conv2d", a.x.numel())?;
+            let pb = [a.x.buffer(), xt.buffer()];
+            rec.dispatch(pid, &pb, bytemuck::bytes_of(&pp), pg, "conv2d x->hwnc")?;
+            bufs[0] = xt.buffer();
+            let id = match d {
+                DType::F32 => K::Conv2dPackedF32Hwnc,
+                DType::F16 => K::Conv2dPackedF16Hwnc,
+            };
+            (id, g, kh * kw * (c.div_ceil(32) + 1) + kh)
+        } else {
+            let id = match d {
+                DType::F32 => K::Conv2dPackedF32,
+                DType::F16 => K::Conv2dPackedF16,
+            };
+            (id, g, kh * kw * (c.div_ceil(8) + 1) + kh)
+        }
     } else if fast {
         ensure!(
             tiled_supported(rec),
