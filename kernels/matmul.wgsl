@@ -5,14 +5,15 @@
 //
 // Mapping: the invocations of one subgroup (SG lanes; 8 on lavapipe = one llvmpipe SIMD vector) share TM
 // output rows; each lane owns 4 output columns. Per chunk of 8 k values lanes 0..7 each load ONE A value per
-// row (A[m, k0 + lane]) and subgroupBroadcast with a constant lane gives it to every lane (llvmpipe: one
-// extract + broadcast; subgroupShuffle is a per-lane loop there and was 2x slower). B values differ per lane.
+// row (A[m, k0 + lane]) and subgroupBroadcast with a constant lane gives it to every lane (measured no slower
+// than the subgroupShuffle of the spec's experiment, and independent of the subgroup size). B values differ
+// per lane. The `a4` kernels at the end load A as vec4 in 32-k chunks (K % 4 == 0).
 // Every storage load on lavapipe 22.3 is a per-lane scalar loop (gallivm's load_ssbo), so the design
 // minimises load instructions per FMA: vec4 loads where the layout allows, TM rows reusing each B value.
 // No shared memory (work-group barriers are slow on llvmpipe). Work-group tile: (WG / SG) TM rows x 4 SG columns.
 // Edges: row and k indices are clamped for loads (A masked to 0 past K), stores are guarded.
-// Loop budget (lavapipe: 65535 back-edges per invocation): one back-edge per 8 k (K = 23040 -> 2880); the
-// inner loops have constant trip counts and are unrolled by NIR.
+// Loop budget (lavapipe: 65535 back-edges per invocation): one back-edge per 8 k (K = 23040 -> 2880; the
+// `a4` kernels one per 32 k); the inner loops have constant trip counts and are unrolled by NIR.
 // f16 outputs saturate at +-65504 (never Inf from overflow; NaN stays NaN); variant f16chk also sets flag[0] to the bits of 1.0f.
 
 struct MatmulParams {

@@ -1,12 +1,13 @@
 //! conv2d launchers: NCHW input, (O, C, KH, KW) weights, any kernel size, stride, asymmetric padding
 //! (top, bottom, left, right), fused bias; f32 or f16 storage with f32 accumulation.
 //!
-//! Paths: 1x1 stride-1 unpadded convs run as a GEMM (`matmul::gemm`, weights shared over the batch); other
-//! convs with O % 4 == 0 run the implicit GEMM on repacked weights (`kernels/conv2d_packed.wgsl`, fastest on
-//! lavapipe), other O the implicit GEMM on PyTorch-layout weights (`kernels/conv2d.wgsl`); both need subgroups
-//! of 8..64 lanes. The direct
-//! kernel (`kernels/conv2d_direct.wgsl`) is the fallback and the tests' oracle for both. f16 outputs saturate at
-//! +-65504 (see [`super::matmul`]).
+//! Paths: 1x1 stride-1 unpadded convs run as a GEMM (`matmul::gemm`, weights shared over the batch). Other
+//! convs with O % 4 == 0 run an implicit GEMM on weights repacked to (KH, KW, C, O) (`kernels/conv2d_packed.wgsl`;
+//! with C % 4 == 0 the input is also transposed to (H, W, N, C) first, entry `hwnc`, the fastest on lavapipe:
+//! both transposes are small next to the conv and live in temporaries kept by the recording). Other O run the
+//! implicit GEMM on PyTorch-layout weights (`kernels/conv2d.wgsl`). All fast paths need subgroups of 8..64
+//! lanes. The direct kernel (`kernels/conv2d_direct.wgsl`) is the fallback and the tests' oracle for all of
+//! them. f16 outputs saturate at +-65504 (see [`super::matmul`]).
 use anyhow::{ensure, Result};
 
 use super::matmul::{gemm, tile_shape, tiled_supported, Gemm, MatmulPath};
@@ -23,7 +24,7 @@ pub enum ConvPath {
     /// GEMM for 1x1, implicit GEMM otherwise when supported, else direct.
     #[default]
     Auto,
-    /// Implicit GEMM (or GEMM for 1x1); error if the device lacks subgroup shuffles.
+    /// Implicit GEMM (or GEMM for 1x1); error if the device lacks suitable subgroups.
     Fast,
     /// The direct kernel, whatever the shape.
     Direct,
