@@ -8,6 +8,8 @@ pub mod attention;
 pub mod elementwise;
 pub mod embedding;
 pub mod norm;
+pub mod conv2d;
+pub mod matmul;
 pub mod reference;
 pub mod resample;
 pub mod softmax;

@@ -315,6 +315,11 @@ impl Recorder {
         self.dispatches
     }
 
+    /// The context this recorder records for (launchers ask it which kernels the device supports).
+    pub fn context(&self) -> &Context {
+        &self.ctx
+    }
+
     /// Ends recording.
     pub fn finish(mut self) -> Result<Recording> {
         let d = &self.ctx.inner.device;
