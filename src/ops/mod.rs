@@ -4,11 +4,15 @@
 //! Plain CPU f64 references for every op live in [`reference`].
 pub mod bench;
 pub mod blur;
+pub mod attention;
 pub mod elementwise;
 pub mod embedding;
 pub mod norm;
+pub mod conv2d;
+pub mod matmul;
 pub mod reference;
 pub mod resample;
+pub mod softmax;
 
 use anyhow::{ensure, Result};
 

@@ -1,4 +1,7 @@
 //! Plain-loop CPU references in f64 for every op (the oracles of the tests). Row-major, shapes in comments.
+pub mod attention;
+pub mod conv2d;
+pub mod matmul;
 
 /// erf via libm-quality series / continued fraction (f64, |err| < 1e-15 for our use).
 pub fn erf(x: f64) -> f64 {

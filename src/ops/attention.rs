@@ -1,0 +1,208 @@
+//! Multi-head attention (self and cross), flash style: one fused kernel, online softmax, f32 accumulation,
+//! f32 or f16 storage. Layout (what the UNet's q/k/v projections produce; diffusers' head split is implicit):
+//!
+//! - q: (B, Lq, H*d), k: (B, Lk, H*d), v: (B, Lk, H*d) -> out: (B, Lq, H*d), all row-major;
+//! - head h owns the columns [h*d, (h+1)*d) of every token row;
+//! - out[b, i, h*d + e] = sum_j softmax_j(scale * q[b, i, h*d..] . k[b, j, h*d..]) * v[b, j, h*d + e].
+//!
+//! Requirements: d = width / H with d % 4 == 0 (d % 8 == 0 when d > 160), any Lq, Lk >= 1, and Lk small
+//! enough for lavapipe's loop budget (see [`loop_trips`]: about 480,000 keys for d <= 80, 5,900 at d = 160 and
+//! 7,300 at d = 512 (the VAE at 224 x 400 has 1,400)).
+use anyhow::{ensure, Result};
+
+use super::softmax::fold_groups;
+use super::{same_dtype, Recorder};
+use crate::kernels::params::AttnParams;
+use crate::kernels::KernelId as K;
+use crate::tensor::{DType, Tensor};
+
+/// lavapipe stops all loops of an invocation after 65535 back-edges; stay well below.
+pub const LOOP_BUDGET: usize = 60_000;
+
+/// One compiled attention kernel: the head dims it takes, query rows per lane, whether it is the sliced entry.
+#[derive(Clone, Copy, Debug)]
+pub struct AttnKernel {
+    pub id: K,
+    pub dtype: DType,
+    /// Head dim held in registers (`main`: d <= cols) or per output slice (`wide`: any d % 8 == 0).
+    pub cols: usize,
+    /// Query rows per invocation (R in the kernel).
+    pub rows: usize,
+    pub wide: bool,
+    /// k and v read as packed pairs of f16 chunks (needs d % 8 == 0).
+    pub packed: bool,
+}
+
+const fn kern(
+    id: K,
+    dtype: DType,
+    cols: usize,
+    rows: usize,
+    wide: bool,
+    packed: bool,
+) -> AttnKernel {
+    AttnKernel {
+        id,
+        dtype,
+        cols,
+        rows,
+        wide,
+        packed,
+    }
+}
+
+/// All attention kernels, in order of preference for a given head dim (the first that fits is the default).
+pub const KERNELS: &[AttnKernel] = &[
+    kern(K::AttentionF32D8r4, DType::F32, 8, 4, false, false),
+    kern(K::AttentionF32D8, DType::F32, 8, 1, false, false),
+    kern(K::AttentionF32D40r4, DType::F32, 40, 4, false, false),
+    kern(K::AttentionF32D40r2, DType::F32, 40, 2, false, false),
+    kern(K::AttentionF32D40, DType::F32, 40, 1, false, false),
+    kern(K::AttentionF32D80r2, DType::F32, 80, 2, false, false),
+    kern(K::AttentionF32D80, DType::F32, 80, 1, false, false),
+    kern(K::AttentionF32D160, DType::F32, 160, 1, false, false),
+    kern(K::AttentionF32W128Wide, DType::F32, 128, 1, true, false),
+    kern(K::AttentionF16pD8r4, DType::F16, 8, 4, false, true),
+    kern(K::AttentionF16pD40r2, DType::F16, 40, 2, false, true),
+    kern(K::AttentionF16pD40r4, DType::F16, 40, 4, false, true),
+    kern(K::AttentionF16pD80r2, DType::F16, 80, 2, false, true),
+    kern(K::AttentionF16D8r4, DType::F16, 8, 4, false, false),
+    kern(K::AttentionF16D8, DType::F16, 8, 1, false, false),
+    kern(K::AttentionF16D40r4, DType::F16, 40, 4, false, false),
+    kern(K::AttentionF16D40r2, DType::F16, 40, 2, false, false),
+    kern(K::AttentionF16D40, DType::F16, 40, 1, false, false),
+    kern(K::AttentionF16D80r2, DType::F16, 80, 2, false, false),
+    kern(K::AttentionF16D80, DType::F16, 80, 1, false, false),
+    kern(K::AttentionF16D160, DType::F16, 160, 1, false, false),
+    kern(K::AttentionF16W128Wide, DType::F16, 128, 1, true, false),
+];
+
+impl AttnKernel {
+    /// Whether this kernel computes head dim `d`.
+    pub fn fits(&self, d: usize) -> bool {
+        if self.wide {
+            d % 8 == 0
+        } else {
+            d <= self.cols && (!self.packed || d % 8 == 0)
+        }
+    }
+
+    /// Upper bound of loop back-edges one invocation runs for `lk` keys at head dim `d`. lavapipe's NIR
+    /// unrolls constant-trip loops of up to 32 trips (llvmpipe's max_unroll_iterations), so the chunk and row
+    /// loops of `main` vanish for D4 <= 32 and only the key loop counts; D4 = 40 keeps its chunk loops. The
+    /// test `long_keys_440000_h1_d40` runs a shape near the budget and would catch a loop that stayed a loop.
+    pub fn loop_trips(&self, lk: usize, d: usize) -> usize {
+        let d4 = self.cols / 4;
+        let tiles = lk.div_ceil(8);
+        if self.wide {
+            // q.k: a runtime loop of nc / 2 trips; values: D4 chunk trips unless unrolled; plus the key loop.
+            let values = if d4 <= MAX_UNROLL { 0 } else { d4 };
+            tiles * (d / 8 + values + 1) + 2 * d4
+        } else if d4 <= MAX_UNROLL {
+            tiles + 1
+        } else {
+            self.rows * (tiles * (2 * d4 + 1) + 2 * d4)
+        }
+    }
+}
+
+/// Constant-trip loops up to this length are unrolled by lavapipe's NIR (verified by the long-keys test).
+const MAX_UNROLL: usize = 32;
+
+/// The default kernel for `dtype` and head dim `d`.
+pub fn choose(dtype: DType, d: usize) -> AttnKernel {
+    *KERNELS
+        .iter()
+        .find(|k| k.dtype == dtype && k.fits(d))
+        .expect("the wide kernels take every d % 8 == 0; others are rejected before")
+}
+
+/// Loop bound of the default kernel (see [`AttnKernel::loop_trips`]).
+pub fn loop_trips(lk: usize, d: usize) -> usize {
+    choose(DType::F32, d).loop_trips(lk, d)
+}
+
+/// Multi-head attention, see the module docs for the layout. `scale` defaults to 1/sqrt(d).
+pub fn attention(
+    rec: &mut Recorder,
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    out: &Tensor,
+    heads: usize,
+    scale: Option<f32>,
+) -> Result<()> {
+    attention_with(rec, q, k, v, out, heads, scale, None)
+}
+
+/// [`attention`] with an explicit kernel from [`KERNELS`] (benchmarks and tests compare them).
+#[allow(clippy::too_many_arguments)]
+pub fn attention_with(
+    rec: &mut Recorder,
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    out: &Tensor,
+    heads: usize,
+    scale: Option<f32>,
+    kernel: Option<AttnKernel>,
+) -> Result<()> {
+    let (sq, sk, sv, so) = (q.shape(), k.shape(), v.shape(), out.shape());
+    let shapes = format!("q {sq:?}, k {sk:?}, v {sv:?}, out {so:?}, heads {heads}");
+    let dtype =
+        same_dtype("attention", &[q, k, v, out]).map_err(|e| anyhow::anyhow!("{e} ({shapes})"))?;
+    ensure!(
+        sq.len() == 3 && sk.len() == 3 && sv.len() == 3,
+        "attention: q, k, v must be (B, L, H*d): {shapes}"
+    );
+    let (b, lq, w) = (sq[0], sq[1], sq[2]);
+    let lk = sk[1];
+    ensure!(
+        sk[0] == b && sk[2] == w && sv == sk,
+        "attention: k and v must be (B, Lk, H*d) matching q: {shapes}"
+    );
+    ensure!(so == sq, "attention: out must have q's shape: {shapes}");
+    ensure!(
+        heads >= 1 && w % heads == 0,
+        "attention: {heads} heads do not divide the width {w}: {shapes}"
+    );
+    let d = w / heads;
+    ensure!(
+        d % 4 == 0 && (d <= 160 || d % 8 == 0),
+        "attention: head dim {d} must be a multiple of 4 (of 8 above 160): {shapes}"
+    );
+    let kn = kernel.unwrap_or_else(|| choose(dtype, d));
+    ensure!(
+        kn.dtype == dtype && kn.fits(d),
+        "attention: kernel {:?} does not take {} head dim {d}: {shapes}",
+        kn.id,
+        dtype.name()
+    );
+    let trips = kn.loop_trips(lk, d);
+    ensure!(
+        trips <= LOOP_BUDGET,
+        "attention: Lk = {lk} at head dim {d} needs {trips} loop trips per invocation, over lavapipe's \
+         budget of {LOOP_BUDGET}: split the keys ({shapes})"
+    );
+    let qblocks = lq.div_ceil(8 * kn.rows);
+    let slices = if kn.wide { d.div_ceil(kn.cols) } else { 1 };
+    let groups = b * heads * qblocks * slices;
+    let p = AttnParams {
+        lq: lq as u32,
+        lk: lk as u32,
+        heads: heads as u32,
+        nc: (d / 4) as u32,
+        w4: (w / 4) as u32,
+        qblocks: qblocks as u32,
+        slices: slices as u32,
+        groups: groups as u32,
+        scale: scale.unwrap_or(1.0 / (d as f32).sqrt()),
+    };
+    rec.dispatch(
+        kn.id,
+        &[q.buffer(), k.buffer(), v.buffer(), out.buffer()],
+        bytemuck::bytes_of(&p),
+        fold_groups("attention", groups)?,
+        "attention",
+    )
+}

@@ -1,0 +1,290 @@
+//! conv2d launchers: NCHW input, (O, C, KH, KW) weights, any kernel size, stride, asymmetric padding
+//! (top, bottom, left, right), fused bias; f32 or f16 storage with f32 accumulation.
+//!
+//! Paths: 1x1 stride-1 unpadded convs run as a GEMM (`matmul::gemm`, weights shared over the batch). Other
+//! convs with O % 4 == 0 run an implicit GEMM on weights repacked to (KH, KW, C, O) (`kernels/conv2d_packed.wgsl`;
+//! with C % 4 == 0 the input is also transposed to (H, W, N, C) first, entry `hwnc`, the fastest on lavapipe:
+//! both transposes are small next to the conv and live in temporaries kept by the recording). Other O run the
+//! implicit GEMM on PyTorch-layout weights (`kernels/conv2d.wgsl`). All fast paths need subgroups of 8..64
+//! lanes. The direct kernel (`kernels/conv2d_direct.wgsl`) is the fallback and the tests' oracle for all of
+//! them. f16 outputs saturate at +-65504 (see [`super::matmul`]).
+use anyhow::{ensure, Result};
+
+use super::matmul::{gemm, tile_shape, tiled_supported, Gemm, MatmulPath};
+use super::{expect_shape, same_dtype, Recorder};
+use crate::kernels::params::{Conv2dParams, PackParams};
+use crate::kernels::KernelId as K;
+use crate::tensor::{DType, Tensor};
+
+pub use super::reference::conv2d::ConvGeom;
+
+/// Which kernel runs a conv.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum ConvPath {
+    /// GEMM for 1x1, implicit GEMM otherwise when supported, else direct.
+    #[default]
+    Auto,
+    /// Implicit GEMM (or GEMM for 1x1); error if the device lacks suitable subgroups.
+    Fast,
+    /// The direct kernel, whatever the shape.
+    Direct,
+}
+
+/// lavapipe stops every loop of an invocation after 65535 back-edges in total: stay well below.
+const LOOP_BUDGET: usize = 60_000;
+
+/// Arguments of [`conv2d_ex`].
+#[derive(Clone, Copy, Debug)]
+pub struct Conv2dArgs<'a> {
+    /// (N, C, H, W)
+    pub x: &'a Tensor,
+    /// (O, C, KH, KW)
+    pub w: &'a Tensor,
+    /// (O)
+    pub bias: Option<&'a Tensor>,
+    /// (N, O, OH, OW), see [`conv2d_out_shape`]
+    pub out: &'a Tensor,
+    pub stride: usize,
+    /// (top, bottom, left, right)
+    pub pad: [usize; 4],
+    pub path: ConvPath,
+    /// `w` already repacked by [`pack_weight`] ((KH, KW, C, O)); without it the fast path repacks into a
+    /// temporary on every call (cheap next to the conv: O C KH KW elements).
+    pub packed_w: Option<&'a Tensor>,
+}
+
+/// Output shape of x: (N, C, H, W) convolved with w: (O, C, KH, KW), with checks naming the shapes.
+pub fn conv2d_out_shape(
+    x: &[usize],
+    w: &[usize],
+    stride: usize,
+    pad: [usize; 4],
+) -> Result<[usize; 4]> {
+    ensure!(
+        x.len() == 4 && w.len() == 4,
+        "conv2d: x {x:?} must be (N, C, H, W) and w {w:?} (O, C, KH, KW)"
+    );
+    ensure!(
+        x[1] == w[1],
+        "conv2d: input channels differ: x {x:?}, w {w:?}"
+    );
+    ensure!(
+        stride >= 1,
+        "conv2d: stride must be >= 1 (x {x:?}, w {w:?})"
+    );
+    ensure!(
+        pad[0] < w[2] && pad[1] < w[2] && pad[2] < w[3] && pad[3] < w[3],
+        "conv2d: padding {pad:?} (top, bottom, left, right) must be smaller than the kernel {}x{} (x {x:?})",
+        w[2],
+        w[3]
+    );
+    let (hp, wp) = (x[2] + pad[0] + pad[1], x[3] + pad[2] + pad[3]);
+    ensure!(
+        hp >= w[2] && wp >= w[3],
+        "conv2d: kernel {}x{} larger than the padded input {hp}x{wp} (x {x:?}, pad {pad:?})",
+        w[2],
+        w[3]
+    );
+    Ok([
+        x[0],
+        w[0],
+        (hp - w[2]) / stride + 1,
+        (wp - w[3]) / stride + 1,
+    ])
+}
+
+/// w: (O, C, KH, KW) -> packed: (KH, KW, C, O), the weight layout of the fast conv kernel (conv2d_packed.wgsl).
+pub fn pack_weight(rec: &mut Recorder, w: &Tensor, packed: &Tensor) -> Result<()> {
+    let d = same_dtype("conv2d pack_weight", &[w, packed])?;
+    let ws = w.shape();
+    ensure!(
+        ws.len() == 4,
+        "conv2d pack_weight: w {ws:?} must be (O, C, KH, KW)"
+    );
+    expect_shape(
+        "conv2d pack_weight",
+        "packed",
+        packed,
+        &[ws[2], ws[3], ws[1], ws[0]],
+    )?;
+    let p = PackParams {
+        o: ws[0] as u32,
+        c: ws[1] as u32,
+        kk: (ws[2] * ws[3]) as u32,
+    };
+    let id = match d {
+        DType::F32 => K::Conv2dPackedF32Pack,
+        DType::F16 => K::Conv2dPackedF16Pack,
+    };
+    let g = super::grid_1d("conv2d pack_weight", w.numel())?;
+    rec.dispatch(
+        id,
+        &[w.buffer(), packed.buffer()],
+        bytemuck::bytes_of(&p),
+        g,
+        "conv2d pack_weight",
+    )
+}
+
+/// out = conv2d(x, w) (+ bias), see [`Conv2dArgs`].
+pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
+    let mut ts = vec![a.x, a.w, a.out];
+    if let Some(b) = a.bias {
+        ts.push(b);
+    }
+    let d = same_dtype("conv2d", &ts)?;
+    let (xs, ws) = (a.x.shape(), a.w.shape());
+    let os = conv2d_out_shape(xs, ws, a.stride, a.pad)?;
+    expect_shape("conv2d", "out", a.out, &os)?;
+    if let Some(b) = a.bias {
+        expect_shape("conv2d", "bias", b, &[ws[0]])?;
+    }
+    let [n, c, h, w] = [xs[0], xs[1], xs[2], xs[3]];
+    let (o, kh, kw) = (ws[0], ws[2], ws[3]);
+    let np = os[2] * os[3];
+    let bias = a.bias.unwrap_or(a.x);
+    let fast = match a.path {
+        ConvPath::Direct => false,
+        ConvPath::Fast => true,
+        ConvPath::Auto => tiled_supported(rec),
+    };
+    if fast && kh == 1 && kw == 1 && a.stride == 1 && a.pad == [0; 4] {
+        // (O, C) x (C, H W) per image -> (O, H W) per image
+        let g = Gemm {
+            m: o,
+            n: np,
+            k: c,
+            batch: n,
+            sa: 0,
+            sb: c * np,
+            trans_b: false,
+            bias_mode: if a.bias.is_some() { 2 } else { 0 },
+            dtype: d,
+            path: MatmulPath::Tiled,
+        };
+        let bufs = [a.w.buffer(), a.x.buffer(), bias.buffer(), a.out.buffer()];
+        return gemm(rec, "conv2d(1x1 as gemm)", &g, bufs, None);
+    }
+    let p = Conv2dParams {
+        n: n as u32,
+        c: c as u32,
+        h: h as u32,
+        w: w as u32,
+        o: o as u32,
+        oh: os[2] as u32,
+        ow: os[3] as u32,
+        kh: kh as u32,
+        kw: kw as u32,
+        stride: a.stride as u32,
+        pt: a.pad[0] as u32,
+        pl: a.pad[2] as u32,
+        has_bias: a.bias.is_some() as u32,
+    };
+    let mut bufs = [a.x.buffer(), a.w.buffer(), bias.buffer(), a.out.buffer()];
+    let tmp;
+    let xt;
+    let (id, groups, edges) = if fast && o % 4 == 0 {
+        ensure!(
+            tiled_supported(rec),
+            "conv2d: the implicit-GEMM kernel needs subgroups of 8 to 64 lanes, which {:?} lacks",
+            rec.context().info().name
+        );
+        let packed = match a.packed_w {
+            Some(pw) => {
+                expect_shape("conv2d", "packed_w", pw, &[kh, kw, c, o])?;
+                ensure!(pw.dtype() == d, "conv2d: packed_w dtype differs from x");
+                pw
+            }
+            None => {
+                tmp = Tensor::empty(rec.context(), &[kh, kw, c, o], d, "conv2d-packed-w")?;
+                pack_weight(rec, a.w, &tmp)?;
+                &tmp
+            }
+        };
+        bufs[1] = packed.buffer();
+        let (rows, cols) = tile_shape(rec);
+        let g = [o.div_ceil(cols) as u32, np.div_ceil(rows) as u32, n as u32];
+        if c % 4 == 0 {
+            // input transposed to (H, W, N, C) so channels load as vectors (conv2d_packed.wgsl `hwnc`)
+            xt = Tensor::empty(rec.context(), &[h, w, n, c], d, "conv2d-x-hwnc")?;
+            let pp = PackParams {
+                o: (n * c) as u32,
+                c: 1,
+                kk: (h * w) as u32,
+            };
+            let pid = match d {
+                DType::F32 => K::Conv2dPackedF32Pack,
+                DType::F16 => K::Conv2dPackedF16Pack,
+            };
+            let pg = super::grid_1d("conv2d", a.x.numel())?;
+            let pb = [a.x.buffer(), xt.buffer()];
+            rec.dispatch(pid, &pb, bytemuck::bytes_of(&pp), pg, "conv2d x->hwnc")?;
+            bufs[0] = xt.buffer();
+            let id = match d {
+                DType::F32 => K::Conv2dPackedF32Hwnc,
+                DType::F16 => K::Conv2dPackedF16Hwnc,
+            };
+            (id, g, kh * kw * (c.div_ceil(32) + 1) + kh)
+        } else {
+            let id = match d {
+                DType::F32 => K::Conv2dPackedF32,
+                DType::F16 => K::Conv2dPackedF16,
+            };
+            (id, g, kh * kw * (c.div_ceil(8) + 1) + kh)
+        }
+    } else if fast {
+        ensure!(
+            tiled_supported(rec),
+            "conv2d: the implicit-GEMM kernel needs subgroups of 8 to 64 lanes, which {:?} lacks",
+            rec.context().info().name
+        );
+        let id = match d {
+            DType::F32 => K::Conv2dF32,
+            DType::F16 => K::Conv2dF16,
+        };
+        let (rows, cols) = tile_shape(rec);
+        let g = [np.div_ceil(cols) as u32, o.div_ceil(rows) as u32, n as u32];
+        (id, g, kh * kw * (c.div_ceil(8) + 1) + kh)
+    } else {
+        let id = match d {
+            DType::F32 => K::Conv2dDirectF32,
+            DType::F16 => K::Conv2dDirectF16,
+        };
+        let g = super::grid_1d("conv2d", n * o * np)?;
+        (id, g, c * (kh * kw + kh + 1))
+    };
+    ensure!(
+        edges < LOOP_BUDGET,
+        "conv2d: x {xs:?} w {ws:?} needs {edges} loop iterations per invocation, past lavapipe's loop budget"
+    );
+    ensure!(
+        groups.iter().all(|&g| g <= 65535),
+        "conv2d: x {xs:?} w {ws:?} is too large for one dispatch"
+    );
+    rec.dispatch(id, &bufs, bytemuck::bytes_of(&p), groups, "conv2d")
+}
+
+/// x: (N, C, H, W) * w: (O, C, KH, KW) (+ bias (O)) -> out: (N, O, OH, OW); pad = (top, bottom, left, right).
+pub fn conv2d(
+    rec: &mut Recorder,
+    x: &Tensor,
+    w: &Tensor,
+    bias: Option<&Tensor>,
+    stride: usize,
+    pad: [usize; 4],
+    out: &Tensor,
+) -> Result<()> {
+    conv2d_ex(
+        rec,
+        &Conv2dArgs {
+            x,
+            w,
+            bias,
+            out,
+            stride,
+            pad,
+            path: ConvPath::Auto,
+            packed_w: None,
+        },
+    )
+}

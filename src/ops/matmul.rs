@@ -1,0 +1,347 @@
+//! Matmul / linear launchers: batched C = A B (+ bias) with B as (K, N) or transposed (N, K) (PyTorch Linear
+//! weight layout), f32 or f16 storage with f32 accumulation.
+//!
+//! Two kernels: the register-tiled one (`kernels/matmul.wgsl`, needs subgroups of 8..64 lanes) and the
+//! direct one (`kernels/matmul_direct.wgsl`, one output per invocation), kept as fallback and test oracle.
+//!
+//! f16 overflow policy: kernels accumulate in f32; an f16 output whose value exceeds 65504 in magnitude is
+//! stored saturated to +-65504 (never Inf; NaN inputs still give NaN). The launcher cannot know values, so a
+//! caller that needs to know passes an `overflow` flag tensor (f32, shape [1], zeroed by the caller): the
+//! kernel sets it to 1.0 when any output saturated.
+use anyhow::{bail, ensure, Result};
+
+use super::{expect_shape, same_dtype, Recorder};
+use crate::kernels::params::MatmulParams;
+use crate::kernels::KernelId as K;
+use crate::tensor::{DType, Tensor};
+use crate::vk::Buffer;
+
+/// Which kernel runs a matmul.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum MatmulPath {
+    /// The tiled kernel when the device supports it, else the direct one.
+    #[default]
+    Auto,
+    /// The register-tiled kernel (error if unsupported).
+    Tiled,
+    /// The direct kernel (one output per invocation).
+    Direct,
+}
+
+/// Work-group size and rows per subgroup (TM) of the tiled kernels (matmul.wgsl, conv2d.wgsl).
+pub(crate) const TILED_WG: usize = 64;
+pub(crate) const TILED_TM: usize = 16;
+
+/// (rows, columns) of one work group's output tile: (WG / SG) TM rows x 4 SG columns.
+pub(crate) fn tile_shape(rec: &Recorder) -> (usize, usize) {
+    let sg = rec.context().info().subgroup_size as usize;
+    (TILED_WG / sg * TILED_TM, 4 * sg)
+}
+
+/// A GEMM on raw buffers: C[z] = A[z] B[z] (+ bias); used by [`matmul_ex`] and by conv2d (1x1 convs).
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct Gemm {
+    pub m: usize,
+    pub n: usize,
+    pub k: usize,
+    pub batch: usize,
+    /// Batch strides in elements (0 = shared operand).
+    pub sa: usize,
+    pub sb: usize,
+    /// B given as (N, K).
+    pub trans_b: bool,
+    /// 0 none, 1 per column (n), 2 per row (m).
+    pub bias_mode: u32,
+    pub dtype: DType,
+    pub path: MatmulPath,
+}
+
+/// B load width of the tiled kernels: scalar, 4-element (vec4) or 8-element rows.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Width {
+    W1,
+    W4,
+    W8,
+    /// W4 (nn) / W8 (nt) plus vec4 loads of A (K % 4 == 0): 32-k chunks
+    Wide,
+}
+
+fn ids(d: DType, checked: bool, tiled: bool, trans: bool, w: Width) -> K {
+    use Width::*;
+    let f16 = d == DType::F16;
+    if !tiled {
+        return match (f16, checked, trans) {
+            (false, _, false) => K::MatmulDirectF32Nn,
+            (false, _, true) => K::MatmulDirectF32Nt,
+            (true, false, false) => K::MatmulDirectF16Nn,
+            (true, false, true) => K::MatmulDirectF16Nt,
+            (true, true, false) => K::MatmulDirectF16chkNn,
+            (true, true, true) => K::MatmulDirectF16chkNt,
+        };
+    }
+    // [nn, nn4, nn4a, nt, nt4, nt8, nt8a] per variant
+    let v = match (f16, checked) {
+        (false, _) => [
+            K::MatmulF32Nn,
+            K::MatmulF32Nn4,
+            K::MatmulF32Nn4a,
+            K::MatmulF32Nt,
+            K::MatmulF32Nt4,
+            K::MatmulF32Nt8,
+            K::MatmulF32Nt8a,
+        ],
+        (true, false) => [
+            K::MatmulF16Nn,
+            K::MatmulF16Nn4,
+            K::MatmulF16Nn4a,
+            K::MatmulF16Nt,
+            K::MatmulF16Nt4,
+            K::MatmulF16Nt8,
+            K::MatmulF16Nt8a,
+        ],
+        (true, true) => [
+            K::MatmulF16chkNn,
+            K::MatmulF16chkNn4,
+            K::MatmulF16chkNn4a,
+            K::MatmulF16chkNt,
+            K::MatmulF16chkNt4,
+            K::MatmulF16chkNt8,
+            K::MatmulF16chkNt8a,
+        ],
+    };
+    match (trans, w) {
+        (false, W1) => v[0],
+        (false, W4 | W8) => v[1],
+        (false, Wide) => v[2],
+        (true, W1) => v[3],
+        (true, W4) => v[4],
+        (true, W8) => v[5],
+        (true, Wide) => v[6],
+    }
+}
+
+/// Whether the tiled kernels can run here (subgroup broadcast, 8 <= subgroup size <= 64 dividing 64).
+pub fn tiled_supported(rec: &Recorder) -> bool {
+    let ctx = rec.context();
+    let sg = ctx.info().subgroup_size as usize;
+    ctx.supports(K::MatmulF32Nn) && (8..=TILED_WG).contains(&sg) && TILED_WG % sg == 0
+}
+
+/// Records one GEMM. Buffers: a, b, bias (any buffer when bias_mode == 0), c, optional overflow flag.
+pub(crate) fn gemm(
+    rec: &mut Recorder,
+    op: &str,
+    g: &Gemm,
+    bufs: [&std::sync::Arc<Buffer>; 4],
+    flag: Option<&std::sync::Arc<Buffer>>,
+) -> Result<()> {
+    let tiled = match g.path {
+        MatmulPath::Direct => false,
+        MatmulPath::Tiled => {
+            ensure!(
+                tiled_supported(rec),
+                "{op}: the tiled matmul needs subgroups of 8 to 64 lanes, which {:?} lacks",
+                rec.context().info().name
+            );
+            true
+        }
+        MatmulPath::Auto => tiled_supported(rec),
+    };
+    // vector loads need rows (and batch strides) of B aligned to their width
+    let row = if g.trans_b { g.k } else { g.n };
+    let a_vec4 = g.k % 4 == 0 && g.sa % 4 == 0;
+    let width = if g.trans_b && row % 8 == 0 && g.sb % 8 == 0 {
+        if a_vec4 {
+            Width::Wide
+        } else {
+            Width::W8
+        }
+    } else if row % 4 == 0 && g.sb % 4 == 0 {
+        if !g.trans_b && a_vec4 {
+            Width::Wide
+        } else {
+            Width::W4
+        }
+    } else {
+        Width::W1
+    };
+    ensure!(
+        g.dtype == DType::F16 || flag.is_none(),
+        "{op}: an overflow flag is only meaningful for f16 outputs"
+    );
+    let id = ids(g.dtype, flag.is_some(), tiled, g.trans_b, width);
+    let p = MatmulParams {
+        m: g.m as u32,
+        n: g.n as u32,
+        k: g.k as u32,
+        sa: g.sa as u32,
+        sb: g.sb as u32,
+        bias_mode: g.bias_mode,
+        batch: g.batch as u32,
+    };
+    let groups = if tiled {
+        let (rows, cols) = tile_shape(rec);
+        [
+            g.n.div_ceil(cols) as u32,
+            g.m.div_ceil(rows) as u32,
+            g.batch as u32,
+        ]
+    } else {
+        super::grid_1d(op, g.batch * g.m * g.n)?
+    };
+    ensure!(
+        groups.iter().all(|&x| x <= 65535),
+        "{op}: ({}, {}, {}) x {} is too large for one dispatch",
+        g.batch,
+        g.m,
+        g.n,
+        g.k
+    );
+    let mut b: Vec<&std::sync::Arc<Buffer>> = bufs.to_vec();
+    if let Some(f) = flag {
+        b.push(f);
+    }
+    rec.dispatch(id, &b, bytemuck::bytes_of(&p), groups, op)
+}
+
+/// Arguments of [`matmul_ex`].
+#[derive(Clone, Copy, Debug)]
+pub struct MatmulArgs<'a> {
+    /// (M, K) or (B, M, K)
+    pub a: &'a Tensor,
+    /// (K, N) / (B, K, N), or with `transpose_b` (N, K) / (B, N, K)
+    pub b: &'a Tensor,
+    /// (N), added to every row
+    pub bias: Option<&'a Tensor>,
+    /// (M, N) when neither operand is batched, else (B, M, N)
+    pub out: &'a Tensor,
+    pub transpose_b: bool,
+    pub path: MatmulPath,
+    /// f16 only: f32 tensor of shape [1], set to 1.0 if any output saturated at +-65504.
+    pub overflow: Option<&'a Tensor>,
+}
+
+/// out = a b (+ bias), see [`MatmulArgs`] for shapes. Batched operands broadcast against unbatched ones.
+pub fn matmul_ex(rec: &mut Recorder, x: &MatmulArgs) -> Result<()> {
+    let op = if x.transpose_b {
+        "matmul(b^T)"
+    } else {
+        "matmul"
+    };
+    let mut ts = vec![x.a, x.b, x.out];
+    if let Some(bias) = x.bias {
+        ts.push(bias);
+    }
+    let d = same_dtype(op, &ts)?;
+    let (sa, sb) = (x.a.shape(), x.b.shape());
+    let split = |s: &[usize], what: &str| -> Result<(usize, usize, usize, bool)> {
+        match *s {
+            [r, c] => Ok((1, r, c, false)),
+            [bt, r, c] => Ok((bt, r, c, true)),
+            _ => bail!("{op}: {what} must be 2-D or 3-D, got {s:?} (a {sa:?}, b {sb:?})"),
+        }
+    };
+    let (ba, m, k, a3) = split(sa, "a")?;
+    let (bb, r1, r2, b3) = split(sb, "b")?;
+    let (kb, n) = if x.transpose_b { (r2, r1) } else { (r1, r2) };
+    ensure!(
+        k == kb,
+        "{op}: inner dimensions differ: a {sa:?}, b {sb:?} (K {k} vs {kb})"
+    );
+    ensure!(
+        !(a3 && b3) || ba == bb,
+        "{op}: batch sizes differ: a {sa:?}, b {sb:?}"
+    );
+    let batch = ba.max(bb);
+    let want: Vec<usize> = if a3 || b3 {
+        vec![batch, m, n]
+    } else {
+        vec![m, n]
+    };
+    expect_shape(op, "out", x.out, &want)?;
+    if let Some(bias) = x.bias {
+        expect_shape(op, "bias", bias, &[n])?;
+    }
+    if let Some(f) = x.overflow {
+        ensure!(
+            f.dtype() == DType::F32 && f.shape() == [1],
+            "{op}: the overflow flag must be an f32 tensor of shape [1], got {:?} {}",
+            f.shape(),
+            f.dtype().name()
+        );
+    }
+    let g = Gemm {
+        m,
+        n,
+        k,
+        batch,
+        sa: if a3 { m * k } else { 0 },
+        sb: if b3 { k * n } else { 0 },
+        trans_b: x.transpose_b,
+        bias_mode: if x.bias.is_some() { 1 } else { 0 },
+        dtype: d,
+        path: x.path,
+    };
+    let bias = x.bias.unwrap_or(x.a);
+    gemm(
+        rec,
+        op,
+        &g,
+        [x.a.buffer(), x.b.buffer(), bias.buffer(), x.out.buffer()],
+        x.overflow.map(|f| f.buffer()),
+    )
+}
+
+/// a: (B?, M, K) x b: (B?, K, N) (+ bias (N)) -> out: (B?, M, N)
+pub fn matmul(
+    rec: &mut Recorder,
+    a: &Tensor,
+    b: &Tensor,
+    bias: Option<&Tensor>,
+    out: &Tensor,
+) -> Result<()> {
+    matmul_ex(
+        rec,
+        &MatmulArgs {
+            a,
+            b,
+            bias,
+            out,
+            transpose_b: false,
+            path: MatmulPath::Auto,
+            overflow: None,
+        },
+    )
+}
+
+/// PyTorch Linear: x: (.., in) x w: (out, in)^T (+ bias (out)) -> out: (.., out). Leading dims of x are
+/// flattened into rows.
+pub fn linear(
+    rec: &mut Recorder,
+    x: &Tensor,
+    w: &Tensor,
+    bias: Option<&Tensor>,
+    out: &Tensor,
+) -> Result<()> {
+    let (xs, ws) = (x.shape(), w.shape());
+    ensure!(
+        ws.len() == 2 && !xs.is_empty() && xs[xs.len() - 1] == ws[1],
+        "linear: x {xs:?} and weight {ws:?} (out, in) do not match"
+    );
+    let mut os = xs.to_vec();
+    *os.last_mut().expect("non-empty") = ws[0];
+    expect_shape("linear", "out", out, &os)?;
+    let rows = x.numel() / ws[1];
+    matmul_ex(
+        rec,
+        &MatmulArgs {
+            a: &x.reshape(&[rows, ws[1]])?,
+            b: w,
+            bias,
+            out: &out.reshape(&[rows, ws[0]])?,
+            transpose_b: true,
+            path: MatmulPath::Auto,
+            overflow: None,
+        },
+    )
+}

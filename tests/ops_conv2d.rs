@@ -1,0 +1,314 @@
+//! conv2d against the CPU f64 reference: SD shapes, the VAE's asymmetric downsample padding, odd sizes, 1x1 as
+//! GEMM, long reductions; the fast path (implicit GEMM / GEMM) and the direct kernel, f32 and f16.
+mod common;
+use b2dr::ops::conv2d::{self as cv, Conv2dArgs, ConvPath};
+use b2dr::ops::reference::conv2d::{self as rc, ConvGeom};
+use b2dr::tensor::{DType, Tensor};
+use common::*;
+
+/// x: (n, c, h, w), w: (o, c, k.0, k.1)
+struct Case {
+    name: &'static str,
+    n: usize,
+    c: usize,
+    h: usize,
+    w: usize,
+    o: usize,
+    k: (usize, usize),
+    stride: usize,
+    pad: [usize; 4],
+    scale: f32,
+    /// also run the (slow) direct kernel
+    direct: bool,
+}
+
+const fn case(
+    name: &'static str,
+    c: usize,
+    o: usize,
+    h: usize,
+    w: usize,
+    k: usize,
+    pad: usize,
+) -> Case {
+    Case {
+        name,
+        n: 1,
+        c,
+        h,
+        w,
+        o,
+        k: (k, k),
+        stride: 1,
+        pad: [pad; 4],
+        scale: 1.0,
+        direct: true,
+    }
+}
+
+const CASES: &[Case] = &[
+    Case {
+        direct: false,
+        ..case("sd_3x3_320to320_28x50", 320, 320, 28, 50, 3, 1)
+    },
+    case("sd_like_3x3_64to48_28x50", 64, 48, 28, 50, 3, 1),
+    case("conv_in_3x3_4to40_28x50", 4, 40, 28, 50, 3, 1),
+    Case {
+        stride: 2,
+        pad: [0, 1, 0, 1],
+        ..case("vae_down_s2_pad0101_24to24_56x100", 24, 24, 56, 100, 3, 0)
+    },
+    Case {
+        n: 2,
+        ..case("1x1_gemm_80to36_14x25_batch2", 80, 36, 14, 25, 1, 0)
+    },
+    case("one_1x1_image_1x1", 1, 1, 1, 1, 1, 0),
+    case("one_3x3_pad1_on_1x1", 3, 2, 1, 1, 3, 1),
+    Case {
+        n: 2,
+        k: (5, 3),
+        stride: 3,
+        pad: [2, 1, 0, 2],
+        ..case("odd_7x13_k5x3_s3_pad2102", 3, 5, 7, 13, 0, 0)
+    },
+    case("primes_11to13_17x19", 11, 13, 17, 19, 3, 1),
+    Case {
+        stride: 2,
+        ..case("primes_s2_13to7_23x29_k5", 13, 7, 23, 29, 5, 2)
+    },
+    Case {
+        scale: 1e3,
+        ..case("large_inputs_x1e3", 20, 24, 9, 15, 3, 1)
+    },
+];
+
+fn run_case(ctx: &b2dr::vk::Context, c: &Case, dtype: DType, path: ConvPath, seed: u64) -> f64 {
+    let g = ConvGeom {
+        kh: c.k.0,
+        kw: c.k.1,
+        stride: c.stride,
+        pad: c.pad,
+    };
+    // f16 stress: x * scale, w / scale keeps outputs inside f16's range
+    let (sx, sw) = match dtype {
+        DType::F16 => (c.scale, 1.0 / c.scale),
+        DType::F32 => (c.scale, c.scale),
+    };
+    let x = uniform(c.n * c.c * c.h * c.w, sx, seed);
+    let w = uniform(c.o * c.c * c.k.0 * c.k.1, sw, seed + 1);
+    let b = uniform(c.o, sx * sw, seed + 2);
+    let tx = upload(ctx, &[c.n, c.c, c.h, c.w], dtype, &x);
+    let tw = upload(ctx, &[c.o, c.c, c.k.0, c.k.1], dtype, &w);
+    let tb = upload(ctx, &[c.o], dtype, &b);
+    let os = cv::conv2d_out_shape(tx.shape(), tw.shape(), c.stride, c.pad).unwrap();
+    let out = empty(ctx, &os, dtype);
+    run(ctx, |rec| {
+        cv::conv2d_ex(
+            rec,
+            &Conv2dArgs {
+                x: &tx,
+                w: &tw,
+                bias: Some(&tb),
+                out: &out,
+                stride: c.stride,
+                pad: c.pad,
+                path,
+                packed_w: None,
+            },
+        )
+    });
+    let want = rc::conv2d(
+        &stored(&x, dtype),
+        &stored(&w, dtype),
+        Some(&stored(&b, dtype)),
+        (c.n, c.c, c.h, c.w),
+        c.o,
+        g,
+    );
+    assert_eq!(g.out_hw(c.h, c.w), (os[2], os[3]));
+    nmse(&out.to_f32(ctx).unwrap(), &want)
+}
+
+#[test]
+fn fast_and_direct_match_reference() {
+    let Some(ctx) = ctx() else { return };
+    for dtype in [DType::F32, DType::F16] {
+        for path in [ConvPath::Auto, ConvPath::Direct] {
+            let mut worst = 0.0f64;
+            for (i, c) in CASES.iter().enumerate() {
+                if path == ConvPath::Direct && !c.direct {
+                    continue;
+                }
+                let e = run_case(&ctx, c, dtype, path, 300 + i as u64);
+                eprintln!("{dtype:?} {path:?} {}: nmse {e:.2e}", c.name);
+                let tol = if dtype == DType::F32 { 1e-6 } else { 5e-4 };
+                assert!(e <= tol, "{} {dtype:?} {path:?}: nmse {e:e}", c.name);
+                worst = worst.max(e);
+            }
+            eprintln!("{dtype:?} {path:?}: worst nmse {worst:.2e}");
+        }
+    }
+    assert_no_validation_errors();
+}
+
+/// The longest reductions the renderer runs (UNet up-block conv (1280 + 1280) -> 1280, 3x3: K = 23040; the
+/// VAE decoder's 512-channel 3x3: K = 4608), output channels cut to keep the CPU reference fast. A loop
+/// truncated by lavapipe's 65535 back-edge budget would drop most of K.
+#[test]
+fn long_reductions_are_not_truncated() {
+    let Some(ctx) = ctx() else { return };
+    let cases = [
+        case("unet_up_3x3_2560to16_7x13", 2560, 16, 7, 13, 3, 1),
+        // O % 4 != 0: the kernel on PyTorch-layout weights
+        case("unet_up_3x3_2560to6_7x13", 2560, 6, 7, 13, 3, 1),
+        case("vae_3x3_512to8_14x25", 512, 8, 14, 25, 3, 1),
+    ];
+    for c in &cases {
+        for path in [ConvPath::Auto, ConvPath::Direct] {
+            let e = run_case(&ctx, c, DType::F32, path, 9);
+            eprintln!("{} {path:?}: nmse {e:.2e}", c.name);
+            assert!(e <= 1e-6, "{} {path:?}: nmse {e:e}", c.name);
+        }
+    }
+    assert_no_validation_errors();
+}
+
+/// Weights packed once by `pack_weight` (what a model does at load time) give the same result.
+#[test]
+fn prepacked_weights_match() {
+    let Some(ctx) = ctx() else { return };
+    for dtype in [DType::F32, DType::F16] {
+        let (x, w) = (
+            uniform(2 * 12 * 9 * 11, 1.0, 1),
+            uniform(16 * 12 * 9, 1.0, 2),
+        );
+        let tx = upload(&ctx, &[2, 12, 9, 11], dtype, &x);
+        let tw = upload(&ctx, &[16, 12, 3, 3], dtype, &w);
+        let packed = empty(&ctx, &[3, 3, 12, 16], dtype);
+        let out = empty(&ctx, &[2, 16, 5, 6], dtype);
+        run(&ctx, |rec| {
+            cv::pack_weight(rec, &tw, &packed)?;
+            cv::conv2d_ex(
+                rec,
+                &Conv2dArgs {
+                    x: &tx,
+                    w: &tw,
+                    bias: None,
+                    out: &out,
+                    stride: 2,
+                    pad: [1, 1, 1, 1],
+                    path: ConvPath::Fast,
+                    packed_w: Some(&packed),
+                },
+            )
+        });
+        let g = ConvGeom {
+            kh: 3,
+            kw: 3,
+            stride: 2,
+            pad: [1; 4],
+        };
+        let want = rc::conv2d(
+            &stored(&x, dtype),
+            &stored(&w, dtype),
+            None,
+            (2, 12, 9, 11),
+            16,
+            g,
+        );
+        let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
+        assert!(
+            e <= if dtype == DType::F32 { 1e-6 } else { 5e-4 },
+            "{dtype:?}: nmse {e:e}"
+        );
+    }
+    assert_no_validation_errors();
+}
+
+#[test]
+fn bad_inputs_are_errors() {
+    let Some(ctx) = ctx() else { return };
+    let t = |s: &[usize], d: DType| Tensor::zeros(&ctx, s, d, "t").unwrap();
+    let x = t(&[1, 4, 8, 8], DType::F32);
+    let w = t(&[6, 4, 3, 3], DType::F32);
+    let o = t(&[1, 6, 8, 8], DType::F32);
+    let mut rec = ctx.recorder().unwrap();
+    let check = |r: anyhow::Result<()>, want: &str| {
+        let e = format!("{:#}", r.expect_err(want));
+        assert!(
+            e.contains("conv2d") && e.contains(want),
+            "error {e:?} should mention {want:?}"
+        );
+    };
+    check(
+        cv::conv2d(
+            &mut rec,
+            &x,
+            &t(&[6, 5, 3, 3], DType::F32),
+            None,
+            1,
+            [1; 4],
+            &o,
+        ),
+        "input channels",
+    );
+    check(
+        cv::conv2d(
+            &mut rec,
+            &x,
+            &w,
+            None,
+            1,
+            [1; 4],
+            &t(&[1, 6, 7, 8], DType::F32),
+        ),
+        "out has shape",
+    );
+    check(
+        cv::conv2d(
+            &mut rec,
+            &x,
+            &t(&[6, 4, 3, 3], DType::F16),
+            None,
+            1,
+            [1; 4],
+            &o,
+        ),
+        "dtype mismatch",
+    );
+    check(
+        cv::conv2d(&mut rec, &x, &w, None, 1, [3, 1, 1, 1], &o),
+        "padding",
+    );
+    check(cv::conv2d(&mut rec, &x, &w, None, 0, [1; 4], &o), "stride");
+    check(
+        cv::conv2d(&mut rec, &x, &w, Some(&t(&[5], DType::F32)), 1, [1; 4], &o),
+        "bias",
+    );
+    check(
+        cv::conv2d(
+            &mut rec,
+            &t(&[1, 4, 2, 2], DType::F32),
+            &t(&[6, 4, 5, 5], DType::F32),
+            None,
+            1,
+            [0; 4],
+            &o,
+        ),
+        "larger than the padded input",
+    );
+    check(
+        cv::conv2d(
+            &mut rec,
+            &t(&[4, 8, 8], DType::F32),
+            &w,
+            None,
+            1,
+            [1; 4],
+            &o,
+        ),
+        "(N, C, H, W)",
+    );
+    drop(rec);
+    assert_no_validation_errors();
+}

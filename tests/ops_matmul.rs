@@ -1,0 +1,361 @@
+//! matmul / linear against the CPU f64 reference: SD shapes, odd sizes, both kernels, f32 and f16, stress.
+mod common;
+use b2dr::ops::matmul::{self as mm, MatmulArgs, MatmulPath};
+use b2dr::ops::reference::matmul as rmm;
+use b2dr::tensor::{DType, Tensor};
+use common::*;
+
+/// One case: a (ba, M, K) x b (bb, K, N) or (bb, N, K); batch dims of 1 mean a 2-D operand.
+struct Case {
+    name: &'static str,
+    ba: usize,
+    bb: usize,
+    m: usize,
+    n: usize,
+    k: usize,
+    trans_b: bool,
+    bias: bool,
+    scale: f32,
+}
+
+const fn case(name: &'static str, m: usize, n: usize, k: usize, trans_b: bool) -> Case {
+    Case {
+        name,
+        ba: 1,
+        bb: 1,
+        m,
+        n,
+        k,
+        trans_b,
+        bias: true,
+        scale: 1.0,
+    }
+}
+
+const CASES: &[Case] = &[
+    // SD1.5 shapes: attention projections at 28x50 latents (tokens 1400, 320 ch), FF, time embedding
+    case("sd_proj_1400x320x320_t", 1400, 320, 320, true),
+    case("sd_ff_1400x1280x320_t", 1400, 1280, 320, true),
+    case("sd_ff_out_350x640x2560_t", 350, 640, 2560, true),
+    case("sd_1400x1280x320_nn", 1400, 1280, 320, false),
+    case("time_emb_2x1280x320_t", 2, 1280, 320, true),
+    // odd sizes
+    case("one_1x1x1", 1, 1, 1, false),
+    case("one_1x1x1_t", 1, 1, 1, true),
+    case("odd_7x13x5", 7, 13, 5, false),
+    case("odd_7x13x5_t", 7, 13, 5, true),
+    case("primes_67x61x59", 67, 61, 59, false),
+    case("primes_67x61x59_t", 67, 61, 59, true),
+    case("k_not_tile_65x36x12", 65, 36, 12, false),
+    case("k_not_tile_65x36x12_t", 65, 36, 12, true),
+    case("k_tail_33x64x36_t", 33, 64, 36, true),
+    Case {
+        name: "batched_both_3x37x40x24",
+        ba: 3,
+        bb: 3,
+        ..case("", 37, 40, 24, false)
+    },
+    Case {
+        name: "batched_a_only_2x9x20x16_t",
+        ba: 2,
+        ..case("", 9, 20, 16, true)
+    },
+    Case {
+        name: "batched_b_only_2x9x21x17",
+        bb: 2,
+        bias: false,
+        ..case("", 9, 21, 17, false)
+    },
+    Case {
+        name: "large_inputs_x1e3_t",
+        scale: 1e3,
+        ..case("", 70, 96, 80, true)
+    },
+    Case {
+        name: "large_inputs_x1e3_nn",
+        scale: 1e3,
+        ..case("", 70, 97, 81, false)
+    },
+];
+
+fn shape3(b: usize, r: usize, c: usize) -> Vec<usize> {
+    if b == 1 {
+        vec![r, c]
+    } else {
+        vec![b, r, c]
+    }
+}
+
+/// Runs one case and returns its nMSE against the f64 reference (computed from the stored inputs).
+fn run_case(ctx: &b2dr::vk::Context, c: &Case, dtype: DType, path: MatmulPath, seed: u64) -> f64 {
+    let batch = c.ba.max(c.bb);
+    // f16 stress: a x scale, b / scale (outputs must stay inside f16's range to be comparable)
+    let (sa, sb) = match dtype {
+        DType::F16 => (c.scale, 1.0 / c.scale),
+        DType::F32 => (c.scale, c.scale),
+    };
+    let a = uniform(c.ba * c.m * c.k, sa, seed);
+    let b = uniform(c.bb * c.k * c.n, sb, seed + 1);
+    let bias = uniform(c.n, sa * sb, seed + 2);
+    let bshape = if c.trans_b {
+        shape3(c.bb, c.n, c.k)
+    } else {
+        shape3(c.bb, c.k, c.n)
+    };
+    let ta = upload(ctx, &shape3(c.ba, c.m, c.k), dtype, &a);
+    let tb = upload(ctx, &bshape, dtype, &b);
+    let tbias = upload(ctx, &[c.n], dtype, &bias);
+    let oshape = if c.ba > 1 || c.bb > 1 {
+        vec![batch, c.m, c.n]
+    } else {
+        vec![c.m, c.n]
+    };
+    let out = empty(ctx, &oshape, dtype);
+    run(ctx, |rec| {
+        mm::matmul_ex(
+            rec,
+            &MatmulArgs {
+                a: &ta,
+                b: &tb,
+                bias: c.bias.then_some(&tbias),
+                out: &out,
+                transpose_b: c.trans_b,
+                path,
+                overflow: None,
+            },
+        )
+    });
+    let bs = stored(&bias, dtype);
+    let want = rmm::matmul(
+        &stored(&a, dtype),
+        &stored(&b, dtype),
+        c.bias.then_some(&bs[..]),
+        batch,
+        c.m,
+        c.n,
+        c.k,
+        c.trans_b,
+    );
+    nmse(&out.to_f32(ctx).unwrap(), &want)
+}
+
+fn tol(dtype: DType) -> f64 {
+    match dtype {
+        DType::F32 => 1e-6,
+        DType::F16 => 5e-4,
+    }
+}
+
+#[test]
+fn tiled_and_direct_match_reference() {
+    let Some(ctx) = ctx() else { return };
+    for dtype in [DType::F32, DType::F16] {
+        for path in [MatmulPath::Auto, MatmulPath::Direct] {
+            let mut worst = 0.0f64;
+            for (i, c) in CASES.iter().enumerate() {
+                let e = run_case(&ctx, c, dtype, path, 100 + i as u64);
+                eprintln!("{dtype:?} {path:?} {}: nmse {e:.2e}", c.name);
+                assert!(e <= tol(dtype), "{} {dtype:?} {path:?}: nmse {e:e}", c.name);
+                worst = worst.max(e);
+            }
+            eprintln!("{dtype:?} {path:?}: worst nmse {worst:.2e}");
+        }
+    }
+    assert_no_validation_errors();
+}
+
+/// The largest reductions the renderer runs: a truncated loop (lavapipe's 65535 back-edge budget) would drop
+/// most of K and fail the threshold by orders of magnitude.
+#[test]
+fn long_reductions_are_not_truncated() {
+    let Some(ctx) = ctx() else { return };
+    for (name, k) in [("ff_k5120", 5120usize), ("unet_conv_as_gemm_k23040", 23040)] {
+        let c = Case {
+            name,
+            ..case("", 9, 40, k, true)
+        };
+        for path in [MatmulPath::Auto, MatmulPath::Direct] {
+            let e = run_case(&ctx, &c, DType::F32, path, 7);
+            eprintln!("{name} {path:?}: nmse {e:.2e}");
+            assert!(e <= 1e-6, "{name} {path:?}: nmse {e:e}");
+        }
+        let c = Case {
+            trans_b: false,
+            ..c
+        };
+        let e = run_case(&ctx, &c, DType::F32, MatmulPath::Auto, 8);
+        assert!(e <= 1e-6, "{name} nn: nmse {e:e}");
+    }
+    assert_no_validation_errors();
+}
+
+#[test]
+fn linear_flattens_leading_dims() {
+    let Some(ctx) = ctx() else { return };
+    let (bt, t, i, o) = (2usize, 77usize, 48usize, 40usize);
+    let x = uniform(bt * t * i, 1.0, 1);
+    let w = uniform(o * i, 1.0, 2);
+    let b = uniform(o, 1.0, 3);
+    let (tx, tw, tb) = (
+        upload(&ctx, &[bt, t, i], DType::F32, &x),
+        upload(&ctx, &[o, i], DType::F32, &w),
+        upload(&ctx, &[o], DType::F32, &b),
+    );
+    let out = empty(&ctx, &[bt, t, o], DType::F32);
+    run(&ctx, |rec| mm::linear(rec, &tx, &tw, Some(&tb), &out));
+    let want = rmm::matmul(
+        &stored(&x, DType::F32),
+        &stored(&w, DType::F32),
+        Some(&stored(&b, DType::F32)),
+        1,
+        bt * t,
+        o,
+        i,
+        true,
+    );
+    let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
+    assert!(e <= 1e-6, "linear: nmse {e:e}");
+    assert_no_validation_errors();
+}
+
+/// f16 policy: results past 65504 saturate (finite), and the checked mode raises the flag; in-range results
+/// leave the flag clear.
+#[test]
+fn f16_overflow_saturates_and_is_flagged() {
+    let Some(ctx) = ctx() else { return };
+    let (m, n, k) = (5usize, 12usize, 64usize);
+    for path in [MatmulPath::Auto, MatmulPath::Direct] {
+        for (scale, overflows) in [(100.0f32, true), (1.0, false)] {
+            // all-positive inputs: the sums reach k * scale^2 = 640000 > 65504 at scale 100
+            let a: Vec<f32> = uniform(m * k, 1.0, 5)
+                .iter()
+                .map(|v| (v.abs() + 0.5) * scale)
+                .collect();
+            let b: Vec<f32> = uniform(k * n, 1.0, 6)
+                .iter()
+                .map(|v| (v.abs() + 0.5) * scale)
+                .collect();
+            let ta = upload(&ctx, &[m, k], DType::F16, &a);
+            let tb = upload(&ctx, &[n, k], DType::F16, &b);
+            let flag = Tensor::zeros(&ctx, &[1], DType::F32, "flag").unwrap();
+            for checked in [false, true] {
+                let out = empty(&ctx, &[m, n], DType::F16);
+                run(&ctx, |rec| {
+                    mm::matmul_ex(
+                        rec,
+                        &MatmulArgs {
+                            a: &ta,
+                            b: &tb,
+                            bias: None,
+                            out: &out,
+                            transpose_b: true,
+                            path,
+                            overflow: checked.then_some(&flag),
+                        },
+                    )
+                });
+                let got = out.to_f32(&ctx).unwrap();
+                assert!(
+                    got.iter().all(|v| v.is_finite()),
+                    "{path:?}: Inf/NaN in f16 output"
+                );
+                if overflows {
+                    assert!(
+                        got.iter().all(|&v| v == 65504.0),
+                        "{path:?}: not saturated: {got:?}"
+                    );
+                } else {
+                    let want = rmm::matmul(
+                        &stored(&a, DType::F16),
+                        &stored(&b, DType::F16),
+                        None,
+                        1,
+                        m,
+                        n,
+                        k,
+                        true,
+                    );
+                    assert!(nmse(&got, &want) <= 5e-4);
+                }
+            }
+            let f = flag.to_f32(&ctx).unwrap()[0];
+            assert_eq!(
+                f,
+                if overflows { 1.0 } else { 0.0 },
+                "{path:?} scale {scale}: flag {f}"
+            );
+        }
+    }
+    assert_no_validation_errors();
+}
+
+#[test]
+fn bad_inputs_are_errors() {
+    let Some(ctx) = ctx() else { return };
+    let t = |s: &[usize], d: DType| Tensor::zeros(&ctx, s, d, "t").unwrap();
+    let (a, b, o) = (
+        t(&[4, 8], DType::F32),
+        t(&[8, 6], DType::F32),
+        t(&[4, 6], DType::F32),
+    );
+    let mut rec = ctx.recorder().unwrap();
+    let check = |r: anyhow::Result<()>, want: &str| {
+        let e = format!("{:#}", r.expect_err(want));
+        assert!(e.contains(want), "error {e:?} should mention {want:?}");
+    };
+    check(
+        mm::matmul(&mut rec, &a, &t(&[7, 6], DType::F32), None, &o),
+        "inner dimensions",
+    );
+    check(
+        mm::matmul(&mut rec, &a, &b, None, &t(&[4, 5], DType::F32)),
+        "out has shape",
+    );
+    check(
+        mm::matmul(&mut rec, &a, &t(&[8, 6], DType::F16), None, &o),
+        "dtype mismatch",
+    );
+    check(
+        mm::matmul(&mut rec, &a, &b, Some(&t(&[5], DType::F32)), &o),
+        "bias",
+    );
+    check(
+        mm::matmul(
+            &mut rec,
+            &t(&[2, 4, 8], DType::F32),
+            &t(&[3, 8, 6], DType::F32),
+            None,
+            &t(&[2, 4, 6], DType::F32),
+        ),
+        "batch sizes",
+    );
+    check(
+        mm::matmul(&mut rec, &t(&[1, 1, 4, 8], DType::F32), &b, None, &o),
+        "2-D or 3-D",
+    );
+    check(
+        mm::linear(&mut rec, &a, &t(&[6, 7], DType::F32), None, &o),
+        "linear",
+    );
+    check(
+        mm::matmul_ex(
+            &mut rec,
+            &MatmulArgs {
+                a: &a,
+                b: &b,
+                bias: None,
+                out: &o,
+                transpose_b: false,
+                path: MatmulPath::Auto,
+                overflow: Some(&t(&[1], DType::F32)),
+            },
+        ),
+        "overflow flag",
+    );
+    assert!(
+        Tensor::empty(&ctx, &[0, 3], DType::F32, "e").is_err(),
+        "empty tensors are refused at creation"
+    );
+    drop(rec);
+    assert_no_validation_errors();
+}
