@@ -74,3 +74,27 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
         }
     }
 }
+
+// layer_norm_sg: one subgroup per row, no barriers (llvmpipe's work-group barriers are expensive and a
+// 256-wide group wastes lanes on short rows). Work group of 64 invocations = 64 / subgroup_size rows; lanes
+// stride over the row (contiguous across lanes); sums through subgroupAdd. Same shifted two-pass statistics
+// as `main`. p.len = D, p.ch_per_seg = rows. Loop budget: 3 * ceil(D / subgroup_size).
+@compute @workgroup_size(64)
+fn layer_norm_sg(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                 @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32,
+                 @builtin(local_invocation_index) li: u32) {
+    let row = (wid.y * nwg.x + wid.x) * (64u / sg) + li / sg;
+    if (row >= p.ch_per_seg) { return; }
+    let d = p.len;
+    let base = row * d;
+    let x0 = f32(x[base]);
+    var s = 0.0;
+    for (var i = lane; i < d; i += sg) { s += f32(x[base + i]) - x0; }
+    let mean = subgroupAdd(s) / f32(d);
+    var q = 0.0;
+    for (var i = lane; i < d; i += sg) { let t = (f32(x[base + i]) - x0) - mean; q += t * t; }
+    let rstd = inverseSqrt(subgroupAdd(q) / f32(d) + p.eps);
+    for (var i = lane; i < d; i += sg) {
+        y[base + i] = ST(((f32(x[base + i]) - x0) - mean) * rstd * f32(gamma[i]) + f32(beta[i]));
+    }
+}

@@ -20,14 +20,20 @@ use serde_json::Value;
 fn set_weights(set: &Value, comp: &str, expected: &[weights::Spec]) -> Weights {
     let w = &set["weights"][comp];
     if let Some(file) = w["file"].as_str() {
-        Weights::load(&golden::golden_dir().join(file), expected).unwrap_or_else(|e| panic!("{file}: {e:#}; {}", golden::REGENERATE))
+        Weights::load(&golden::golden_dir().join(file), expected)
+            .unwrap_or_else(|e| panic!("{file}: {e:#}; {}", golden::REGENERATE))
     } else {
         let seed = w["seed"].as_u64().expect("seed");
         let ws = Weights::random(expected, seed);
         // Both sides must run the same weights: compare every tensor's fingerprint.
         for (name, fp) in w["fingerprints"].as_object().expect("fingerprints") {
             let t = ws.get(name).unwrap_or_else(|e| panic!("{e:#}"));
-            assert_eq!(Weights::fingerprint(t).to_string(), fp.as_str().unwrap(), "weights differ at {name}; {}", golden::REGENERATE);
+            assert_eq!(
+                Weights::fingerprint(t).to_string(),
+                fp.as_str().unwrap(),
+                "weights differ at {name}; {}",
+                golden::REGENERATE
+            );
         }
         ws
     }
@@ -52,7 +58,11 @@ fn check(what: &str, got: &Tensor, ctx: &Context, want: &HostTensor, tol: f64) -
     let g = got.to_f32(ctx).unwrap();
     let e = golden::nmse(&g, &want.data);
     eprintln!("  {what}: nmse {e:.3e} (tol {tol:e})");
-    assert!(e <= tol, "{what}: nmse {e:e} > {tol:e}; {}", golden::REGENERATE);
+    assert!(
+        e <= tol,
+        "{what}: nmse {e:e} > {tol:e}; {}",
+        golden::REGENERATE
+    );
     e
 }
 
@@ -61,7 +71,9 @@ fn run_case(ctx: &Context, models: &Value, case: &Value, dtype: DType) {
     let set = &models["sets"][set_name];
     let file = case["file"].as_str().unwrap();
     let bytes = std::fs::read(golden::golden_dir().join(file)).unwrap();
-    let io = Io { t: Weights::from_bytes_unchecked(&bytes, file).unwrap().tensors };
+    let io = Io {
+        t: Weights::from_bytes_unchecked(&bytes, file).unwrap().tensors,
+    };
     let tol = if dtype == DType::F32 { 1e-5 } else { 1e-3 };
     eprintln!("case {file} as {dtype:?}");
     let comps = case["components"].as_object().unwrap();
@@ -83,7 +95,11 @@ fn run_case(ctx: &Context, models: &Value, case: &Value, dtype: DType) {
         let cfg = VaeConfig::from_json(c.clone()).unwrap();
         let w = set_weights(set, "vae", &weights::expected_vae(&cfg));
         let dw = DeviceWeights::upload(ctx, &w, "", dtype).unwrap();
-        (VaeEncoder::load(&dw, &cfg).unwrap(), VaeDecoder::load(&dw, &cfg).unwrap(), cfg)
+        (
+            VaeEncoder::load(&dw, &cfg).unwrap(),
+            VaeDecoder::load(&dw, &cfg).unwrap(),
+            cfg,
+        )
     });
 
     let sample = || io.up(ctx, "in.sample", dtype);
@@ -95,7 +111,18 @@ fn run_case(ctx: &Context, models: &Value, case: &Value, dtype: DType) {
         let (u, _) = unet.as_ref().unwrap();
         let (s, c) = (sample(), ehs());
         let mut rec = ctx.recorder().unwrap();
-        let out = u.forward(&mut Fwd { rec: &mut rec, ws: &mut ws }, &s, &t, &c, None).unwrap();
+        let out = u
+            .forward(
+                &mut Fwd {
+                    rec: &mut rec,
+                    ws: &mut ws,
+                },
+                &s,
+                &t,
+                &c,
+                None,
+            )
+            .unwrap();
         rec.finish().unwrap().submit_wait().unwrap();
         check("unet", &out, ctx, &io.t["out.unet.sample"], tol);
     }
@@ -105,49 +132,131 @@ fn run_case(ctx: &Context, models: &Value, case: &Value, dtype: DType) {
         let cond = io.up(ctx, "in.controlnet_cond", dtype);
         let scale = io.t["in.conditioning_scale"].data[0];
         let mut rec = ctx.recorder().unwrap();
-        let o = cn.forward(&mut Fwd { rec: &mut rec, ws: &mut ws }, &s, &t, &c, &cond, scale).unwrap();
+        let o = cn
+            .forward(
+                &mut Fwd {
+                    rec: &mut rec,
+                    ws: &mut ws,
+                },
+                &s,
+                &t,
+                &c,
+                &cond,
+                scale,
+            )
+            .unwrap();
         rec.finish().unwrap().submit_wait().unwrap();
         for (i, d) in o.down.iter().enumerate() {
-            check(&format!("controlnet down_residual_{i}"), d, ctx, &io.t[&format!("out.controlnet.down_residual_{i}")], tol);
+            check(
+                &format!("controlnet down_residual_{i}"),
+                d,
+                ctx,
+                &io.t[&format!("out.controlnet.down_residual_{i}")],
+                tol,
+            );
         }
-        check("controlnet mid_residual", &o.mid, ctx, &io.t["out.controlnet.mid_residual"], tol);
+        check(
+            "controlnet mid_residual",
+            &o.mid,
+            ctx,
+            &io.t["out.controlnet.mid_residual"],
+            tol,
+        );
     }
     if comps.contains_key("unet_with_residuals") {
         let (u, _) = unet.as_ref().unwrap();
         let (s, c) = (sample(), ehs());
-        let n = comps["unet_with_residuals"]["inputs"].as_array().unwrap().len() - 4;
-        let down: Vec<Tensor> = (0..n).map(|i| io.up(ctx, &format!("out.controlnet.down_residual_{i}"), dtype)).collect();
+        let n = comps["unet_with_residuals"]["inputs"]
+            .as_array()
+            .unwrap()
+            .len()
+            - 4;
+        let down: Vec<Tensor> = (0..n)
+            .map(|i| io.up(ctx, &format!("out.controlnet.down_residual_{i}"), dtype))
+            .collect();
         let mid = io.up(ctx, "out.controlnet.mid_residual", dtype);
         let mut rec = ctx.recorder().unwrap();
         let out = u
-            .forward(&mut Fwd { rec: &mut rec, ws: &mut ws }, &s, &t, &c, Some(Residuals { down: &down, mid: &mid }))
+            .forward(
+                &mut Fwd {
+                    rec: &mut rec,
+                    ws: &mut ws,
+                },
+                &s,
+                &t,
+                &c,
+                Some(Residuals {
+                    down: &down,
+                    mid: &mid,
+                }),
+            )
             .unwrap();
         rec.finish().unwrap().submit_wait().unwrap();
-        check("unet with residuals", &out, ctx, &io.t["out.unet_with_residuals.sample"], tol);
+        check(
+            "unet with residuals",
+            &out,
+            ctx,
+            &io.t["out.unet_with_residuals.sample"],
+            tol,
+        );
     }
     if comps.contains_key("vae_encoder") {
         let (enc, _, _) = vae.as_ref().unwrap();
         let input = comps["vae_encoder"]["inputs"][0].as_str().unwrap();
         let img = io.up(ctx, input, dtype);
         let mut rec = ctx.recorder().unwrap();
-        let out = enc.forward(&mut Fwd { rec: &mut rec, ws: &mut ws }, &img).unwrap();
+        let out = enc
+            .forward(
+                &mut Fwd {
+                    rec: &mut rec,
+                    ws: &mut ws,
+                },
+                &img,
+            )
+            .unwrap();
         rec.finish().unwrap().submit_wait().unwrap();
-        check("vae encoder moments", &out, ctx, &io.t["out.vae_encoder.moments"], tol);
+        check(
+            "vae encoder moments",
+            &out,
+            ctx,
+            &io.t["out.vae_encoder.moments"],
+            tol,
+        );
     }
     if comps.contains_key("vae_decoder") {
         let (_, dec, _) = vae.as_ref().unwrap();
         let z = io.up(ctx, "in.z", dtype);
         let mut rec = ctx.recorder().unwrap();
-        let out = dec.forward(&mut Fwd { rec: &mut rec, ws: &mut ws }, &z).unwrap();
+        let out = dec
+            .forward(
+                &mut Fwd {
+                    rec: &mut rec,
+                    ws: &mut ws,
+                },
+                &z,
+            )
+            .unwrap();
         rec.finish().unwrap().submit_wait().unwrap();
-        check("vae decoder", &out, ctx, &io.t["out.vae_decoder.sample"], tol);
+        check(
+            "vae decoder",
+            &out,
+            ctx,
+            &io.t["out.vae_decoder.sample"],
+            tol,
+        );
     }
     common::assert_no_validation_errors();
 }
 
 fn cases(filter: impl Fn(&Value) -> bool) -> (Value, Vec<Value>) {
     let models = golden::load_json("models.json");
-    let cs = models["cases"].as_array().unwrap().iter().filter(|c| filter(c)).cloned().collect();
+    let cs = models["cases"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|c| filter(c))
+        .cloned()
+        .collect();
     (models, cs)
 }
 

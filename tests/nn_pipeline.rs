@@ -24,13 +24,35 @@ struct Tiny {
 }
 
 fn tiny(ctx: &Context, dtype: DType) -> Tiny {
-    let (uc, cc, vc) = (UNetConfig::b2dr_tiny(), ControlNetConfig::b2dr_tiny(), VaeConfig::b2dr_tiny());
+    let (uc, cc, vc) = (
+        UNetConfig::b2dr_tiny(),
+        ControlNetConfig::b2dr_tiny(),
+        VaeConfig::b2dr_tiny(),
+    );
     // Same seeds as the goldens' "tiny" set (models.json): unet 1, controlnet 2, vae 3.
     let m = golden::load_json("models.json");
     let seed = |k: &str| m["sets"]["tiny"]["weights"][k]["seed"].as_u64().unwrap();
-    let uw = DeviceWeights::upload(ctx, &Weights::random(&weights::expected_unet(&uc), seed("unet")), "", dtype).unwrap();
-    let cw = DeviceWeights::upload(ctx, &Weights::random(&weights::expected_controlnet(&cc), seed("controlnet")), "", dtype).unwrap();
-    let vw = DeviceWeights::upload(ctx, &Weights::random(&weights::expected_vae(&vc), seed("vae")), "", DType::F32).unwrap();
+    let uw = DeviceWeights::upload(
+        ctx,
+        &Weights::random(&weights::expected_unet(&uc), seed("unet")),
+        "",
+        dtype,
+    )
+    .unwrap();
+    let cw = DeviceWeights::upload(
+        ctx,
+        &Weights::random(&weights::expected_controlnet(&cc), seed("controlnet")),
+        "",
+        dtype,
+    )
+    .unwrap();
+    let vw = DeviceWeights::upload(
+        ctx,
+        &Weights::random(&weights::expected_vae(&vc), seed("vae")),
+        "",
+        DType::F32,
+    )
+    .unwrap();
     Tiny {
         unet: UNet::load(&uw, &uc).unwrap(),
         control: ControlNet::load(&cw, &cc).unwrap(),
@@ -46,7 +68,9 @@ fn guided_unipc_loop_matches_diffusers() {
     let m = golden::load_json("models.json");
     let lp = &m["loop"];
     let bytes = std::fs::read(golden::golden_dir().join(lp["file"].as_str().unwrap())).unwrap();
-    let io = Weights::from_bytes_unchecked(&bytes, "loop").unwrap().tensors;
+    let io = Weights::from_bytes_unchecked(&bytes, "loop")
+        .unwrap()
+        .tensors;
     let steps = lp["steps"].as_u64().unwrap() as usize;
     let plan = unipc::plan(&NoiseSchedule::sd15(), &Default::default(), steps).unwrap();
     let want_ts: Vec<i64> = golden::i64s(&lp["timesteps"]);
@@ -59,17 +83,46 @@ fn guided_unipc_loop_matches_diffusers() {
         guidance: Some(lp["guidance_scale"].as_f64().unwrap()),
         conditioning_scale: lp["conditioning_scale"].as_f64().unwrap() as f32,
     };
-    let p = Pipeline::new(&ctx, &t.unet, Some(&t.control), Some((&t.vae, t.scaling)), DType::F32, shape, plan).unwrap();
+    let p = Pipeline::new(
+        &ctx,
+        &t.unet,
+        Some(&t.control),
+        Some((&t.vae, t.scaling)),
+        DType::F32,
+        shape,
+        plan,
+    )
+    .unwrap();
     let out = p
-        .run(&io["in.x_T"].data, &io["in.context_uncond"].data, &io["in.context_cond"].data, Some(&io["in.cond_image"].data), true, None)
+        .run(
+            &io["in.x_T"].data,
+            &io["in.context_uncond"].data,
+            &io["in.context_cond"].data,
+            Some(&io["in.cond_image"].data),
+            true,
+            None,
+        )
         .unwrap();
     for (i, l) in out.latents.iter().enumerate() {
-        golden::assert_close(&format!("latent after step {i}"), l, &io[&format!("out.latent_{i}")].data, 1e-5);
+        golden::assert_close(
+            &format!("latent after step {i}"),
+            l,
+            &io[&format!("out.latent_{i}")].data,
+            1e-5,
+        );
     }
     golden::assert_close("decoded image", &out.image, &io["out.image"].data, 1e-5);
     // per-pixel bound on the decoded image
-    let maxd = out.image.iter().zip(&io["out.image"].data).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
-    assert!(maxd < 1e-3, "decoded image: max per-pixel difference {maxd}");
+    let maxd = out
+        .image
+        .iter()
+        .zip(&io["out.image"].data)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(
+        maxd < 1e-3,
+        "decoded image: max per-pixel difference {maxd}"
+    );
     common::assert_no_validation_errors();
 }
 
@@ -77,23 +130,56 @@ fn guided_unipc_loop_matches_diffusers() {
 fn same_seed_same_device_is_bitwise_identical_and_extremes_stay_finite() {
     let Some(ctx) = common::ctx() else { return };
     let t = tiny(&ctx, DType::F16);
-    let shape = |g| PipelineShape { batch: 1, latent: (4, 7), context: (77, 64), guidance: g, conditioning_scale: 1.0 };
+    let shape = |g| PipelineShape {
+        batch: 1,
+        latent: (4, 7),
+        context: (77, 64),
+        guidance: g,
+        conditioning_scale: 1.0,
+    };
     let x = common::uniform(4 * 4 * 7, 1.5, 1);
     let c = common::uniform(77 * 64, 1.0, 2);
     let u = common::uniform(77 * 64, 1.0, 3);
     let img = common::uniform(3 * 32 * 56, 1.0, 4);
     // 100 steps, f16 model, guidance 30: no NaN/Inf.
     let plan = unipc::plan(&NoiseSchedule::sd15(), &Default::default(), 100).unwrap();
-    let p = Pipeline::new(&ctx, &t.unet, Some(&t.control), Some((&t.vae, t.scaling)), DType::F16, shape(Some(30.0)), plan).unwrap();
+    let p = Pipeline::new(
+        &ctx,
+        &t.unet,
+        Some(&t.control),
+        Some((&t.vae, t.scaling)),
+        DType::F16,
+        shape(Some(30.0)),
+        plan,
+    )
+    .unwrap();
     let a = p.run(&x, &u, &c, Some(&img), false, None).unwrap();
-    assert!(a.latents[0].iter().chain(&a.image).all(|v| v.is_finite()), "NaN/Inf after 100 f16 steps at guidance 30");
+    assert!(
+        a.latents[0].iter().chain(&a.image).all(|v| v.is_finite()),
+        "NaN/Inf after 100 f16 steps at guidance 30"
+    );
     // Replaying the same plan gives bit-identical results.
     let b = p.run(&x, &u, &c, Some(&img), false, None).unwrap();
-    assert_eq!(a.latents[0].iter().map(|v| v.to_bits()).collect::<Vec<_>>(), b.latents[0].iter().map(|v| v.to_bits()).collect::<Vec<_>>());
-    assert_eq!(a.image.iter().map(|v| v.to_bits()).collect::<Vec<_>>(), b.image.iter().map(|v| v.to_bits()).collect::<Vec<_>>());
+    assert_eq!(
+        a.latents[0].iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+        b.latents[0].iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+    );
+    assert_eq!(
+        a.image.iter().map(|v| v.to_bits()).collect::<Vec<_>>(),
+        b.image.iter().map(|v| v.to_bits()).collect::<Vec<_>>()
+    );
     // 1-step schedule without guidance.
     let plan1 = unipc::plan(&NoiseSchedule::sd15(), &Default::default(), 1).unwrap();
-    let p1 = Pipeline::new(&ctx, &t.unet, Some(&t.control), None, DType::F16, shape(None), plan1).unwrap();
+    let p1 = Pipeline::new(
+        &ctx,
+        &t.unet,
+        Some(&t.control),
+        None,
+        DType::F16,
+        shape(None),
+        plan1,
+    )
+    .unwrap();
     let o = p1.run(&x, &[], &c, Some(&img), false, None).unwrap();
     assert!(o.latents[0].iter().all(|v| v.is_finite()));
     common::assert_no_validation_errors();

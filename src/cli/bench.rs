@@ -5,13 +5,31 @@ use anyhow::{bail, Result};
 use b2dr::ops::bench;
 use b2dr::vk::{Context, ContextOptions};
 
-pub fn run_ops(device: Option<String>, json: bool, filter: Option<String>, min_time_s: f64) -> Result<()> {
+pub fn run_ops(
+    device: Option<String>,
+    json: bool,
+    filter: Option<String>,
+    min_time_s: f64,
+) -> Result<()> {
     run_cases(device, bench::cases(), json, filter, min_time_s, false)
 }
 
 /// `b2dr bench model`: the model-level cases of `b2dr::nn::bench`.
-pub fn run_model(device: Option<String>, json: bool, filter: Option<String>, min_time_s: f64, profile: bool) -> Result<()> {
-    run_cases(device, b2dr::nn::bench::cases(), json, filter, min_time_s, profile)
+pub fn run_model(
+    device: Option<String>,
+    json: bool,
+    filter: Option<String>,
+    min_time_s: f64,
+    profile: bool,
+) -> Result<()> {
+    run_cases(
+        device,
+        b2dr::nn::bench::cases(),
+        json,
+        filter,
+        min_time_s,
+        profile,
+    )
 }
 
 fn run_cases(
@@ -22,7 +40,11 @@ fn run_cases(
     min_time_s: f64,
     profile: bool,
 ) -> Result<()> {
-    let ctx = Context::new(&ContextOptions { device, validation: None, profile })?;
+    let ctx = Context::new(&ContextOptions {
+        device,
+        validation: None,
+        profile,
+    })?;
     let cases: Vec<_> = all
         .into_iter()
         .filter(|c| filter.as_deref().is_none_or(|f| c.name.contains(f)))
@@ -53,6 +75,9 @@ fn run_cases(
                 "{:<40} {:>10.3} {:>10.2} {:>9.2} {:>6}",
                 r.name, r.ms, r.gflops, r.gbs, r.iters
             );
+            for (label, ms) in r.profile.iter().take(15) {
+                println!("    {label:<36} {ms:>10.3} ms");
+            }
         }
     }
     if json {

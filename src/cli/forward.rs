@@ -31,18 +31,29 @@ pub struct ForwardArgs {
 
 pub fn run(device: Option<String>, a: ForwardArgs) -> Result<()> {
     let cfg: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(&a.config).with_context(|| format!("reading {}", a.config.display()))?,
+        &std::fs::read_to_string(&a.config)
+            .with_context(|| format!("reading {}", a.config.display()))?,
     )
     .with_context(|| format!("{}: invalid JSON", a.config.display()))?;
-    let bytes = std::fs::read(&a.weights).with_context(|| format!("reading {}", a.weights.display()))?;
+    let bytes =
+        std::fs::read(&a.weights).with_context(|| format!("reading {}", a.weights.display()))?;
     let w = Weights::from_bytes_unchecked(&bytes, &a.weights.display().to_string())?;
     let ib = std::fs::read(&a.inputs).with_context(|| format!("reading {}", a.inputs.display()))?;
     let inputs = Weights::from_bytes_unchecked(&ib, &a.inputs.display().to_string())?.tensors;
-    let ctx = Context::new(&ContextOptions { device, validation: None, profile: false })?;
+    let ctx = Context::new(&ContextOptions {
+        device,
+        validation: None,
+        profile: false,
+    })?;
     let t = std::time::Instant::now();
     let out = forward_component(&ctx, a.component, cfg, &w, &inputs, a.dtype)
         .with_context(|| format!("{:?} forward", a.component))?;
-    eprintln!("{:?} on {}: {:.1} ms (with upload)", a.component, ctx.info().name, t.elapsed().as_secs_f64() * 1e3);
+    eprintln!(
+        "{:?} on {}: {:.1} ms (with upload)",
+        a.component,
+        ctx.info().name,
+        t.elapsed().as_secs_f64() * 1e3
+    );
     for (k, v) in &out {
         eprintln!("  {k}: {:?}", v.shape);
     }

@@ -12,7 +12,11 @@ pub fn run(device: Option<String>) -> Result<()> {
             d.index, d.name, d.kind, d.api_version
         );
     }
-    let ctx = Context::new(&ContextOptions { device, validation: None, profile: false })?;
+    let ctx = Context::new(&ContextOptions {
+        device,
+        validation: None,
+        profile: false,
+    })?;
     let i = ctx.info();
     let yes = |b: bool| if b { "yes" } else { "no" };
     println!("chosen: [{}] {} ({})", i.index, i.name, i.kind);

@@ -80,9 +80,12 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             filter,
             min_time,
         }) => bench::run_ops(cli.device, json, filter, min_time),
-        Command::Bench(BenchCmd::Model { json, filter, min_time, profile }) => {
-            bench::run_model(cli.device, json, filter, min_time, profile)
-        }
+        Command::Bench(BenchCmd::Model {
+            json,
+            filter,
+            min_time,
+            profile,
+        }) => bench::run_model(cli.device, json, filter, min_time, profile),
         Command::Project(a) => project::run(a),
         Command::Forward(a) => forward::run(cli.device, a),
         Command::Sample(a) => sample::run(cli.device, a),

@@ -48,13 +48,24 @@ pub struct SampleArgs {
 }
 
 fn parse_size(s: &str) -> Result<(usize, usize)> {
-    let (h, w) = s.split_once('x').with_context(|| format!("--size {s:?}: expected HxW, e.g. 224x400"))?;
-    let (h, w): (usize, usize) = (h.parse().context("--size height")?, w.parse().context("--size width")?);
-    ensure!(h >= 8 && w >= 8 && h % 8 == 0 && w % 8 == 0, "--size {s}: height and width must be multiples of 8");
+    let (h, w) = s
+        .split_once('x')
+        .with_context(|| format!("--size {s:?}: expected HxW, e.g. 224x400"))?;
+    let (h, w): (usize, usize) = (
+        h.parse().context("--size height")?,
+        w.parse().context("--size width")?,
+    );
+    ensure!(
+        h >= 8 && w >= 8 && h % 8 == 0 && w % 8 == 0,
+        "--size {s}: height and width must be multiples of 8"
+    );
     Ok((h, w))
 }
 
-fn load(dir: &Path, expected: impl Fn(&serde_json::Value) -> Result<Vec<weights::Spec>>) -> Result<(serde_json::Value, Weights)> {
+fn load(
+    dir: &Path,
+    expected: impl Fn(&serde_json::Value) -> Result<Vec<weights::Spec>>,
+) -> Result<(serde_json::Value, Weights)> {
     let (cfg, wpath) = read_component(dir)?;
     let w = Weights::load(&wpath, &expected(&cfg)?)?;
     Ok((cfg, w))
@@ -64,43 +75,85 @@ pub fn run(device: Option<String>, a: SampleArgs) -> Result<()> {
     let (ih, iw) = parse_size(&a.size)?;
     let (h, w) = (ih / 8, iw / 8);
     ensure!(a.steps >= 1, "--steps must be >= 1");
-    let ctx = Context::new(&ContextOptions { device, validation: None, profile: false })?;
+    let ctx = Context::new(&ContextOptions {
+        device,
+        validation: None,
+        profile: false,
+    })?;
     let dt = a.dtype;
     // Components: a diffusers folder or b2dr-tiny with seeded weights (seeds 1, 2, 3 as in the goldens).
     let (uc, uw, cc, cw, vc, vw, context) = match &a.model {
         Some(dir) => {
-            let (ucj, uw) = load(&dir.join("unet"), |c| Ok(weights::expected_unet(&UNetConfig::from_json(c.clone())?)))?;
+            let (ucj, uw) = load(&dir.join("unet"), |c| {
+                Ok(weights::expected_unet(&UNetConfig::from_json(c.clone())?))
+            })?;
             let control = if dir.join("controlnet").exists() {
-                let (cj, w) = load(&dir.join("controlnet"), |c| Ok(weights::expected_controlnet(&ControlNetConfig::from_json(c.clone())?)))?;
+                let (cj, w) = load(&dir.join("controlnet"), |c| {
+                    Ok(weights::expected_controlnet(&ControlNetConfig::from_json(
+                        c.clone(),
+                    )?))
+                })?;
                 Some((ControlNetConfig::from_json(cj)?, w))
             } else {
                 None
             };
-            let (vcj, vw) = load(&dir.join("vae"), |c| Ok(weights::expected_vae(&VaeConfig::from_json(c.clone())?)))?;
+            let (vcj, vw) = load(&dir.join("vae"), |c| {
+                Ok(weights::expected_vae(&VaeConfig::from_json(c.clone())?))
+            })?;
             let cpath = dir.join("context.safetensors");
             let ctxw = Weights::from_bytes_unchecked(
-                &std::fs::read(&cpath).with_context(|| format!("reading {} (the fixed text embedding)", cpath.display()))?,
+                &std::fs::read(&cpath).with_context(|| {
+                    format!("reading {} (the fixed text embedding)", cpath.display())
+                })?,
                 &cpath.display().to_string(),
             )?;
             let cond = ctxw.get("cond")?.data.clone();
-            let uncond = ctxw.get("uncond").map(|t| t.data.clone()).unwrap_or_else(|_| vec![0.0; cond.len()]);
-            let (ccfg, cw) = control.map(|(c, w)| (Some(c), Some(w))).unwrap_or((None, None));
-            (UNetConfig::from_json(ucj)?, uw, ccfg, cw, VaeConfig::from_json(vcj)?, vw, (uncond, cond))
+            let uncond = ctxw
+                .get("uncond")
+                .map(|t| t.data.clone())
+                .unwrap_or_else(|_| vec![0.0; cond.len()]);
+            let (ccfg, cw) = control
+                .map(|(c, w)| (Some(c), Some(w)))
+                .unwrap_or((None, None));
+            (
+                UNetConfig::from_json(ucj)?,
+                uw,
+                ccfg,
+                cw,
+                VaeConfig::from_json(vcj)?,
+                vw,
+                (uncond, cond),
+            )
         }
         None => {
-            let (uc, cc, vc) = (UNetConfig::b2dr_tiny(), ControlNetConfig::b2dr_tiny(), VaeConfig::b2dr_tiny());
+            let (uc, cc, vc) = (
+                UNetConfig::b2dr_tiny(),
+                ControlNetConfig::b2dr_tiny(),
+                VaeConfig::b2dr_tiny(),
+            );
             let uw = Weights::random(&weights::expected_unet(&uc), 1);
             let cw = Weights::random(&weights::expected_controlnet(&cc), 2);
             let vw = Weights::random(&weights::expected_vae(&vc), 3);
             let d = uc.enc.cross_attention_dim;
             let mut r = rand_chacha::ChaCha8Rng::seed_from_u64(77);
             let cond: Vec<f32> = (0..77 * d).map(|_| StandardNormal.sample(&mut r)).collect();
-            (uc, uw, Some(cc), Some(cw), vc, vw, (vec![0.0; 77 * d], cond))
+            (
+                uc,
+                uw,
+                Some(cc),
+                Some(cw),
+                vc,
+                vw,
+                (vec![0.0; 77 * d], cond),
+            )
         }
     };
     let udw = DeviceWeights::upload(&ctx, &uw, "", dt)?;
     let unet = UNet::load(&udw, &uc)?;
-    let cdw = cw.as_ref().map(|w| DeviceWeights::upload(&ctx, w, "", dt)).transpose()?;
+    let cdw = cw
+        .as_ref()
+        .map(|w| DeviceWeights::upload(&ctx, w, "", dt))
+        .transpose()?;
     let control = match (&cc, &cdw) {
         (Some(c), Some(d)) => Some(ControlNet::load(d, c)?),
         _ => None,
@@ -121,7 +174,15 @@ pub fn run(device: Option<String>, a: SampleArgs) -> Result<()> {
         conditioning_scale: a.conditioning_scale,
     };
     let t0 = std::time::Instant::now();
-    let p = Pipeline::new(&ctx, &unet, control.as_ref(), Some((&vae, vc.scaling_factor)), dt, shape, plan)?;
+    let p = Pipeline::new(
+        &ctx,
+        &unet,
+        control.as_ref(),
+        Some((&vae, vc.scaling_factor)),
+        dt,
+        shape,
+        plan,
+    )?;
     let plan_ms = t0.elapsed().as_secs_f64() * 1e3;
     let cond_img = match (&control, &a.cond) {
         (Some(c), Some(path)) => Some(read_image(path, ih, iw, c.cfg.conditioning_channels)?),
@@ -130,11 +191,20 @@ pub fn run(device: Option<String>, a: SampleArgs) -> Result<()> {
         (None, None) => None,
     };
     let mut r = rand_chacha::ChaCha8Rng::seed_from_u64(a.seed);
-    let x_t: Vec<f32> = (0..4 * h * w).map(|_| StandardNormal.sample(&mut r)).collect();
+    let x_t: Vec<f32> = (0..4 * h * w)
+        .map(|_| StandardNormal.sample(&mut r))
+        .collect();
     let bar = indicatif::ProgressBar::new(a.steps as u64);
     let t1 = std::time::Instant::now();
     let mut prog = |d: usize, _n: usize| bar.set_position(d as u64);
-    let out = p.run(&x_t, &context.0, &context.1, cond_img.as_deref(), false, Some(&mut prog))?;
+    let out = p.run(
+        &x_t,
+        &context.0,
+        &context.1,
+        cond_img.as_deref(),
+        false,
+        Some(&mut prog),
+    )?;
     bar.finish_and_clear();
     let run_s = t1.elapsed().as_secs_f64();
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
@@ -147,7 +217,10 @@ pub fn run(device: Option<String>, a: SampleArgs) -> Result<()> {
         "device_bytes_planned": p.planned_bytes, "device_bytes_total": ctx.allocated_bytes(),
         "model": a.model.as_ref().map(|m| m.display().to_string()).unwrap_or_else(|| "builtin:b2dr-tiny (seeded random weights)".into()),
     });
-    std::fs::write(a.out.join("sample.json"), serde_json::to_string_pretty(&report)?)?;
+    std::fs::write(
+        a.out.join("sample.json"),
+        serde_json::to_string_pretty(&report)?,
+    )?;
     eprintln!(
         "wrote {}/sample.png and sample.exr: {} steps in {:.2} s ({:.0} ms/step), device memory {:.1} MiB",
         a.out.display(),
@@ -161,9 +234,19 @@ pub fn run(device: Option<String>, a: SampleArgs) -> Result<()> {
 
 /// image (1, 3, H, W) in [0, 1] (CHW) -> values
 fn read_image(path: &Path, h: usize, w: usize, channels: usize) -> Result<Vec<f32>> {
-    ensure!(channels == 3, "conditioning images with {channels} channels are not supported (3 expected)");
-    let img = image::open(path).with_context(|| format!("reading {}", path.display()))?.to_rgb8();
-    let img = image::imageops::resize(&img, w as u32, h as u32, image::imageops::FilterType::CatmullRom);
+    ensure!(
+        channels == 3,
+        "conditioning images with {channels} channels are not supported (3 expected)"
+    );
+    let img = image::open(path)
+        .with_context(|| format!("reading {}", path.display()))?
+        .to_rgb8();
+    let img = image::imageops::resize(
+        &img,
+        w as u32,
+        h as u32,
+        image::imageops::FilterType::CatmullRom,
+    );
     let mut v = vec![0.0; 3 * h * w];
     for (x, y, p) in img.enumerate_pixels() {
         for c in 0..3 {
@@ -175,13 +258,24 @@ fn read_image(path: &Path, h: usize, w: usize, channels: usize) -> Result<Vec<f3
 
 fn write_png(path: &Path, chw: &[f32], h: usize, w: usize) -> Result<()> {
     let img = image::RgbImage::from_fn(w as u32, h as u32, |x, y| {
-        let g = |c: usize| (chw[(c * h + y as usize) * w + x as usize] * 255.0).round().clamp(0.0, 255.0) as u8;
+        let g = |c: usize| {
+            (chw[(c * h + y as usize) * w + x as usize] * 255.0)
+                .round()
+                .clamp(0.0, 255.0) as u8
+        };
         image::Rgb([g(0), g(1), g(2)])
     });
-    img.save(path).with_context(|| format!("writing {}", path.display()))
+    img.save(path)
+        .with_context(|| format!("writing {}", path.display()))
 }
 
 fn write_exr(path: &Path, chw: &[f32], h: usize, w: usize) -> Result<()> {
-    exr::prelude::write_rgb_file(path, w, h, |x, y| (chw[y * w + x], chw[(h + y) * w + x], chw[(2 * h + y) * w + x]))
-        .with_context(|| format!("writing {}", path.display()))
+    exr::prelude::write_rgb_file(path, w, h, |x, y| {
+        (
+            chw[y * w + x],
+            chw[(h + y) * w + x],
+            chw[(2 * h + y) * w + x],
+        )
+    })
+    .with_context(|| format!("writing {}", path.display()))
 }

@@ -27,15 +27,31 @@ fn rnd(ctx: &Context, shape: &[usize], dtype: DType, seed: u64) -> Result<Tensor
 }
 
 /// UNet + ControlNet forward at batch 2 (one guided step), latent (h, w), context 77 x cross_attention_dim.
-pub fn guided_step_case(name: &str, uc: UNetConfig, cc: ControlNetConfig, dtype: DType, hw: (usize, usize)) -> BenchCase {
+pub fn guided_step_case(
+    name: &str,
+    uc: UNetConfig,
+    cc: ControlNetConfig,
+    dtype: DType,
+    hw: (usize, usize),
+) -> BenchCase {
     let (h, w) = hw;
     BenchCase {
         name: name.to_string(),
         flops: 0.0,
         bytes: 0.0,
         build: Box::new(move |ctx| {
-            let uw = DeviceWeights::upload(ctx, &Weights::random(&weights::expected_unet(&uc), 1), "", dtype)?;
-            let cw = DeviceWeights::upload(ctx, &Weights::random(&weights::expected_controlnet(&cc), 2), "", dtype)?;
+            let uw = DeviceWeights::upload(
+                ctx,
+                &Weights::random(&weights::expected_unet(&uc), 1),
+                "",
+                dtype,
+            )?;
+            let cw = DeviceWeights::upload(
+                ctx,
+                &Weights::random(&weights::expected_controlnet(&cc), 2),
+                "",
+                dtype,
+            )?;
             let unet = UNet::load(&uw, &uc)?;
             let cn = ControlNet::load(&cw, &cc)?;
             let x = rnd(ctx, &[2, 4, h, w], dtype, 1)?;
@@ -45,9 +61,21 @@ pub fn guided_step_case(name: &str, uc: UNetConfig, cc: ControlNetConfig, dtype:
             let mut ws = Workspace::new(ctx, dtype);
             let mut rec = ctx.recorder()?;
             {
-                let mut f = Fwd { rec: &mut rec, ws: &mut ws };
+                let mut f = Fwd {
+                    rec: &mut rec,
+                    ws: &mut ws,
+                };
                 let o = cn.forward(&mut f, &x, &t, &c, &cond, 1.0)?;
-                unet.forward(&mut f, &x, &t, &c, Some(Residuals { down: &o.down, mid: &o.mid }))?;
+                unet.forward(
+                    &mut f,
+                    &x,
+                    &t,
+                    &c,
+                    Some(Residuals {
+                        down: &o.down,
+                        mid: &o.mid,
+                    }),
+                )?;
             }
             // Weights and activations stay alive in the recording (it keeps every buffer it uses).
             rec.finish()
@@ -63,12 +91,23 @@ pub fn vae_decode_case(name: &str, vc: VaeConfig, dtype: DType, hw: (usize, usiz
         flops: 0.0,
         bytes: 0.0,
         build: Box::new(move |ctx| {
-            let vw = DeviceWeights::upload(ctx, &Weights::random(&weights::expected_vae(&vc), 3), "", dtype)?;
+            let vw = DeviceWeights::upload(
+                ctx,
+                &Weights::random(&weights::expected_vae(&vc), 3),
+                "",
+                dtype,
+            )?;
             let dec = VaeDecoder::load(&vw, &vc)?;
             let z = rnd(ctx, &[1, vc.latent_channels, h, w], dtype, 4)?;
             let mut ws = Workspace::new(ctx, dtype);
             let mut rec = ctx.recorder()?;
-            dec.forward(&mut Fwd { rec: &mut rec, ws: &mut ws }, &z)?;
+            dec.forward(
+                &mut Fwd {
+                    rec: &mut rec,
+                    ws: &mut ws,
+                },
+                &z,
+            )?;
             rec.finish()
         }),
     }
@@ -85,7 +124,12 @@ pub fn cases() -> Vec<BenchCase> {
             dt,
             (28, 50),
         ));
-        v.push(vae_decode_case(&format!("vae_decode_tiny_{}_224x400", dt.name()), VaeConfig::b2dr_tiny(), dt, (28, 50)));
+        v.push(vae_decode_case(
+            &format!("vae_decode_tiny_{}_224x400", dt.name()),
+            VaeConfig::b2dr_tiny(),
+            dt,
+            (28, 50),
+        ));
     }
     v
 }

@@ -5,7 +5,7 @@ use anyhow::{ensure, Result};
 use super::config::ControlNetConfig;
 use super::device::{DeviceWeights, Fwd};
 use super::layers::Conv;
-use super::unet::{EncoderHalf, Encoded};
+use super::unet::{Encoded, EncoderHalf};
 use crate::ops::elementwise as ew;
 use crate::tensor::Tensor;
 
@@ -32,9 +32,15 @@ impl ControlNet {
         let mut cond_blocks = vec![];
         for k in 0..2 * (n - 1) {
             // blocks alternate conv c -> c (stride 1) and conv c -> c' (stride 2)
-            cond_blocks.push(Conv::same3(dw, &format!("controlnet_cond_embedding.blocks.{k}"), 1 + k % 2)?);
+            cond_blocks.push(Conv::same3(
+                dw,
+                &format!("controlnet_cond_embedding.blocks.{k}"),
+                1 + k % 2,
+            )?);
         }
-        let nskips = 1 + cfg.enc.down_blocks.len() * cfg.enc.layers_per_block + cfg.enc.down_blocks.len() - 1;
+        let nskips =
+            1 + cfg.enc.down_blocks.len() * cfg.enc.layers_per_block + cfg.enc.down_blocks.len()
+                - 1;
         let down_zero = (0..nskips)
             .map(|k| Conv::one(dw, &format!("controlnet_down_blocks.{k}")))
             .collect::<Result<Vec<_>>>()?;
@@ -57,7 +63,15 @@ impl ControlNet {
     }
 
     /// sample: (N, Cin, H, W), t: (N) f32, context: (N, L, Dc), cond: (N, Cc, 8H, 8W) -> residuals
-    pub fn forward(&self, f: &mut Fwd, sample: &Tensor, t: &Tensor, context: &Tensor, cond: &Tensor, scale: f32) -> Result<ControlOut> {
+    pub fn forward(
+        &self,
+        f: &mut Fwd,
+        sample: &Tensor,
+        t: &Tensor,
+        context: &Tensor,
+        cond: &Tensor,
+        scale: f32,
+    ) -> Result<ControlOut> {
         let (s, c) = (sample.shape(), cond.shape());
         ensure!(
             c.len() == 4 && c[0] == s[0] && c[1] == self.cfg.conditioning_channels,
@@ -79,7 +93,11 @@ impl ControlNet {
             "controlnet: conditioning image {c:?} embeds to {:?}, which does not match the latent {s:?} (it must be 8x the latent size)",
             emb.shape()
         );
-        let Encoded { x, skips, silu_temb } = self.enc.forward(f, sample, t, context, Some(&emb))?;
+        let Encoded {
+            x,
+            skips,
+            silu_temb,
+        } = self.enc.forward(f, sample, t, context, Some(&emb))?;
         f.ws.release(emb);
         f.ws.release(silu_temb);
         let mut down = vec![];

@@ -12,6 +12,7 @@ use crate::vk::{Buffer, Context};
 
 /// Weights of one component on the device, in one dtype.
 pub struct DeviceWeights {
+    pub(crate) ctx: Context,
     map: HashMap<String, Tensor>,
     pub dtype: DType,
     bytes: u64,
@@ -29,11 +30,18 @@ impl DeviceWeights {
                 map.insert(short.to_string(), dt);
             }
         }
-        Ok(Self { map, dtype, bytes })
+        Ok(Self {
+            ctx: ctx.clone(),
+            map,
+            dtype,
+            bytes,
+        })
     }
 
     pub fn get(&self, name: &str) -> Result<&Tensor> {
-        self.map.get(name).ok_or_else(|| anyhow!("weight {name:?} is missing"))
+        self.map
+            .get(name)
+            .ok_or_else(|| anyhow!("weight {name:?} is missing"))
     }
 
     pub fn has(&self, name: &str) -> bool {
@@ -59,7 +67,14 @@ pub struct Workspace {
 
 impl Workspace {
     pub fn new(ctx: &Context, dtype: DType) -> Self {
-        Self { ctx: ctx.clone(), dtype, free: vec![], live: 0, peak: 0, total: 0 }
+        Self {
+            ctx: ctx.clone(),
+            dtype,
+            free: vec![],
+            live: 0,
+            peak: 0,
+            total: 0,
+        }
     }
 
     /// A tensor of the workspace dtype.

@@ -8,6 +8,8 @@ use crate::tensor::Tensor;
 /// torch.nn.Conv2d with symmetric or explicit padding.
 pub struct Conv {
     pub w: Tensor,
+    /// The weight repacked once at load to (KH, KW, C, O) for the implicit-GEMM kernel (when it applies).
+    packed: Option<Tensor>,
     pub b: Option<Tensor>,
     pub stride: usize,
     pub pad: [usize; 4],
@@ -19,7 +21,33 @@ impl Conv {
     pub fn load(dw: &DeviceWeights, name: &str, stride: usize, pad: [usize; 4]) -> Result<Self> {
         let w = dw.get(&format!("{name}.weight"))?.clone();
         let b = dw.get(&format!("{name}.bias")).ok().cloned();
-        Ok(Self { w, b, stride, pad, name: name.to_string() })
+        let s = w.shape().to_vec();
+        anyhow::ensure!(
+            s.len() == 4,
+            "conv {name}: weight {s:?} must be (O, C, KH, KW)"
+        );
+        let mut packed = None;
+        if s[2] * s[3] > 1 && s[0] % 4 == 0 {
+            let p = Tensor::empty(
+                &dw.ctx,
+                &[s[2], s[3], s[1], s[0]],
+                w.dtype(),
+                &format!("{name}.weight.packed"),
+            )?;
+            let mut rec = dw.ctx.recorder()?;
+            if conv2d::pack_weight(&mut rec, &w, &p).is_ok() {
+                rec.finish()?.submit_wait()?;
+                packed = Some(p);
+            }
+        }
+        Ok(Self {
+            w,
+            packed,
+            b,
+            stride,
+            pad,
+            name: name.to_string(),
+        })
     }
 
     /// 3x3, padding 1.
@@ -38,8 +66,17 @@ impl Conv {
         let oh = (s[2] + self.pad[0] + self.pad[1] - ws[2]) / self.stride + 1;
         let ow = (s[3] + self.pad[2] + self.pad[3] - ws[3]) / self.stride + 1;
         let out = f.ws.alloc(&[s[0], ws[0], oh, ow])?;
-        conv2d::conv2d(f.rec, x, &self.w, self.b.as_ref(), self.stride, self.pad, &out)
-            .with_context(|| format!("conv {}", self.name))?;
+        let args = conv2d::Conv2dArgs {
+            x,
+            w: &self.w,
+            bias: self.b.as_ref(),
+            out: &out,
+            stride: self.stride,
+            pad: self.pad,
+            path: conv2d::ConvPath::Auto,
+            packed_w: self.packed.as_ref(),
+        };
+        conv2d::conv2d_ex(f.rec, &args).with_context(|| format!("conv {}", self.name))?;
         Ok(out)
     }
 }
@@ -55,7 +92,11 @@ impl Linear {
     pub fn load(dw: &DeviceWeights, name: &str) -> Result<Self> {
         let w = dw.get(&format!("{name}.weight"))?.clone();
         let b = dw.get(&format!("{name}.bias")).ok().cloned();
-        Ok(Self { w, b, name: name.to_string() })
+        Ok(Self {
+            w,
+            b,
+            name: name.to_string(),
+        })
     }
 
     /// x: (.., in) -> (.., out)
@@ -63,7 +104,8 @@ impl Linear {
         let mut s = x.shape().to_vec();
         *s.last_mut().expect("non-empty") = self.w.shape()[0];
         let out = f.ws.alloc(&s)?;
-        matmul::linear(f.rec, x, &self.w, self.b.as_ref(), &out).with_context(|| format!("linear {}", self.name))?;
+        matmul::linear(f.rec, x, &self.w, self.b.as_ref(), &out)
+            .with_context(|| format!("linear {}", self.name))?;
         Ok(out)
     }
 }
@@ -89,7 +131,16 @@ impl GroupNorm {
     /// x: (N, C, H, W) -> (N, C, H, W)
     pub fn forward(&self, f: &mut Fwd, x: &Tensor, silu: bool) -> Result<Tensor> {
         let out = f.ws.alloc(x.shape())?;
-        norm::group_norm(f.rec, x, self.groups, &self.gamma, &self.beta, self.eps, silu, &out)?;
+        norm::group_norm(
+            f.rec,
+            x,
+            self.groups,
+            &self.gamma,
+            &self.beta,
+            self.eps,
+            silu,
+            &out,
+        )?;
         Ok(out)
     }
 }

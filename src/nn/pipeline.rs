@@ -13,8 +13,8 @@ use super::controlnet::ControlNet;
 use super::device::{Fwd, Workspace};
 use super::unet::{Residuals, UNet};
 use super::vae::VaeDecoder;
-use crate::ops::elementwise::{lincomb, LinTerm};
 use crate::ops::cast;
+use crate::ops::elementwise::{lincomb, LinTerm};
 use crate::sampling::{Buf, Op, SamplerPlan};
 use crate::tensor::{DType, Tensor};
 use crate::vk::{Context, Recording};
@@ -93,11 +93,24 @@ impl Pipeline {
                 }
             }
         }
-        let sample = bufs.get(&Buf::Sample).context("plan without a Sample buffer")?.clone();
+        let sample = bufs
+            .get(&Buf::Sample)
+            .context("plan without a Sample buffer")?
+            .clone();
         let t = Tensor::zeros(ctx, &[mb], DType::F32, "timestep")?;
-        let context = Tensor::zeros(ctx, &[mb, shape.context.0, shape.context.1], model_dtype, "context")?;
+        let context = Tensor::zeros(
+            ctx,
+            &[mb, shape.context.0, shape.context.1],
+            model_dtype,
+            "context",
+        )?;
         let cond = match control {
-            Some(c) => Some(Tensor::zeros(ctx, &[mb, c.cfg.conditioning_channels, 8 * h, 8 * w], model_dtype, "cond")?),
+            Some(c) => Some(Tensor::zeros(
+                ctx,
+                &[mb, c.cfg.conditioning_channels, 8 * h, 8 * w],
+                model_dtype,
+                "cond",
+            )?),
             None => None,
         };
 
@@ -105,17 +118,35 @@ impl Pipeline {
         let mut rec = ctx.recorder()?;
         let x32 = Tensor::empty(ctx, &[mb, 4, h, w], DType::F32, "x32")?;
         for k in 0..mb / n {
-            lincomb(&mut rec, &[LinTerm { x: &sample, offset: 0, coeff: 1.0 }], &x32, k * per, per)?;
+            lincomb(
+                &mut rec,
+                &[LinTerm {
+                    x: &sample,
+                    offset: 0,
+                    coeff: 1.0,
+                }],
+                &x32,
+                k * per,
+                per,
+            )?;
         }
         let x = ws.alloc(&[mb, 4, h, w])?;
         cast::cast(&mut rec, &x32, &x)?;
         let eps = {
-            let mut f = Fwd { rec: &mut rec, ws: &mut ws };
+            let mut f = Fwd {
+                rec: &mut rec,
+                ws: &mut ws,
+            };
             let res = match (control, &cond) {
-                (Some(c), Some(cimg)) => Some(c.forward(&mut f, &x, &t, &context, cimg, shape.conditioning_scale)?),
+                (Some(c), Some(cimg)) => {
+                    Some(c.forward(&mut f, &x, &t, &context, cimg, shape.conditioning_scale)?)
+                }
                 _ => None,
             };
-            let r = res.as_ref().map(|o| Residuals { down: &o.down, mid: &o.mid });
+            let r = res.as_ref().map(|o| Residuals {
+                down: &o.down,
+                mid: &o.mid,
+            });
             unet.forward(&mut f, &x, &t, &context, r)?
         };
         cast::cast(&mut rec, &eps, &eps32)?;
@@ -137,15 +168,24 @@ impl Pipeline {
                 match op {
                     Op::LinComb { out, terms } => {
                         let (o, oo) = view(*out)?;
-                        let views = terms.iter().map(|t| view(t.buf)).collect::<Result<Vec<_>>>()?;
+                        let views = terms
+                            .iter()
+                            .map(|t| view(t.buf))
+                            .collect::<Result<Vec<_>>>()?;
                         let lt: Vec<LinTerm> = views
                             .iter()
                             .zip(terms)
-                            .map(|((x, off), t)| LinTerm { x, offset: *off, coeff: t.coeff as f32 })
+                            .map(|((x, off), t)| LinTerm {
+                                x,
+                                offset: *off,
+                                coeff: t.coeff as f32,
+                            })
                             .collect();
                         lincomb(&mut rec, &lt, &o, oo, per)?;
                     }
-                    Op::Clamp { .. } => bail!("pipeline: clip_sample (DDIM clamp) is not supported on the device"),
+                    Op::Clamp { .. } => {
+                        bail!("pipeline: clip_sample (DDIM clamp) is not supported on the device")
+                    }
                 }
             }
             steps.push(rec.finish()?);
@@ -157,15 +197,44 @@ impl Pipeline {
                 let mut vws = Workspace::new(ctx, DType::F32);
                 let mut rec = ctx.recorder()?;
                 let z = vws.alloc(&lat)?;
-                lincomb(&mut rec, &[LinTerm { x: &sample, offset: 0, coeff: (1.0 / scaling) as f32 }], &z, 0, per)?;
-                let img = dec.forward(&mut Fwd { rec: &mut rec, ws: &mut vws }, &z)?;
+                lincomb(
+                    &mut rec,
+                    &[LinTerm {
+                        x: &sample,
+                        offset: 0,
+                        coeff: (1.0 / scaling) as f32,
+                    }],
+                    &z,
+                    0,
+                    per,
+                )?;
+                let img = dec.forward(
+                    &mut Fwd {
+                        rec: &mut rec,
+                        ws: &mut vws,
+                    },
+                    &z,
+                )?;
                 let r = rec.finish()?;
                 Some((r, img))
             }
             None => None,
         };
         let planned_bytes = ctx.allocated_bytes().saturating_sub(before);
-        Ok(Self { ctx: ctx.clone(), shape, plan, bufs, t, context, cond, model, steps, decode, _ws: ws, planned_bytes })
+        Ok(Self {
+            ctx: ctx.clone(),
+            shape,
+            plan,
+            bufs,
+            t,
+            context,
+            cond,
+            model,
+            steps,
+            decode,
+            _ws: ws,
+            planned_bytes,
+        })
     }
 
     /// Runs the planned loop from the initial latent `x_t` (N, 4, h, w). `context_uncond`/`context_cond`:
@@ -181,13 +250,26 @@ impl Pipeline {
         mut progress: Option<&mut dyn FnMut(usize, usize)>,
     ) -> Result<SampleOutput> {
         let sample = &self.bufs[&Buf::Sample];
-        ensure!(x_t.len() == sample.numel(), "pipeline: x_T has {} values, expected {}", x_t.len(), sample.numel());
+        ensure!(
+            x_t.len() == sample.numel(),
+            "pipeline: x_T has {} values, expected {}",
+            x_t.len(),
+            sample.numel()
+        );
         let guided = self.shape.guidance.is_some();
         let ctx_n = self.context.numel() / if guided { 2 } else { 1 };
-        ensure!(context_cond.len() == ctx_n, "pipeline: context has {} values, expected {ctx_n}", context_cond.len());
+        ensure!(
+            context_cond.len() == ctx_n,
+            "pipeline: context has {} values, expected {ctx_n}",
+            context_cond.len()
+        );
         let mut c = vec![];
         if guided {
-            ensure!(context_uncond.len() == ctx_n, "pipeline: uncond context has {} values, expected {ctx_n}", context_uncond.len());
+            ensure!(
+                context_uncond.len() == ctx_n,
+                "pipeline: uncond context has {} values, expected {ctx_n}",
+                context_uncond.len()
+            );
             c.extend_from_slice(context_uncond);
         }
         c.extend_from_slice(context_cond);
@@ -195,7 +277,12 @@ impl Pipeline {
         match (&self.cond, cond_image) {
             (Some(t), Some(img)) => {
                 let reps = if guided { 2 } else { 1 };
-                ensure!(img.len() * reps == t.numel(), "pipeline: conditioning image has {} values, expected {}", img.len(), t.numel() / reps);
+                ensure!(
+                    img.len() * reps == t.numel(),
+                    "pipeline: conditioning image has {} values, expected {}",
+                    img.len(),
+                    t.numel() / reps
+                );
                 t.write_f32(&self.ctx, &img.repeat(reps))?;
             }
             (Some(_), None) => bail!("pipeline: the ControlNet needs a conditioning image"),
@@ -211,8 +298,11 @@ impl Pipeline {
         }
         let mut latents = vec![];
         for (s, rec) in self.plan.steps.iter().zip(&self.steps) {
-            self.t.write_f32(&self.ctx, &vec![s.timestep as f32; self.t.numel()])?;
-            self.model.submit_wait().with_context(|| format!("model pass at step {}", s.index))?;
+            self.t
+                .write_f32(&self.ctx, &vec![s.timestep as f32; self.t.numel()])?;
+            self.model
+                .submit_wait()
+                .with_context(|| format!("model pass at step {}", s.index))?;
             rec.submit_wait()?;
             if let Some(p) = progress.as_mut() {
                 p(s.index + 1, self.plan.steps.len());
@@ -224,7 +314,10 @@ impl Pipeline {
         let image = match &self.decode {
             Some((r, img)) => {
                 r.submit_wait()?;
-                img.to_f32(&self.ctx)?.iter().map(|v| (v / 2.0 + 0.5).clamp(0.0, 1.0)).collect()
+                img.to_f32(&self.ctx)?
+                    .iter()
+                    .map(|v| (v / 2.0 + 0.5).clamp(0.0, 1.0))
+                    .collect()
             }
             None => vec![],
         };

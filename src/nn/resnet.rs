@@ -18,7 +18,13 @@ pub struct Resnet {
 
 impl Resnet {
     /// `name` like `down_blocks.0.resnets.1`; `temb` whether the block has a time-embedding projection.
-    pub fn load(dw: &DeviceWeights, name: &str, groups: usize, eps: f64, temb: bool) -> Result<Self> {
+    pub fn load(
+        dw: &DeviceWeights,
+        name: &str,
+        groups: usize,
+        eps: f64,
+        temb: bool,
+    ) -> Result<Self> {
         let shortcut = if dw.has(&format!("{name}.conv_shortcut.weight")) {
             Some(Conv::one(dw, &format!("{name}.conv_shortcut"))?)
         } else {
@@ -27,7 +33,11 @@ impl Resnet {
         Ok(Self {
             norm1: GroupNorm::load(dw, &format!("{name}.norm1"), groups, eps)?,
             conv1: Conv::same3(dw, &format!("{name}.conv1"), 1)?,
-            time_emb_proj: if temb { Some(Linear::load(dw, &format!("{name}.time_emb_proj"))?) } else { None },
+            time_emb_proj: if temb {
+                Some(Linear::load(dw, &format!("{name}.time_emb_proj"))?)
+            } else {
+                None
+            },
             norm2: GroupNorm::load(dw, &format!("{name}.norm2"), groups, eps)?,
             conv2: Conv::same3(dw, &format!("{name}.conv2"), 1)?,
             shortcut,

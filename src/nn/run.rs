@@ -36,18 +36,31 @@ impl std::str::FromStr for Component {
     }
 }
 
-fn up(ctx: &Context, inputs: &BTreeMap<String, HostTensor>, name: &str, dtype: DType) -> Result<Tensor> {
-    let h = inputs.get(name).with_context(|| format!("input tensor {name:?} is missing"))?;
+fn up(
+    ctx: &Context,
+    inputs: &BTreeMap<String, HostTensor>,
+    name: &str,
+    dtype: DType,
+) -> Result<Tensor> {
+    let h = inputs
+        .get(name)
+        .with_context(|| format!("input tensor {name:?} is missing"))?;
     Tensor::from_f32(ctx, &h.shape, dtype, &h.data, name)
 }
 
 fn down(ctx: &Context, t: &Tensor) -> Result<HostTensor> {
-    Ok(HostTensor { shape: t.shape().to_vec(), data: t.to_f32(ctx)?, file_dtype: FileDType::F32 })
+    Ok(HostTensor {
+        shape: t.shape().to_vec(),
+        data: t.to_f32(ctx)?,
+        file_dtype: FileDType::F32,
+    })
 }
 
 /// The timestep input: a scalar or one value per sample, as f32 (N).
 fn timestep(ctx: &Context, inputs: &BTreeMap<String, HostTensor>, n: usize) -> Result<Tensor> {
-    let t = inputs.get("timestep").context("input tensor \"timestep\" is missing")?;
+    let t = inputs
+        .get("timestep")
+        .context("input tensor \"timestep\" is missing")?;
     let v = match t.data.len() {
         1 => vec![t.data[0]; n],
         k if k == n => t.data.clone(),
@@ -81,10 +94,29 @@ pub fn forward_component(
                 .map_while(|i| inputs.get(&format!("down_residual_{i}")).map(|_| i))
                 .map(|i| up(ctx, inputs, &format!("down_residual_{i}"), dtype))
                 .collect::<Result<_>>()?;
-            let mid = if inputs.contains_key("mid_residual") { Some(up(ctx, inputs, "mid_residual", dtype)?) } else { None };
-            ensure!(down_res.is_empty() == mid.is_none(), "unet: give both down_residual_* and mid_residual, or neither");
-            let res = mid.as_ref().map(|m| Residuals { down: &down_res, mid: m });
-            let y = m.forward(&mut Fwd { rec: &mut rec, ws: &mut ws }, &s, &t, &c, res)?;
+            let mid = if inputs.contains_key("mid_residual") {
+                Some(up(ctx, inputs, "mid_residual", dtype)?)
+            } else {
+                None
+            };
+            ensure!(
+                down_res.is_empty() == mid.is_none(),
+                "unet: give both down_residual_* and mid_residual, or neither"
+            );
+            let res = mid.as_ref().map(|m| Residuals {
+                down: &down_res,
+                mid: m,
+            });
+            let y = m.forward(
+                &mut Fwd {
+                    rec: &mut rec,
+                    ws: &mut ws,
+                },
+                &s,
+                &t,
+                &c,
+                res,
+            )?;
             rec.finish()?.submit_wait()?;
             out.insert("sample".into(), down(ctx, &y)?);
         }
@@ -97,8 +129,21 @@ pub fn forward_component(
             let t = timestep(ctx, inputs, s.shape()[0])?;
             let c = up(ctx, inputs, "encoder_hidden_states", dtype)?;
             let cond = up(ctx, inputs, "controlnet_cond", dtype)?;
-            let scale = inputs.get("conditioning_scale").map(|t| t.data[0]).unwrap_or(1.0);
-            let o = m.forward(&mut Fwd { rec: &mut rec, ws: &mut ws }, &s, &t, &c, &cond, scale)?;
+            let scale = inputs
+                .get("conditioning_scale")
+                .map(|t| t.data[0])
+                .unwrap_or(1.0);
+            let o = m.forward(
+                &mut Fwd {
+                    rec: &mut rec,
+                    ws: &mut ws,
+                },
+                &s,
+                &t,
+                &c,
+                &cond,
+                scale,
+            )?;
             rec.finish()?.submit_wait()?;
             for (i, d) in o.down.iter().enumerate() {
                 out.insert(format!("down_residual_{i}"), down(ctx, d)?);
@@ -112,7 +157,13 @@ pub fn forward_component(
             if comp == Component::VaeEncoder {
                 let m = VaeEncoder::load(&dw, &cfg)?;
                 let x = up(ctx, inputs, "image", dtype)?;
-                let y = m.forward(&mut Fwd { rec: &mut rec, ws: &mut ws }, &x)?;
+                let y = m.forward(
+                    &mut Fwd {
+                        rec: &mut rec,
+                        ws: &mut ws,
+                    },
+                    &x,
+                )?;
                 rec.finish()?.submit_wait()?;
                 let moments = down(ctx, &y)?;
                 let (n, c2) = (moments.shape[0], moments.shape[1]);
@@ -123,12 +174,25 @@ pub fn forward_component(
                 }
                 let mut ms = moments.shape.clone();
                 ms[1] = c2 / 2;
-                out.insert("mean".into(), HostTensor { shape: ms, data: mean, file_dtype: FileDType::F32 });
+                out.insert(
+                    "mean".into(),
+                    HostTensor {
+                        shape: ms,
+                        data: mean,
+                        file_dtype: FileDType::F32,
+                    },
+                );
                 out.insert("moments".into(), moments);
             } else {
                 let m = VaeDecoder::load(&dw, &cfg)?;
                 let z = up(ctx, inputs, "latent", dtype)?;
-                let y = m.forward(&mut Fwd { rec: &mut rec, ws: &mut ws }, &z)?;
+                let y = m.forward(
+                    &mut Fwd {
+                        rec: &mut rec,
+                        ws: &mut ws,
+                    },
+                    &z,
+                )?;
                 rec.finish()?.submit_wait()?;
                 out.insert("sample".into(), down(ctx, &y)?);
             }
@@ -141,7 +205,8 @@ pub fn forward_component(
 pub fn read_component(dir: &Path) -> Result<(serde_json::Value, std::path::PathBuf)> {
     let cfg_path = dir.join("config.json");
     let cfg: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(&cfg_path).with_context(|| format!("reading {}", cfg_path.display()))?,
+        &std::fs::read_to_string(&cfg_path)
+            .with_context(|| format!("reading {}", cfg_path.display()))?,
     )
     .with_context(|| format!("{}: invalid JSON", cfg_path.display()))?;
     Ok((cfg, dir.join("diffusion_pytorch_model.safetensors")))

@@ -166,7 +166,10 @@ pub struct VaeAttention {
 
 impl VaeAttention {
     pub fn load(dw: &DeviceWeights, name: &str, groups: usize) -> Result<Self> {
-        Ok(Self { norm: GroupNorm::load(dw, &format!("{name}.group_norm"), groups, 1e-6)?, attn: Attn::load(dw, name, 1)? })
+        Ok(Self {
+            norm: GroupNorm::load(dw, &format!("{name}.group_norm"), groups, 1e-6)?,
+            attn: Attn::load(dw, name, 1)?,
+        })
     }
 
     /// x: (N, C, H, W) -> (N, C, H, W)

@@ -47,17 +47,36 @@ impl EncoderHalf {
             let mut resnets = vec![];
             let mut attns = vec![];
             for j in 0..cfg.layers_per_block {
-                resnets.push(Resnet::load(dw, &format!("down_blocks.{i}.resnets.{j}"), g, eps, true)?);
+                resnets.push(Resnet::load(
+                    dw,
+                    &format!("down_blocks.{i}.resnets.{j}"),
+                    g,
+                    eps,
+                    true,
+                )?);
                 if *kind == DownBlock::CrossAttn {
-                    attns.push(Transformer2D::load(dw, &format!("down_blocks.{i}.attentions.{j}"), g, cfg.num_heads[i])?);
+                    attns.push(Transformer2D::load(
+                        dw,
+                        &format!("down_blocks.{i}.attentions.{j}"),
+                        g,
+                        cfg.num_heads[i],
+                    )?);
                 }
             }
             let downsample = if i + 1 < cfg.down_blocks.len() {
-                Some(Conv::same3(dw, &format!("down_blocks.{i}.downsamplers.0.conv"), 2)?)
+                Some(Conv::same3(
+                    dw,
+                    &format!("down_blocks.{i}.downsamplers.0.conv"),
+                    2,
+                )?)
             } else {
                 None
             };
-            down.push(Down { resnets, attns, downsample });
+            down.push(Down {
+                resnets,
+                attns,
+                downsample,
+            });
         }
         let last_heads = *cfg.num_heads.last().expect("blocks");
         Ok(Self {
@@ -100,12 +119,30 @@ impl EncoderHalf {
 
     /// sample: (N, Cin, H, W) in the workspace dtype, t: (N) f32, context: (N, L, Dc); `add` is added after
     /// conv_in (ControlNet's conditioning embedding).
-    pub fn forward(&self, f: &mut Fwd, sample: &Tensor, t: &Tensor, context: &Tensor, add: Option<&Tensor>) -> Result<Encoded> {
+    pub fn forward(
+        &self,
+        f: &mut Fwd,
+        sample: &Tensor,
+        t: &Tensor,
+        context: &Tensor,
+        add: Option<&Tensor>,
+    ) -> Result<Encoded> {
         let s = sample.shape();
-        ensure!(s.len() == 4 && s[1] == self.cfg.in_channels, "encoder: sample {s:?} must be (N, {}, H, W)", self.cfg.in_channels);
-        ensure!(t.shape() == [s[0]], "encoder: timestep {:?} must be ({})", t.shape(), s[0]);
         ensure!(
-            context.shape().len() == 3 && context.shape()[0] == s[0] && context.shape()[2] == self.cfg.cross_attention_dim,
+            s.len() == 4 && s[1] == self.cfg.in_channels,
+            "encoder: sample {s:?} must be (N, {}, H, W)",
+            self.cfg.in_channels
+        );
+        ensure!(
+            t.shape() == [s[0]],
+            "encoder: timestep {:?} must be ({})",
+            t.shape(),
+            s[0]
+        );
+        ensure!(
+            context.shape().len() == 3
+                && context.shape()[0] == s[0]
+                && context.shape()[2] == self.cfg.cross_attention_dim,
             "encoder: context {:?} must be ({}, L, {})",
             context.shape(),
             s[0],
@@ -140,7 +177,11 @@ impl EncoderHalf {
         f.ws.release(m);
         let out = self.mid_res1.forward(f, &m2, Some(&temb))?;
         f.ws.release(m2);
-        Ok(Encoded { x: out, skips, silu_temb: temb })
+        Ok(Encoded {
+            x: out,
+            skips,
+            silu_temb: temb,
+        })
     }
 }
 
@@ -177,14 +218,36 @@ impl UNet {
             let mut resnets = vec![];
             let mut attns = vec![];
             for j in 0..=cfg.enc.layers_per_block {
-                resnets.push(Resnet::load(dw, &format!("up_blocks.{i}.resnets.{j}"), g, eps, true)?);
+                resnets.push(Resnet::load(
+                    dw,
+                    &format!("up_blocks.{i}.resnets.{j}"),
+                    g,
+                    eps,
+                    true,
+                )?);
                 if *kind == UpBlock::CrossAttn {
-                    attns.push(Transformer2D::load(dw, &format!("up_blocks.{i}.attentions.{j}"), g, heads[i])?);
+                    attns.push(Transformer2D::load(
+                        dw,
+                        &format!("up_blocks.{i}.attentions.{j}"),
+                        g,
+                        heads[i],
+                    )?);
                 }
             }
-            let upsample =
-                if i + 1 < nb { Some(Conv::same3(dw, &format!("up_blocks.{i}.upsamplers.0.conv"), 1)?) } else { None };
-            up.push(Up { resnets, attns, upsample });
+            let upsample = if i + 1 < nb {
+                Some(Conv::same3(
+                    dw,
+                    &format!("up_blocks.{i}.upsamplers.0.conv"),
+                    1,
+                )?)
+            } else {
+                None
+            };
+            up.push(Up {
+                resnets,
+                attns,
+                upsample,
+            });
         }
         Ok(Self {
             cfg: cfg.clone(),
@@ -196,17 +259,43 @@ impl UNet {
     }
 
     /// sample: (N, 4, H, W), t: (N) f32, context: (N, L, Dc) -> noise prediction (N, 4, H, W)
-    pub fn forward(&self, f: &mut Fwd, sample: &Tensor, t: &Tensor, context: &Tensor, res: Option<Residuals>) -> Result<Tensor> {
-        let Encoded { mut x, mut skips, silu_temb } = self.enc.forward(f, sample, t, context, None)?;
+    pub fn forward(
+        &self,
+        f: &mut Fwd,
+        sample: &Tensor,
+        t: &Tensor,
+        context: &Tensor,
+        res: Option<Residuals>,
+    ) -> Result<Tensor> {
+        let Encoded {
+            mut x,
+            mut skips,
+            silu_temb,
+        } = self.enc.forward(f, sample, t, context, None)?;
         if let Some(r) = res {
-            ensure!(r.down.len() == skips.len(), "unet: {} down residuals, expected {}", r.down.len(), skips.len());
+            ensure!(
+                r.down.len() == skips.len(),
+                "unet: {} down residuals, expected {}",
+                r.down.len(),
+                skips.len()
+            );
             for (s, d) in skips.iter_mut().zip(r.down) {
-                ensure!(s.shape() == d.shape(), "unet: down residual {:?} does not match skip {:?}", d.shape(), s.shape());
+                ensure!(
+                    s.shape() == d.shape(),
+                    "unet: down residual {:?} does not match skip {:?}",
+                    d.shape(),
+                    s.shape()
+                );
                 let y = f.ws.alloc(s.shape())?;
                 ew::add(f.rec, s, d, &y)?;
                 *s = y;
             }
-            ensure!(r.mid.shape() == x.shape(), "unet: mid residual {:?} does not match {:?}", r.mid.shape(), x.shape());
+            ensure!(
+                r.mid.shape() == x.shape(),
+                "unet: mid residual {:?} does not match {:?}",
+                r.mid.shape(),
+                x.shape()
+            );
             let y = f.ws.alloc(x.shape())?;
             ew::add(f.rec, &x, r.mid, &y)?;
             f.ws.release(x);
@@ -230,7 +319,10 @@ impl UNet {
             }
             if let Some(conv) = &u.upsample {
                 // Upsample to the next skip's size (diffusers' forward_upsample_size for odd latents).
-                let target = skips.last().expect("skips remain before the last block").shape();
+                let target = skips
+                    .last()
+                    .expect("skips remain before the last block")
+                    .shape();
                 let s = x.shape();
                 let upx = f.ws.alloc(&[s[0], s[1], target[2], target[3]])?;
                 resample::upsample_nearest(f.rec, &x, &upx, (target[2], target[3]))?;

@@ -22,7 +22,11 @@ impl Mid {
         Ok(Self {
             r0: Resnet::load(dw, &format!("{p}.mid_block.resnets.0"), g, eps, false)?,
             attn: if cfg.mid_block_add_attention {
-                Some(VaeAttention::load(dw, &format!("{p}.mid_block.attentions.0"), g)?)
+                Some(VaeAttention::load(
+                    dw,
+                    &format!("{p}.mid_block.attentions.0"),
+                    g,
+                )?)
             } else {
                 None
             },
@@ -60,11 +64,24 @@ impl VaeEncoder {
         let mut blocks = vec![];
         for i in 0..n {
             let rs = (0..cfg.layers_per_block)
-                .map(|j| Resnet::load(dw, &format!("encoder.down_blocks.{i}.resnets.{j}"), g, eps, false))
+                .map(|j| {
+                    Resnet::load(
+                        dw,
+                        &format!("encoder.down_blocks.{i}.resnets.{j}"),
+                        g,
+                        eps,
+                        false,
+                    )
+                })
                 .collect::<Result<Vec<_>>>()?;
             // diffusers Downsample2D(padding=0): F.pad(x, (0, 1, 0, 1)) then conv stride 2: pad right/bottom only.
             let ds = if i + 1 < n {
-                Some(Conv::load(dw, &format!("encoder.down_blocks.{i}.downsamplers.0.conv"), 2, [0, 1, 0, 1])?)
+                Some(Conv::load(
+                    dw,
+                    &format!("encoder.down_blocks.{i}.downsamplers.0.conv"),
+                    2,
+                    [0, 1, 0, 1],
+                )?)
             } else {
                 None
             };
@@ -77,14 +94,22 @@ impl VaeEncoder {
             mid: Mid::load(dw, "encoder", cfg)?,
             norm_out: GroupNorm::load(dw, "encoder.conv_norm_out", g, eps)?,
             conv_out: Conv::same3(dw, "encoder.conv_out", 1)?,
-            quant: if cfg.use_quant_conv { Some(Conv::one(dw, "quant_conv")?) } else { None },
+            quant: if cfg.use_quant_conv {
+                Some(Conv::one(dw, "quant_conv")?)
+            } else {
+                None
+            },
         })
     }
 
     /// image: (N, 3, H, W) in [-1, 1] -> posterior moments (N, 2 * latent, H/8, W/8) (mean = first half).
     pub fn forward(&self, f: &mut Fwd, image: &Tensor) -> Result<Tensor> {
         let s = image.shape();
-        ensure!(s.len() == 4 && s[1] == self.cfg.in_channels, "vae encoder: image {s:?} must be (N, {}, H, W)", self.cfg.in_channels);
+        ensure!(
+            s.len() == 4 && s[1] == self.cfg.in_channels,
+            "vae encoder: image {s:?} must be (N, {}, H, W)",
+            self.cfg.in_channels
+        );
         let mut x = self.conv_in.forward(f, image)?;
         for (rs, ds) in &self.blocks {
             for r in rs {
@@ -132,14 +157,34 @@ impl VaeDecoder {
         let mut blocks = vec![];
         for i in 0..n {
             let rs = (0..=cfg.layers_per_block)
-                .map(|j| Resnet::load(dw, &format!("decoder.up_blocks.{i}.resnets.{j}"), g, eps, false))
+                .map(|j| {
+                    Resnet::load(
+                        dw,
+                        &format!("decoder.up_blocks.{i}.resnets.{j}"),
+                        g,
+                        eps,
+                        false,
+                    )
+                })
                 .collect::<Result<Vec<_>>>()?;
-            let us = if i + 1 < n { Some(Conv::same3(dw, &format!("decoder.up_blocks.{i}.upsamplers.0.conv"), 1)?) } else { None };
+            let us = if i + 1 < n {
+                Some(Conv::same3(
+                    dw,
+                    &format!("decoder.up_blocks.{i}.upsamplers.0.conv"),
+                    1,
+                )?)
+            } else {
+                None
+            };
             blocks.push((rs, us));
         }
         Ok(Self {
             cfg: cfg.clone(),
-            post_quant: if cfg.use_post_quant_conv { Some(Conv::one(dw, "post_quant_conv")?) } else { None },
+            post_quant: if cfg.use_post_quant_conv {
+                Some(Conv::one(dw, "post_quant_conv")?)
+            } else {
+                None
+            },
             conv_in: Conv::same3(dw, "decoder.conv_in", 1)?,
             mid: Mid::load(dw, "decoder", cfg)?,
             blocks,
@@ -152,7 +197,11 @@ impl VaeDecoder {
     /// (diffusers' `decode(z).sample`, before the caller's clamp(x / 2 + 0.5, 0, 1)).
     pub fn forward(&self, f: &mut Fwd, z: &Tensor) -> Result<Tensor> {
         let s = z.shape();
-        ensure!(s.len() == 4 && s[1] == self.cfg.latent_channels, "vae decoder: latent {s:?} must be (N, {}, h, w)", self.cfg.latent_channels);
+        ensure!(
+            s.len() == 4 && s[1] == self.cfg.latent_channels,
+            "vae decoder: latent {s:?} must be (N, {}, h, w)",
+            self.cfg.latent_channels
+        );
         let pq;
         let z = match &self.post_quant {
             Some(c) => {

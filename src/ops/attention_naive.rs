@@ -21,13 +21,26 @@ pub fn attention_naive(
 ) -> Result<()> {
     let d = same_dtype("attention_naive", &[q, k, v, out])?;
     let (sq, sk) = (q.shape(), k.shape());
-    ensure!(sq.len() == 3 && sk.len() == 3, "attention_naive: q {sq:?}, k {sk:?} must be (B, L, H*d)");
-    ensure!(sk[0] == sq[0] && sk[2] == sq[2], "attention_naive: k {sk:?} does not match q {sq:?}");
+    ensure!(
+        sq.len() == 3 && sk.len() == 3,
+        "attention_naive: q {sq:?}, k {sk:?} must be (B, L, H*d)"
+    );
+    ensure!(
+        sk[0] == sq[0] && sk[2] == sq[2],
+        "attention_naive: k {sk:?} does not match q {sq:?}"
+    );
     expect_shape("attention_naive", "v", v, sk)?;
     expect_shape("attention_naive", "out", out, sq)?;
-    ensure!(heads >= 1 && sq[2] % heads == 0, "attention_naive: {heads} heads do not divide the width {}", sq[2]);
+    ensure!(
+        heads >= 1 && sq[2] % heads == 0,
+        "attention_naive: {heads} heads do not divide the width {}",
+        sq[2]
+    );
     let hd = sq[2] / heads;
-    ensure!(hd <= 8, "attention_naive: head dim {hd} > 8 (use ops::attention)");
+    ensure!(
+        hd <= 8,
+        "attention_naive: head dim {hd} > 8 (use ops::attention)"
+    );
     let trips = sk[1] * (2 * hd + 1) + 3 * hd;
     ensure!(
         trips < LOOP_BUDGET,
@@ -44,5 +57,11 @@ pub fn attention_naive(
     };
     let kid = pick(d, K::AttentionNaiveF32, K::AttentionNaiveF16);
     let bufs = [q.buffer(), k.buffer(), v.buffer(), out.buffer()];
-    rec.dispatch(kid, &bufs, bytemuck::bytes_of(&p), grid_1d("attention_naive", sq[0] * heads * sq[1])?, "attention_naive")
+    rec.dispatch(
+        kid,
+        &bufs,
+        bytemuck::bytes_of(&p),
+        grid_1d("attention_naive", sq[0] * heads * sq[1])?,
+        "attention_naive",
+    )
 }

@@ -10,11 +10,29 @@ use crate::tensor::{DType, Tensor};
 /// values beyond +-65504 become +-inf.
 pub fn cast(rec: &mut Recorder, x: &Tensor, out: &Tensor) -> Result<()> {
     expect_shape("cast", "out", out, x.shape())?;
-    let p = CastParams { n: x.numel() as u32 };
+    let p = CastParams {
+        n: x.numel() as u32,
+    };
     let g = grid_1d("cast", x.numel())?;
     match (x.dtype(), out.dtype()) {
-        (DType::F32, DType::F16) => rec.dispatch(K::CastToF16, &[x.buffer(), out.buffer()], bytemuck::bytes_of(&p), g, "cast"),
-        (DType::F16, DType::F32) => rec.dispatch(K::CastToF32, &[x.buffer(), out.buffer()], bytemuck::bytes_of(&p), g, "cast"),
-        _ => rec.copy_buffer(x.buffer(), out.buffer(), (x.numel() * x.dtype().size()) as u64),
+        (DType::F32, DType::F16) => rec.dispatch(
+            K::CastToF16,
+            &[x.buffer(), out.buffer()],
+            bytemuck::bytes_of(&p),
+            g,
+            "cast",
+        ),
+        (DType::F16, DType::F32) => rec.dispatch(
+            K::CastToF32,
+            &[x.buffer(), out.buffer()],
+            bytemuck::bytes_of(&p),
+            g,
+            "cast",
+        ),
+        _ => rec.copy_buffer(
+            x.buffer(),
+            out.buffer(),
+            (x.numel() * x.dtype().size()) as u64,
+        ),
     }
 }

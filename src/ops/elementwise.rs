@@ -3,8 +3,8 @@ use anyhow::{ensure, Result};
 
 use super::{expect_shape, grid_1d, pick, same_dtype, Recorder};
 use crate::kernels::params::{
-    LinCombParams,
-    BinaryParams, ConcatParams, GegluParams, ScaleAddParams, TransposeParams, UnaryParams,
+    BinaryParams, ConcatParams, GegluParams, LinCombParams, ScaleAddParams, TransposeParams,
+    UnaryParams,
 };
 use crate::kernels::KernelId as K;
 use crate::tensor::Tensor;
@@ -229,12 +229,27 @@ pub struct LinTerm<'a> {
 
 /// out[o_out + i] = sum_k coeff_k * x_k[offset_k + i] for i < n (1 to 4 terms, one dtype). Offsets are in
 /// elements; every range must lie inside its tensor. `out` may alias an input element-for-element.
-pub fn lincomb(rec: &mut Recorder, terms: &[LinTerm], out: &Tensor, o_out: usize, n: usize) -> Result<()> {
-    ensure!((1..=4).contains(&terms.len()), "lincomb: {} terms (1 to 4 supported)", terms.len());
+pub fn lincomb(
+    rec: &mut Recorder,
+    terms: &[LinTerm],
+    out: &Tensor,
+    o_out: usize,
+    n: usize,
+) -> Result<()> {
+    ensure!(
+        (1..=4).contains(&terms.len()),
+        "lincomb: {} terms (1 to 4 supported)",
+        terms.len()
+    );
     let mut ts: Vec<&Tensor> = terms.iter().map(|t| t.x).collect();
     ts.push(out);
     let d = same_dtype("lincomb", &ts)?;
-    ensure!(n > 0 && o_out + n <= out.numel(), "lincomb: out range {o_out}..{} exceeds {:?}", o_out + n, out.shape());
+    ensure!(
+        n > 0 && o_out + n <= out.numel(),
+        "lincomb: out range {o_out}..{} exceeds {:?}",
+        o_out + n,
+        out.shape()
+    );
     for (k, t) in terms.iter().enumerate() {
         ensure!(
             t.offset + n <= t.x.numel(),
@@ -243,7 +258,11 @@ pub fn lincomb(rec: &mut Recorder, terms: &[LinTerm], out: &Tensor, o_out: usize
             t.offset + n,
             t.x.shape()
         );
-        ensure!(t.coeff.is_finite(), "lincomb: term {k} coefficient {} is not finite", t.coeff);
+        ensure!(
+            t.coeff.is_finite(),
+            "lincomb: term {k} coefficient {} is not finite",
+            t.coeff
+        );
     }
     let g = |k: usize| terms.get(k).unwrap_or(&terms[0]);
     let p = LinCombParams {
@@ -260,6 +279,18 @@ pub fn lincomb(rec: &mut Recorder, terms: &[LinTerm], out: &Tensor, o_out: usize
         c3: if terms.len() > 3 { g(3).coeff } else { 0.0 },
     };
     let k = pick(d, K::ElementwiseF32Lincomb, K::ElementwiseF16Lincomb);
-    let bufs = [g(0).x.buffer(), g(1).x.buffer(), g(2).x.buffer(), g(3).x.buffer(), out.buffer()];
-    rec.dispatch(k, &bufs, bytemuck::bytes_of(&p), grid_1d("lincomb", n)?, "lincomb")
+    let bufs = [
+        g(0).x.buffer(),
+        g(1).x.buffer(),
+        g(2).x.buffer(),
+        g(3).x.buffer(),
+        out.buffer(),
+    ];
+    rec.dispatch(
+        k,
+        &bufs,
+        bytemuck::bytes_of(&p),
+        grid_1d("lincomb", n)?,
+        "lincomb",
+    )
 }

@@ -2,14 +2,16 @@
 //! picks the pipeline variant, computes the grid, pushes the parameters and records one or more dispatches into
 //! a [`Recorder`]. Outputs are caller-allocated so whole models can be planned once and replayed.
 //! Plain CPU f64 references for every op live in [`reference`].
+pub mod attention;
+pub mod attention_naive;
 pub mod bench;
 pub mod blur;
-pub mod attention;
+pub mod cast;
+pub mod conv2d;
 pub mod elementwise;
 pub mod embedding;
-pub mod norm;
-pub mod conv2d;
 pub mod matmul;
+pub mod norm;
 pub mod reference;
 pub mod resample;
 pub mod softmax;

@@ -82,6 +82,7 @@ pub fn group_norm(
 }
 
 /// x: (.., D), gamma/beta: (D) -> out: (.., D); PyTorch LayerNorm over the last dimension.
+/// With subgroups: one subgroup per row and no barriers (kernel `layer_norm_sg`); else a work group per row.
 pub fn layer_norm(
     rec: &mut Recorder,
     x: &Tensor,
@@ -94,6 +95,35 @@ pub fn layer_norm(
     let d = *s.last().unwrap_or(&0);
     expect_shape("layer_norm", "gamma", gamma, &[d])?;
     expect_shape("layer_norm", "beta", beta, &[d])?;
+    let rows = x.numel() / d;
+    let dt = same_dtype("layer_norm", &[x, gamma, beta, out])?;
+    let sg = rec.context().info().subgroup_size as usize;
+    let k = pick(dt, K::NormF32LayerNormSg, K::NormF16LayerNormSg);
+    if rec.context().supports(k) && (1..=64).contains(&sg) && 64 % sg == 0 {
+        expect_shape("layer_norm", "out", out, s)?;
+        ensure!(
+            eps.is_finite() && eps >= 0.0,
+            "layer_norm: eps {eps} must be finite and >= 0"
+        );
+        let p = NormParams {
+            len: d as u32,
+            segs_per_item: 1,
+            ch_per_seg: rows as u32,
+            inner: 1,
+            eps,
+            silu: 0,
+        };
+        let groups = rows.div_ceil(64 / sg);
+        let gx = groups.min(65535);
+        let grid = [gx as u32, groups.div_ceil(gx) as u32, 1];
+        return rec.dispatch(
+            k,
+            &[x.buffer(), gamma.buffer(), beta.buffer(), out.buffer()],
+            bytemuck::bytes_of(&p),
+            grid,
+            "layer_norm",
+        );
+    }
     let p = NormParams {
         len: d as u32,
         segs_per_item: 1,
@@ -102,5 +132,5 @@ pub fn layer_norm(
         eps,
         silu: 0,
     };
-    norm(rec, "layer_norm", x, gamma, beta, out, x.numel() / d, p)
+    norm(rec, "layer_norm", x, gamma, beta, out, rows, p)
 }

@@ -14,6 +14,7 @@ pub fn ctx() -> Option<Context> {
         match Context::new(&ContextOptions {
             device: None,
             validation: Some(true),
+            profile: false,
         }) {
             Ok(c) => {
                 eprintln!(
