@@ -11,6 +11,7 @@ pub mod external;
 pub mod idm;
 pub mod lqr;
 pub mod planner;
+pub mod score;
 pub mod trajectory;
 
 pub use closed_loop::{run, AgentMode, SimConfig, SimResult, StepRecord};

@@ -329,13 +329,25 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
     })
 }
 
-/// Longitudinal acceleration by central differences of the speed along the heading.
+/// Longitudinal acceleration: least-squares slope of the speed along the heading over a window of +-5 steps
+/// (clamped at the ends). Logged nuScenes velocities are noisy (0.5 m/s step to step), so plain differences
+/// would give accelerations of +-10 m/s^2.
 pub fn fill_ego_accel(ego: &mut [EgoLogState], dt: f64) {
     let n = ego.len();
     let v: Vec<f64> = ego.iter().map(|e| e.velocity.dot(e.rear_axle.dir())).collect();
+    const HALF: usize = 5;
     for k in 0..n {
-        let (a, b) = (k.saturating_sub(1), (k + 1).min(n - 1));
-        ego[k].accel = if b > a { (v[b] - v[a]) / ((b - a) as f64 * dt) } else { 0.0 };
+        let (a, b) = (k.saturating_sub(HALF), (k + HALF).min(n - 1));
+        let m = (b - a + 1) as f64;
+        let tm = (a..=b).map(|i| i as f64).sum::<f64>() / m;
+        let vm = (a..=b).map(|i| v[i]).sum::<f64>() / m;
+        let (mut num, mut den) = (0.0, 0.0);
+        for i in a..=b {
+            let t = i as f64 - tm;
+            num += t * (v[i] - vm);
+            den += t * t;
+        }
+        ego[k].accel = if den > 0.0 && num.is_finite() { num / den / dt } else { 0.0 };
     }
 }
 
