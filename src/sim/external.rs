@@ -32,9 +32,13 @@ impl ExternalPlanner {
     }
 
     fn spawn(&mut self) -> Result<()> {
-        let mut child = Command::new("sh")
-            .arg("-c")
-            .arg(&self.command)
+        let mut cmd = Command::new("sh");
+        cmd.arg("-c").arg(&self.command);
+        // Own process group, so a timeout kills the whole tree (shells and launcher shims such as pyenv's
+        // fork the real planner: killing only the direct child would leave it running).
+        #[cfg(unix)]
+        std::os::unix::process::CommandExt::process_group(&mut cmd, 0);
+        let mut child = cmd
             .stdin(Stdio::piped())
             .stdout(Stdio::piped())
             .stderr(Stdio::inherit())
@@ -58,6 +62,13 @@ impl ExternalPlanner {
     fn kill(&mut self) {
         self.stdin = None;
         if let Some(mut c) = self.child.take() {
+            #[cfg(unix)]
+            if let Ok(pid) = i32::try_from(c.id()) {
+                // SAFETY: plain syscall on the process group this planner created (pgid = its pid).
+                unsafe {
+                    libc::kill(-pid, libc::SIGKILL);
+                }
+            }
             let _ = c.kill();
             let _ = c.wait();
         }
