@@ -139,3 +139,73 @@ fn interpolated_path_drops_last_state_quirk() {
     p.trim_up_to(1.5, &mut out);
     assert_eq!(out.iter().map(|q| q.x).collect::<Vec<_>>(), vec![1.5, 2.0, 3.0]);
 }
+
+/// The O(M^2) normal equations of `fit_velocity` / `fit_curvature` against a plain dense construction of
+/// A'A + lambda R'R and A'y (the tracker_utils formulation), solved by Gaussian elimination.
+#[test]
+fn profile_fits_match_dense_reference() {
+    use b2dr::sim::lqr::solve;
+    let dt = 0.1;
+    let m = 40;
+    // Deterministic pseudo-random data.
+    let mut seed = 12345u64;
+    let mut rnd = || {
+        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        ((seed >> 11) as f64 / (1u64 << 53) as f64) - 0.5
+    };
+    let headings: Vec<f64> = (0..m).map(|k| 0.3 + 0.02 * k as f64 + 0.01 * rnd()).collect();
+    let xy: Vec<[f64; 2]> = (0..m).map(|k| [0.8 * headings[k].cos() + 0.05 * rnd(), 0.8 * headings[k].sin() + 0.05 * rnd()]).collect();
+    // Dense velocity fit.
+    let mut a = vec![vec![0.0; m]; 2 * m];
+    let mut y = vec![0.0; 2 * m];
+    for k in 0..m {
+        for c in 0..2 {
+            let dir = if c == 0 { headings[k].cos() } else { headings[k].sin() };
+            a[2 * k + c][0] = dir * dt;
+            for j in 1..=k {
+                a[2 * k + c][j] = dir * dt * dt;
+            }
+            y[2 * k + c] = xy[k][c];
+        }
+    }
+    let mut ata = vec![0.0; m * m];
+    let mut aty = vec![0.0; m];
+    for i in 0..m {
+        for j in 0..m {
+            ata[i * m + j] = (0..2 * m).map(|r| a[r][i] * a[r][j]).sum();
+        }
+        aty[i] = (0..2 * m).map(|r| a[r][i] * y[r]).sum();
+    }
+    for r in 0..m - 2 {
+        let (i, j) = (1 + r, 2 + r);
+        ata[i * m + i] += 1e-4;
+        ata[j * m + j] += 1e-4;
+        ata[i * m + j] -= 1e-4;
+        ata[j * m + i] -= 1e-4;
+    }
+    let x = solve(ata, aty);
+    let (v0, acc) = fit_velocity(&xy, &headings, dt, 1e-4);
+    assert!((v0 - x[0]).abs() < 1e-9, "{v0} vs {}", x[0]);
+    for (p, q) in acc.iter().zip(&x[1..]) {
+        assert!((p - q).abs() < 1e-6 * (1.0 + q.abs()), "{p} vs {q}");
+    }
+    // Dense curvature fit.
+    let vel = integrate_profile(v0, &acc, dt);
+    let dpsi: Vec<f64> = (0..m).map(|k| 0.01 + 0.002 * rnd() + 0.0001 * k as f64).collect();
+    let mut ata = vec![0.0; m * m];
+    let mut aty = vec![0.0; m];
+    let row = |k: usize, j: usize| if j == 0 { vel[k] * dt } else if j <= k { vel[k] * dt * dt } else { 0.0 };
+    for i in 0..m {
+        for j in 0..m {
+            ata[i * m + j] = (0..m).map(|k| row(k, i) * row(k, j)).sum();
+        }
+        aty[i] = (0..m).map(|k| row(k, i) * dpsi[k]).sum();
+        ata[i * m + i] += if i == 0 { 1e-10 } else { 1e-2 };
+    }
+    let x = solve(ata, aty);
+    let (k0, kd) = fit_curvature(&dpsi, &vel, dt, 1e-2);
+    assert!((k0 - x[0]).abs() < 1e-9 * (1.0 + x[0].abs()), "{k0} vs {}", x[0]);
+    for (p, q) in kd.iter().zip(&x[1..]) {
+        assert!((p - q).abs() < 1e-7 * (1.0 + q.abs()), "{p} vs {q}");
+    }
+}

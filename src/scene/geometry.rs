@@ -285,12 +285,28 @@ impl Part {
     }
 }
 
-/// A union of convex parts with cached bounding boxes. Distances and intersection tests between shapes are
-/// exact for the union (distance between unions = min over part pairs).
+/// Parts are grouped in chunks of this many for bounding-box pruning.
+const CHUNK: usize = 8;
+
+impl Aabb {
+    /// Distance between two boxes (0 when they overlap): a lower bound of the distance of their contents.
+    #[inline]
+    pub fn distance(&self, o: &Aabb) -> f64 {
+        let dx = (self.min.x - o.max.x).max(o.min.x - self.max.x).max(0.0);
+        let dy = (self.min.y - o.max.y).max(o.min.y - self.max.y).max(0.0);
+        (dx * dx + dy * dy).sqrt()
+    }
+}
+
+/// A union of convex parts with cached bounding boxes (per part, per chunk of 8 parts, overall). Distances
+/// and intersection tests between shapes are exact for the union (distance between unions = min over part
+/// pairs); the boxes only prune pairs that cannot matter.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Shape {
     pub parts: Vec<Part>,
     pub boxes: Vec<Aabb>,
+    /// Bounding box of parts [k * 8, k * 8 + 8).
+    pub chunks: Vec<Aabb>,
     pub aabb: Option<Aabb>,
 }
 
@@ -306,6 +322,7 @@ impl Shape {
     pub fn clear(&mut self) {
         self.parts.clear();
         self.boxes.clear();
+        self.chunks.clear();
         self.aabb = None;
     }
     pub fn push(&mut self, p: Part) {
@@ -314,11 +331,74 @@ impl Shape {
             Some(a) => a.union(&b),
             None => b,
         });
+        if self.parts.len() % CHUNK == 0 {
+            self.chunks.push(b);
+        } else if let Some(c) = self.chunks.last_mut() {
+            *c = c.union(&b);
+        }
         self.parts.push(p);
         self.boxes.push(b);
     }
     pub fn is_empty(&self) -> bool {
         self.parts.is_empty()
+    }
+    #[inline]
+    fn chunk_range(&self, k: usize) -> std::ops::Range<usize> {
+        k * CHUNK..((k + 1) * CHUNK).min(self.parts.len())
+    }
+    pub fn intersects(&self, o: &Shape) -> bool {
+        let (Some(a), Some(b)) = (self.aabb, o.aabb) else { return false };
+        if !a.overlaps(&b) {
+            return false;
+        }
+        for (ka, ca) in self.chunks.iter().enumerate() {
+            if !ca.overlaps(&b) {
+                continue;
+            }
+            for (kb, cb) in o.chunks.iter().enumerate() {
+                if !ca.overlaps(cb) {
+                    continue;
+                }
+                for i in self.chunk_range(ka) {
+                    let pb = &self.boxes[i];
+                    if !pb.overlaps(cb) {
+                        continue;
+                    }
+                    for j in o.chunk_range(kb) {
+                        if pb.overlaps(&o.boxes[j]) && self.parts[i].intersects(&o.parts[j]) {
+                            return true;
+                        }
+                    }
+                }
+            }
+        }
+        false
+    }
+    pub fn distance(&self, o: &Shape) -> f64 {
+        let mut d = f64::INFINITY;
+        for (ka, ca) in self.chunks.iter().enumerate() {
+            for (kb, cb) in o.chunks.iter().enumerate() {
+                if ca.distance(cb) >= d {
+                    continue;
+                }
+                for i in self.chunk_range(ka) {
+                    let pb = &self.boxes[i];
+                    if pb.distance(cb) >= d {
+                        continue;
+                    }
+                    for j in o.chunk_range(kb) {
+                        if pb.distance(&o.boxes[j]) >= d {
+                            continue;
+                        }
+                        d = d.min(self.parts[i].distance(&o.parts[j]));
+                        if d <= 0.0 {
+                            return 0.0;
+                        }
+                    }
+                }
+            }
+        }
+        d
     }
     /// Appends shapely's `LineString(pts).buffer(r, cap_style=flat)` (default round joins): one rectangle per
     /// segment plus a disc at every interior vertex. On the inner side of a turn the two rectangles already
@@ -327,6 +407,7 @@ impl Shape {
     pub fn push_buffered_path(&mut self, pts: &[DVec2], r: f64) {
         let mut prev: Option<DVec2> = None;
         let mut last_seg_end: Option<DVec2> = None;
+        let mut prev_seg_dir = DVec2::X;
         for &p in pts {
             if let Some(a) = prev {
                 let d = p - a;
@@ -336,8 +417,15 @@ impl Shape {
                 }
                 let n = d.perp() / len * r;
                 if let Some(j) = last_seg_end {
-                    self.push(Part::Disc(j, r));
+                    // The round join fills the wedge between consecutive rectangles on the outer side; its
+                    // width is at most r * |turn angle|. Collinear joins (width < 1e-9 m) need no disc.
+                    let prev_dir = prev_seg_dir;
+                    let turn = prev_dir.perp_dot(d / len).abs().max(0.0);
+                    if r * turn.asin() > 1e-9 || prev_dir.dot(d) < 0.0 {
+                        self.push(Part::Disc(j, r));
+                    }
                 }
+                prev_seg_dir = d / len;
                 self.push(Part::Quad([a + n, a - n, p - n, p + n]));
                 last_seg_end = Some(p);
             }
@@ -349,35 +437,6 @@ impl Shape {
         let mut s = Self::new();
         s.push_buffered_path(pts, r);
         s
-    }
-    pub fn intersects(&self, o: &Shape) -> bool {
-        let (Some(a), Some(b)) = (self.aabb, o.aabb) else { return false };
-        if !a.overlaps(&b) {
-            return false;
-        }
-        for (p, pb) in self.parts.iter().zip(&self.boxes) {
-            if !pb.overlaps(&b) {
-                continue;
-            }
-            for (q, qb) in o.parts.iter().zip(&o.boxes) {
-                if pb.overlaps(qb) && p.intersects(q) {
-                    return true;
-                }
-            }
-        }
-        false
-    }
-    pub fn distance(&self, o: &Shape) -> f64 {
-        let mut d = f64::INFINITY;
-        for p in &self.parts {
-            for q in &o.parts {
-                d = d.min(p.distance(q));
-                if d <= 0.0 {
-                    return 0.0;
-                }
-            }
-        }
-        d
     }
 }
 

@@ -40,6 +40,36 @@ struct Occupancy {
     stop_lines: Vec<(usize, Shape)>,
 }
 
+/// An occupancy entry by position in [`Occupancy`]'s lists.
+#[derive(Clone, Copy, Debug)]
+enum Entry {
+    Ego,
+    Agent(usize),
+    Object(usize),
+    StopLine(usize),
+}
+
+impl Occupancy {
+    /// The geometry of an entry (entries are looked up right after being listed, so they exist).
+    fn shape(&self, r: Entry) -> &Shape {
+        static EMPTY: Shape = Shape { parts: Vec::new(), boxes: Vec::new(), chunks: Vec::new(), aabb: None };
+        match r {
+            Entry::Ego => self.ego.as_ref().unwrap_or(&EMPTY),
+            Entry::Agent(j) => self.agents[j].as_ref().unwrap_or(&EMPTY),
+            Entry::Object(k) => &self.objects[k].1,
+            Entry::StopLine(k) => &self.stop_lines[k].1,
+        }
+    }
+    fn leader_ref(&self, r: Entry) -> LeaderRef {
+        match r {
+            Entry::Ego => LeaderRef::Ego,
+            Entry::Agent(j) => LeaderRef::Agent(j),
+            Entry::Object(k) => LeaderRef::Object(self.objects[k].0),
+            Entry::StopLine(k) => LeaderRef::StopLine(self.stop_lines[k].0),
+        }
+    }
+}
+
 pub struct IdmManager {
     pub params: IdmParams,
     /// None once removed (farther than the radius from the ego).
@@ -51,7 +81,8 @@ pub struct IdmManager {
     scratch_poses: Vec<Pose2>,
     scratch_pts: Vec<DVec2>,
     path_shape: Shape,
-    hits: Vec<(LeaderRef, f64)>,
+    /// (bounding-box distance lower bound, scan order, entry) of the current agent's candidates.
+    cands: Vec<(f64, usize, Entry)>,
 }
 
 /// `get_starting_segment`: lanes containing the centre, else (when in an intersection) connectors containing
@@ -139,7 +170,7 @@ impl IdmManager {
             scratch_poses: Vec::new(),
             scratch_pts: Vec::new(),
             path_shape: Shape::new(),
-            hits: Vec::new(),
+            cands: Vec::new(),
         }
     }
 
@@ -166,9 +197,17 @@ impl IdmManager {
             }
         }
         self.occ.ego = ego.map(|e| Shape::from_box(&e.footprint));
-        self.occ.objects.clear();
-        for (ti, b) in open_loop {
-            self.occ.objects.push((*ti, Shape::from_box(b)));
+        // Reuse the open-loop shapes' buffers from step to step (no per-step allocation).
+        self.occ.objects.truncate(open_loop.len());
+        for (k, (ti, b)) in open_loop.iter().enumerate() {
+            if k < self.occ.objects.len() {
+                let e = &mut self.occ.objects[k];
+                e.0 = *ti;
+                e.1.clear();
+                e.1.push(Part::Quad(b.corners()));
+            } else {
+                self.occ.objects.push((*ti, Shape::from_box(b)));
+            }
         }
         // _filter_agents_out_of_range: distance from the ego centre to the agent centre.
         if let Some(e) = ego {
@@ -202,33 +241,58 @@ impl IdmManager {
             self.scratch_pts.extend(self.scratch_poses.iter().map(|q| q.pos()));
             self.path_shape.clear();
             self.path_shape.push_buffered_path(&self.scratch_pts, agent.width / 2.0);
-            // Intersecting geometries other than the agent's own, with their distance to the agent's geometry.
-            self.hits.clear();
+            // The nearest geometry (by polygon distance to the agent's own geometry) among those intersecting
+            // the buffered path to go, the agent itself excluded. Candidates are visited by increasing
+            // bounding-box lower bound, so exact tests stop once no remaining candidate can be nearer; ties
+            // go to the earlier entry in scan order (ego, agents, objects, stop lines).
             let own = self.occ.agents[i].take().unwrap_or_else(|| Shape::from_box(&agent.oriented_box()));
-            let ps = &self.path_shape;
-            let consider = |r: LeaderRef, s: &Shape, hits: &mut Vec<(LeaderRef, f64)>| {
-                if s.intersects(ps) {
-                    hits.push((r, own.distance(s)));
+            let (Some(path_box), Some(own_box)) = (self.path_shape.aabb, own.aabb) else {
+                self.agents[i] = Some(agent);
+                self.occ.agents[i] = Some(own);
+                continue;
+            };
+            self.cands.clear();
+            let mut order = 0usize;
+            let mut add = |r: Entry, s: &Shape, cands: &mut Vec<(f64, usize, Entry)>| {
+                order += 1;
+                if let Some(b) = s.aabb {
+                    if b.overlaps(&path_box) {
+                        cands.push((own_box.distance(&b), order, r));
+                    }
                 }
             };
             if let Some(s) = &self.occ.ego {
-                consider(LeaderRef::Ego, s, &mut self.hits);
+                add(Entry::Ego, s, &mut self.cands);
             }
             for (j, s) in self.occ.agents.iter().enumerate() {
                 if let Some(s) = s {
-                    consider(LeaderRef::Agent(j), s, &mut self.hits);
+                    add(Entry::Agent(j), s, &mut self.cands);
                 }
             }
-            for (ti, s) in &self.occ.objects {
-                consider(LeaderRef::Object(*ti), s, &mut self.hits);
+            for (k, (_, s)) in self.occ.objects.iter().enumerate() {
+                add(Entry::Object(k), s, &mut self.cands);
             }
-            for (sl, s) in &self.occ.stop_lines {
-                consider(LeaderRef::StopLine(*sl), s, &mut self.hits);
+            for (k, (_, s)) in self.occ.stop_lines.iter().enumerate() {
+                add(Entry::StopLine(k), s, &mut self.cands);
             }
-            let nearest = self.hits.iter().copied().fold(None, |b: Option<(LeaderRef, f64)>, h| match b {
-                Some(bb) if bb.1 <= h.1 => Some(bb),
-                _ => Some(h),
-            });
+            self.cands.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            let mut nearest: Option<(LeaderRef, f64, usize)> = None;
+            for &(lb, ord, r) in &self.cands {
+                if let Some((_, d, o)) = nearest {
+                    if lb > d || (lb == d && ord > o) {
+                        break;
+                    }
+                }
+                let s = self.occ.shape(r);
+                if !s.intersects(&self.path_shape) {
+                    continue;
+                }
+                let d = own.distance(s);
+                if nearest.map_or(true, |(_, bd, bo)| d < bd || (d == bd && ord < bo)) {
+                    nearest = Some((self.occ.leader_ref(r), d, ord));
+                }
+            }
+            let nearest = nearest.map(|(r, d, _)| (r, d));
             let lead = match nearest {
                 Some((r, dist)) => {
                     let heading = agent.pose().heading;
@@ -270,6 +334,5 @@ impl IdmManager {
             self.agents[i] = Some(agent);
         }
         self.occ.stop_lines.clear();
-        self.occ.objects.clear();
     }
 }

@@ -81,31 +81,81 @@ pub fn solve(mut m: Vec<f64>, mut b: Vec<f64>) -> Vec<f64> {
     x
 }
 
-/// Fits (v0, a_0..a_{M-2}) to M displacements: displacement_k = [cos psi_k, sin psi_k](v0 dt + dt^2
-/// sum_{j<k} a_j), jerk penalty on first differences of a (`_fit_initial_velocity_and_acceleration_profile`).
-pub fn fit_velocity(xy: &[[f64; 2]], headings: &[f64], dt: f64, jerk_penalty: f64) -> (f64, Vec<f64>) {
-    let m = xy.len();
-    // A is (2M x M); build A'A and A'y directly.
-    let mut ata = vec![0.0; m * m];
-    let mut aty = vec![0.0; m];
-    let mut row = vec![0.0; m];
-    for k in 0..m {
-        let (s, c) = headings[k].sin_cos();
-        for (comp, (dir, y)) in [(c, xy[k][0]), (s, xy[k][1])].into_iter().enumerate() {
-            let _ = comp;
-            row.iter_mut().for_each(|v| *v = 0.0);
-            row[0] = dir * dt;
-            for v in row.iter_mut().take(k + 1).skip(1) {
-                *v = dir * dt * dt;
+/// Solves M x = b for a symmetric positive definite M by Cholesky; falls back to [`solve`] when a pivot is
+/// not positive.
+pub fn solve_spd(m: &[f64], b: &[f64]) -> Vec<f64> {
+    let n = b.len();
+    let mut l = vec![0.0; n * n];
+    for j in 0..n {
+        let mut d = m[j * n + j];
+        for k in 0..j {
+            d -= l[j * n + k] * l[j * n + k];
+        }
+        if !(d > 0.0) {
+            return solve(m.to_vec(), b.to_vec());
+        }
+        let d = d.sqrt();
+        l[j * n + j] = d;
+        for i in j + 1..n {
+            let mut s = m[i * n + j];
+            for k in 0..j {
+                s -= l[i * n + k] * l[j * n + k];
             }
-            for i in 0..=k {
-                aty[i] += row[i] * y;
-                for j in 0..=k {
-                    ata[i * m + j] += row[i] * row[j];
-                }
-            }
+            l[i * n + j] = s / d;
         }
     }
+    let mut y = vec![0.0; n];
+    for i in 0..n {
+        let mut s = b[i];
+        for k in 0..i {
+            s -= l[i * n + k] * y[k];
+        }
+        y[i] = s / l[i * n + i];
+    }
+    let mut x = vec![0.0; n];
+    for i in (0..n).rev() {
+        let mut s = y[i];
+        for k in i + 1..n {
+            s -= l[k * n + i] * x[k];
+        }
+        x[i] = s / l[i * n + i];
+    }
+    x
+}
+
+/// Normal equations of the lower-triangular design both fits share: row k = w_k [c0, c1, c1, ..., c1 (k
+/// times), 0, ...] (one row per displacement). Then (A'A)[i][j] = c c' sum_{k >= max(i, j)} w_k^2 and
+/// (A'y)[j] = c sum_{k >= j} w_k y_k, built in O(M^2) from suffix sums instead of forming A.
+fn normal_equations(w2: &[f64], wy: &[f64], c0: f64, c1: f64) -> (Vec<f64>, Vec<f64>) {
+    let m = w2.len();
+    let mut suf_w2 = vec![0.0; m + 1];
+    let mut suf_wy = vec![0.0; m + 1];
+    for k in (0..m).rev() {
+        suf_w2[k] = suf_w2[k + 1] + w2[k];
+        suf_wy[k] = suf_wy[k + 1] + wy[k];
+    }
+    let mut ata = vec![0.0; m * m];
+    let mut aty = vec![0.0; m];
+    for i in 0..m {
+        let ci = if i == 0 { c0 } else { c1 };
+        aty[i] = ci * suf_wy[i];
+        for j in 0..m {
+            let cj = if j == 0 { c0 } else { c1 };
+            ata[i * m + j] = ci * cj * suf_w2[i.max(j)];
+        }
+    }
+    (ata, aty)
+}
+
+/// Fits (v0, a_0..a_{M-2}) to M displacements: displacement_k = [cos psi_k, sin psi_k](v0 dt + dt^2
+/// sum_{j<k} a_j), jerk penalty on first differences of a (`_fit_initial_velocity_and_acceleration_profile`).
+/// The x and y rows of a step share the unit heading vector, so their weights add to 1 and the data enter
+/// through the displacement projected on the heading.
+pub fn fit_velocity(xy: &[[f64; 2]], headings: &[f64], dt: f64, jerk_penalty: f64) -> (f64, Vec<f64>) {
+    let m = xy.len();
+    let w2 = vec![1.0; m];
+    let proj: Vec<f64> = (0..m).map(|k| headings[k].cos() * xy[k][0] + headings[k].sin() * xy[k][1]).collect();
+    let (mut ata, aty) = normal_equations(&w2, &proj, dt, dt * dt);
     // R = [0 | D] with D the (M-2) x (M-1) banded difference matrix: R'R adds the second-difference
     // stencil on the acceleration block.
     if m >= 3 {
@@ -117,7 +167,7 @@ pub fn fit_velocity(xy: &[[f64; 2]], headings: &[f64], dt: f64, jerk_penalty: f6
             ata[j * m + i] -= jerk_penalty;
         }
     }
-    let x = solve(ata, aty);
+    let x = solve_spd(&ata, &aty);
     (x[0], x[1..].to_vec())
 }
 
@@ -126,26 +176,13 @@ pub fn fit_velocity(xy: &[[f64; 2]], headings: &[f64], dt: f64, jerk_penalty: f6
 /// (`_fit_initial_curvature_and_curvature_rate_profile`).
 pub fn fit_curvature(dpsi: &[f64], v: &[f64], dt: f64, penalty: f64) -> (f64, Vec<f64>) {
     let m = dpsi.len();
-    let mut ata = vec![0.0; m * m];
-    let mut aty = vec![0.0; m];
-    let mut row = vec![0.0; m];
-    for k in 0..m {
-        row.iter_mut().for_each(|x| *x = 0.0);
-        row[0] = v[k] * dt;
-        for x in row.iter_mut().take(k + 1).skip(1) {
-            *x = v[k] * dt * dt;
-        }
-        for i in 0..=k {
-            aty[i] += row[i] * dpsi[k];
-            for j in 0..=k {
-                ata[i * m + j] += row[i] * row[j];
-            }
-        }
-    }
+    let w2: Vec<f64> = v.iter().take(m).map(|x| x * x).collect();
+    let wy: Vec<f64> = (0..m).map(|k| v[k] * dpsi[k]).collect();
+    let (mut ata, aty) = normal_equations(&w2, &wy, dt, dt * dt);
     for i in 0..m {
         ata[i * m + i] += if i == 0 { INITIAL_CURVATURE_PENALTY } else { penalty };
     }
-    let x = solve(ata, aty);
+    let x = solve_spd(&ata, &aty);
     (x[0], x[1..].to_vec())
 }
 
