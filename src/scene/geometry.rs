@@ -420,8 +420,9 @@ impl Shape {
                     // The round join fills the wedge between consecutive rectangles on the outer side; its
                     // width is at most r * |turn angle|. Collinear joins (width < 1e-9 m) need no disc.
                     let prev_dir = prev_seg_dir;
-                    let turn = prev_dir.perp_dot(d / len).abs().max(0.0);
-                    if r * turn.asin() > 1e-9 || prev_dir.dot(d) < 0.0 {
+                    // |sin(turn)| r bounds the wedge width for small turns.
+                    let turn = prev_dir.perp_dot(d / len).abs();
+                    if r * turn > 1e-9 || prev_dir.dot(d) < 0.0 {
                         self.push(Part::Disc(j, r));
                     }
                 }
@@ -437,6 +438,87 @@ impl Shape {
         let mut s = Self::new();
         s.push_buffered_path(pts, r);
         s
+    }
+}
+
+/// A buffered path (`LineString.buffer(r, cap_style=flat)`) tested lazily: only chunk bounding boxes are
+/// built up front; segment rectangles and join discs are made on the fly for the chunks and segments whose
+/// boxes meet the other shape. Same geometry as [`Shape::push_buffered_path`] (tested against it).
+#[derive(Clone, Debug, Default)]
+pub struct PathBuffer {
+    pts: Vec<DVec2>,
+    r: f64,
+    /// Per chunk of 8 segments: (first segment, bounding box of its points expanded by r).
+    chunks: Vec<(usize, Aabb)>,
+    pub aabb: Option<Aabb>,
+}
+
+impl PathBuffer {
+    /// Rebuilds for a new path (reusing the buffers). Repeated points are skipped.
+    pub fn set(&mut self, pts: impl IntoIterator<Item = DVec2>, r: f64) {
+        self.pts.clear();
+        for p in pts {
+            if self.pts.last().map_or(true, |l: &DVec2| (p - *l).length() > 1e-9) {
+                self.pts.push(p);
+            }
+        }
+        self.r = r;
+        self.chunks.clear();
+        self.aabb = None;
+        let nseg = self.pts.len().saturating_sub(1);
+        let mut k = 0;
+        while k < nseg {
+            let end = (k + CHUNK).min(nseg);
+            let b = Aabb::from_points(&self.pts[k..=end]).expand(r);
+            self.aabb = Some(self.aabb.map_or(b, |a| a.union(&b)));
+            self.chunks.push((k, b));
+            k = end;
+        }
+    }
+    /// Parts of segment k: its rectangle and, for k > 0, the join disc at its start when the path turns.
+    fn segment_parts(&self, k: usize) -> (Part, Option<Part>) {
+        let (a, p) = (self.pts[k], self.pts[k + 1]);
+        let d = p - a;
+        let len = d.length();
+        let n = d.perp() / len * self.r;
+        let quad = Part::Quad([a + n, a - n, p - n, p + n]);
+        let disc = if k > 0 {
+            let prev = (a - self.pts[k - 1]) / (a - self.pts[k - 1]).length();
+            let turn = prev.perp_dot(d / len).abs();
+            (self.r * turn > 1e-9 || prev.dot(d) < 0.0).then_some(Part::Disc(a, self.r))
+        } else {
+            None
+        };
+        (quad, disc)
+    }
+    /// Whether the buffered path intersects `o`.
+    pub fn intersects(&self, o: &Shape) -> bool {
+        let (Some(a), Some(b)) = (self.aabb, o.aabb) else { return false };
+        if !a.overlaps(&b) {
+            return false;
+        }
+        let nseg = self.pts.len().saturating_sub(1);
+        for &(k0, cb) in &self.chunks {
+            if !cb.overlaps(&b) {
+                continue;
+            }
+            for k in k0..(k0 + CHUNK).min(nseg) {
+                let sb = Aabb::from_points(&self.pts[k..=k + 1]).expand(self.r);
+                if !sb.overlaps(&b) {
+                    continue;
+                }
+                let (quad, disc) = self.segment_parts(k);
+                for part in std::iter::once(quad).chain(disc) {
+                    let pb = part.aabb();
+                    for (q, qb) in o.parts.iter().zip(&o.boxes) {
+                        if pb.overlaps(qb) && part.intersects(q) {
+                            return true;
+                        }
+                    }
+                }
+            }
+        }
+        false
     }
 }
 
@@ -587,6 +669,21 @@ mod tests {
         // Round join at the outer corner (10,0): the point (11.5, -1.5) is sqrt(2)*1.5 - 1 away.
         assert!((probe(11.5, -1.5) - (2.0f64.sqrt() * 1.5 - 1.0)).abs() < 1e-12);
         assert_eq!(probe(9.5, 0.5), 0.0);
+    }
+
+    #[test]
+    fn lazy_path_buffer_matches_shape() {
+        let pts: Vec<DVec2> = (0..40).map(|i| DVec2::new(i as f64, (i as f64 * 0.2).sin() * 3.0)).collect();
+        let full = Shape::buffered_path(&pts, 1.0);
+        let mut lazy = PathBuffer::default();
+        lazy.set(pts.iter().copied(), 1.0);
+        for ix in -5..45 {
+            for iy in -6..7 {
+                let b = OrientedBox::new(Pose2::new(ix as f64, iy as f64 * 0.7, 0.3 * ix as f64), 1.2, 0.4);
+                let s = Shape::from_box(&b);
+                assert_eq!(full.intersects(&s), lazy.intersects(&s), "{ix} {iy}");
+            }
+        }
     }
 
     #[test]

@@ -3,7 +3,7 @@
 //! an occupancy map (ego footprint, open-loop objects, agents' geometries, red-light stop lines) and moves
 //! it one IDM step. Agents are updated in order; later agents see earlier agents' new geometry.
 use super::idm::{idm_step, lane_states, IdmAgent, IdmParams, IdmPath, Lead};
-use crate::scene::geometry::{OrientedBox, Part, Pose2, Shape};
+use crate::scene::geometry::{Aabb, OrientedBox, Part, PathBuffer, Pose2, Shape};
 use crate::scene::map::{LaneKind, Map};
 use crate::scene::{ObjectClass, Scenario, TrafficLightStatus};
 use glam::DVec2;
@@ -80,7 +80,7 @@ pub struct IdmManager {
     lights: Vec<Option<TrafficLightStatus>>,
     scratch_poses: Vec<Pose2>,
     scratch_pts: Vec<DVec2>,
-    path_shape: Shape,
+    path_shape: PathBuffer,
     /// (bounding-box distance lower bound, scan order, entry) of the current agent's candidates.
     cands: Vec<(f64, usize, Entry)>,
 }
@@ -169,7 +169,7 @@ impl IdmManager {
             lights: vec![None; sc.map.lanes.len()],
             scratch_poses: Vec::new(),
             scratch_pts: Vec::new(),
-            path_shape: Shape::new(),
+            path_shape: PathBuffer::default(),
             cands: Vec::new(),
         }
     }
@@ -237,20 +237,15 @@ impl IdmManager {
             }
             // Path to go buffered by width/2 with flat caps.
             agent.path.trim_up_to(agent.bounded_progress(), &mut self.scratch_poses);
-            self.scratch_pts.clear();
-            self.scratch_pts.extend(self.scratch_poses.iter().map(|q| q.pos()));
-            self.path_shape.clear();
-            self.path_shape.push_buffered_path(&self.scratch_pts, agent.width / 2.0);
+            self.path_shape.set(self.scratch_poses.iter().map(|q| q.pos()), agent.width / 2.0);
             // The nearest geometry (by polygon distance to the agent's own geometry) among those intersecting
             // the buffered path to go, the agent itself excluded. Candidates are visited by increasing
             // bounding-box lower bound, so exact tests stop once no remaining candidate can be nearer; ties
             // go to the earlier entry in scan order (ego, agents, objects, stop lines).
             let own = self.occ.agents[i].take().unwrap_or_else(|| Shape::from_box(&agent.oriented_box()));
-            let (Some(path_box), Some(own_box)) = (self.path_shape.aabb, own.aabb) else {
-                self.agents[i] = Some(agent);
-                self.occ.agents[i] = Some(own);
-                continue;
-            };
+            // A degenerate path (fewer than 2 distinct points) meets nothing: the empty box filters all.
+            let path_box = self.path_shape.aabb.unwrap_or(Aabb::EMPTY);
+            let own_box = own.aabb.unwrap_or(Aabb::EMPTY);
             self.cands.clear();
             let mut order = 0usize;
             let mut add = |r: Entry, s: &Shape, cands: &mut Vec<(f64, usize, Entry)>| {
@@ -284,7 +279,7 @@ impl IdmManager {
                     }
                 }
                 let s = self.occ.shape(r);
-                if !s.intersects(&self.path_shape) {
+                if !self.path_shape.intersects(s) {
                     continue;
                 }
                 let d = own.distance(s);
