@@ -30,13 +30,25 @@ fn lane_links_inferred_within_1m_and_30deg() {
     let specs = vec![
         lane("A", &[(0.0, 0.0), (10.0, 0.0)]),
         // Starts 0.58 m from A's end, heading 20 deg: linked.
-        lane("B", &[(10.5, 0.3), (10.5 + 10.0 * a.cos(), 0.3 + 10.0 * a.sin())]),
+        lane(
+            "B",
+            &[(10.5, 0.3), (10.5 + 10.0 * a.cos(), 0.3 + 10.0 * a.sin())],
+        ),
         // Starts 1.5 m away: not linked.
         lane("C", &[(10.0, 1.5), (20.0, 1.5)]),
         // Starts at A's end but heading 40 deg: not linked.
         lane("D", &[(10.0, 0.0), (10.0 + 10.0 * b.cos(), 10.0 * b.sin())]),
     ];
-    let m = Map::build("t", specs, vec![], vec![], vec![], PolygonSet::default(), true).unwrap();
+    let m = Map::build(
+        "t",
+        specs,
+        vec![],
+        vec![],
+        vec![],
+        PolygonSet::default(),
+        true,
+    )
+    .unwrap();
     let links = infer_lane_links(&m.lanes);
     assert_eq!(links, vec![(0, 1)]);
     assert_eq!(m.lanes[0].successors, vec![1]);
@@ -69,7 +81,10 @@ fn minimal_scene() -> serde_json::Value {
 }
 
 fn parse_err(v: &serde_json::Value) -> String {
-    format!("{:#}", scenarionet::parse(v, "dir/bad.json", None).unwrap_err())
+    format!(
+        "{:#}",
+        scenarionet::parse(v, "dir/bad.json", None).unwrap_err()
+    )
 }
 
 #[test]
@@ -86,17 +101,26 @@ fn importer_errors_name_file_and_field() {
     let mut v = minimal_scene();
     v.as_object_mut().unwrap().remove("length");
     let e = parse_err(&v);
-    assert!(e.contains("dir/bad.json") && e.contains("`length`") && e.contains("missing"), "{e}");
+    assert!(
+        e.contains("dir/bad.json") && e.contains("`length`") && e.contains("missing"),
+        "{e}"
+    );
 
     let mut v = minimal_scene();
     v["tracks"]["ego"]["type"] = json!("SPACESHIP");
     let e = parse_err(&v);
-    assert!(e.contains("dir/bad.json") && e.contains("tracks.ego.type") && e.contains("SPACESHIP"), "{e}");
+    assert!(
+        e.contains("dir/bad.json") && e.contains("tracks.ego.type") && e.contains("SPACESHIP"),
+        "{e}"
+    );
 
     let mut v = minimal_scene();
     v["tracks"]["ego"]["state"]["heading"] = json!([0.0, 0.0]);
     let e = parse_err(&v);
-    assert!(e.contains("tracks.ego.state.heading") && e.contains("expected `length` = 3"), "{e}");
+    assert!(
+        e.contains("tracks.ego.state.heading") && e.contains("expected `length` = 3"),
+        "{e}"
+    );
 
     let mut v = minimal_scene();
     v["tracks"]["ego"]["state"]["position"][1] = json!(["a", 0.0]);
@@ -126,13 +150,25 @@ fn unreadable_files_and_bad_specs_are_errors() {
     let f = dir.join("broken.json");
     std::fs::write(&f, "{ not json").unwrap();
     let e = format!("{:#}", scenarionet::load_file(&f).unwrap_err());
-    assert!(e.contains("broken.json") && e.contains("not valid JSON"), "{e}");
-    let e = format!("{:#}", scenarionet::load_file(&dir.join("missing.json")).unwrap_err());
+    assert!(
+        e.contains("broken.json") && e.contains("not valid JSON"),
+        "{e}"
+    );
+    let e = format!(
+        "{:#}",
+        scenarionet::load_file(&dir.join("missing.json")).unwrap_err()
+    );
     assert!(e.contains("missing.json"), "{e}");
     assert!(resolve("builtin:city").is_err());
     assert!(resolve("builtin:town:x").is_err());
     assert!(resolve(dir.join("nope").to_str().unwrap()).is_err());
-    assert_eq!(resolve("builtin:town:7:200").unwrap(), vec![Source::Builtin { seed: 7, n_vehicles: Some(200) }]);
+    assert_eq!(
+        resolve("builtin:town:7:200").unwrap(),
+        vec![Source::Builtin {
+            seed: 7,
+            n_vehicles: Some(200)
+        }]
+    );
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -147,29 +183,71 @@ fn synthetic_town_is_deterministic_and_complete() {
     }
     let c = synthetic::town(4, None);
     assert_ne!(a.tracks.len() * 1000 + a.route.lane_ids.len(), 0);
-    assert!(a.ego != c.ego || a.tracks.len() != c.tracks.len() || a.tracks[0].states != c.tracks[0].states);
+    assert!(
+        a.ego != c.ego
+            || a.tracks.len() != c.tracks.len()
+            || a.tracks[0].states != c.tracks[0].states
+    );
     // Map content: connectors with lights, stop lines, crosswalks, a curve, lights that change.
-    assert!(a.map.lanes.iter().any(|l| l.kind == LaneKind::Connector && l.has_traffic_light && !l.stop_lines.is_empty()));
+    assert!(a
+        .map
+        .lanes
+        .iter()
+        .any(|l| l.kind == LaneKind::Connector && l.has_traffic_light && !l.stop_lines.is_empty()));
     assert_eq!(a.map.crosswalks.len(), 4);
-    assert!(a.map.lanes.iter().any(|l| l.id.starts_with("curve") && l.centre.start_curvature() > 0.01));
+    assert!(a
+        .map
+        .lanes
+        .iter()
+        .any(|l| l.id.starts_with("curve") && l.centre.start_curvature() > 0.01));
     let s0 = a.lights_at(0).to_vec();
-    assert!(s0.iter().any(|(i, _)| a.lights_at(130).iter().any(|(j, t)| i == j && t != &s0.iter().find(|(k, _)| k == i).unwrap().1)));
+    assert!(s0.iter().any(|(i, _)| a
+        .lights_at(130)
+        .iter()
+        .any(|(j, t)| i == j && t != &s0.iter().find(|(k, _)| k == i).unwrap().1)));
     // Every connector is linked in and out.
     for l in a.map.lanes.iter().filter(|l| l.kind == LaneKind::Connector) {
-        assert!(!l.successors.is_empty() && !l.predecessors.is_empty(), "{}", l.id);
+        assert!(
+            !l.successors.is_empty() && !l.predecessors.is_empty(),
+            "{}",
+            l.id
+        );
     }
     // Rig: 6 cameras, 1600x900, a frame every 0.5 s.
     assert_eq!(a.rig.cameras.len(), 6);
-    assert!(a.rig.cameras.iter().all(|c| c.width == 1600 && c.height == 900));
-    assert_eq!(a.rig.frames[1].timestamp_us - a.rig.frames[0].timestamp_us, 500_000);
+    assert!(a
+        .rig
+        .cameras
+        .iter()
+        .all(|c| c.width == 1600 && c.height == 900));
+    assert_eq!(
+        a.rig.frames[1].timestamp_us - a.rig.frames[0].timestamp_us,
+        500_000
+    );
     assert_eq!(a.rig.frames[0].images.len(), 6);
     // The expert moves along its route; vehicles and pedestrians exist.
     assert!((a.ego[150].rear_axle.pos() - a.ego[0].rear_axle.pos()).length() > 50.0);
-    assert!(a.tracks.iter().any(|t| t.class == b2dr::scene::ObjectClass::Pedestrian));
-    assert!(a.tracks.iter().filter(|t| t.class == b2dr::scene::ObjectClass::Vehicle).count() >= 5);
+    assert!(a
+        .tracks
+        .iter()
+        .any(|t| t.class == b2dr::scene::ObjectClass::Pedestrian));
+    assert!(
+        a.tracks
+            .iter()
+            .filter(|t| t.class == b2dr::scene::ObjectClass::Vehicle)
+            .count()
+            >= 5
+    );
     assert!(a.route.roadblock_ids.len() >= 3, "{:?}", a.route);
     let dense = synthetic::town(1, Some(200));
-    assert_eq!(dense.tracks.iter().filter(|t| t.class == b2dr::scene::ObjectClass::Vehicle).count(), 200);
+    assert_eq!(
+        dense
+            .tracks
+            .iter()
+            .filter(|t| t.class == b2dr::scene::ObjectClass::Vehicle)
+            .count(),
+        200
+    );
 }
 
 #[test]
@@ -194,7 +272,11 @@ fn shared_scenes_load() {
             sc.route.lane_ids.len()
         );
         assert!(sc.len() >= 151);
-        assert!(links > sc.map.lanes.len() / 2, "{}: too few inferred links", sc.name);
+        assert!(
+            links > sc.map.lanes.len() / 2,
+            "{}: too few inferred links",
+            sc.name
+        );
         assert!(!sc.map.drivable.is_empty());
         assert!(!sc.route.lane_ids.is_empty());
     }

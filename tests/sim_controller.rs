@@ -4,7 +4,9 @@ use b2dr::scene::geometry::Pose2;
 use b2dr::scene::VehicleParameters;
 use b2dr::sim::ego::{BicycleModel, EgoState};
 use b2dr::sim::idm::{idm_accel, idm_step, IdmParams, IdmPath, Lead};
-use b2dr::sim::lqr::{fit_curvature, fit_velocity, integrate_profile, interp, LqrParams, LqrTracker};
+use b2dr::sim::lqr::{
+    fit_curvature, fit_velocity, integrate_profile, interp, LqrParams, LqrTracker,
+};
 use b2dr::sim::trajectory::Trajectory;
 
 fn close(a: f64, b: f64, tol: f64) -> bool {
@@ -16,10 +18,28 @@ fn idm_acceleration_hand_case() {
     // v = 5, v0 = 10, x_lead = 20, v_lead = 3, l_r = 0: s* = 1 + 7.5 + 5*2/(2 sqrt 2) = 12.0355,
     // vdot = 1 - 0.5^4 - (12.0355/20)^2.
     let p = IdmParams::default();
-    let a = idm_accel(&p, 10.0, 5.0, &Lead { progress: 20.0, velocity: 3.0, length_rear: 0.0 });
+    let a = idm_accel(
+        &p,
+        10.0,
+        5.0,
+        &Lead {
+            progress: 20.0,
+            velocity: 3.0,
+            length_rear: 0.0,
+        },
+    );
     assert!(close(a, 0.5753648089978587, 1e-12), "{a}");
     // s_alpha is clamped to s0 = 1 (x_lead - l_r = 0.5 < 1).
-    let a2 = idm_accel(&p, 10.0, 0.0, &Lead { progress: 2.0, velocity: 0.0, length_rear: 1.5 });
+    let a2 = idm_accel(
+        &p,
+        10.0,
+        0.0,
+        &Lead {
+            progress: 2.0,
+            velocity: 0.0,
+            length_rear: 1.5,
+        },
+    );
     assert!(close(a2, 1.0 - 0.0 - 1.0, 1e-12), "{a2}");
 }
 
@@ -27,14 +47,44 @@ fn idm_acceleration_hand_case() {
 fn idm_step_clips_and_floors() {
     let p = IdmParams::default();
     // Hard braking is clipped to -2: v 1 -> 0.8; progress uses the OLD speed.
-    let (dp, v) = idm_step(&p, 10.0, 1.0, &Lead { progress: 0.0, velocity: 0.0, length_rear: 0.0 }, 0.1);
+    let (dp, v) = idm_step(
+        &p,
+        10.0,
+        1.0,
+        &Lead {
+            progress: 0.0,
+            velocity: 0.0,
+            length_rear: 0.0,
+        },
+        0.1,
+    );
     assert!(close(dp, 0.1, 1e-15) && close(v, 0.8, 1e-12), "{dp} {v}");
     // Free road far away: accel close to a_max (clipped at +1): 0 -> 0.1.
-    let (_, v) = idm_step(&p, 10.0, 0.0, &Lead { progress: 1e6, velocity: 0.0, length_rear: 0.0 }, 0.1);
+    let (_, v) = idm_step(
+        &p,
+        10.0,
+        0.0,
+        &Lead {
+            progress: 1e6,
+            velocity: 0.0,
+            length_rear: 0.0,
+        },
+        0.1,
+    );
     assert!(close(v, 0.1, 1e-9), "{v}");
     // Speed never goes negative: v 0.1, s* = 1 + 0.15 + 0.1 * 50.1 / (2 sqrt 2) = 2.92 -> vdot = -7.5,
     // clipped to -2: 0.1 - 0.2 < 0 -> 0.
-    let (_, v) = idm_step(&p, 10.0, 0.1, &Lead { progress: 0.0, velocity: -50.0, length_rear: 0.0 }, 0.1);
+    let (_, v) = idm_step(
+        &p,
+        10.0,
+        0.1,
+        &Lead {
+            progress: 0.0,
+            velocity: -50.0,
+            length_rear: 0.0,
+        },
+        0.1,
+    );
     assert_eq!(v, 0.0);
 }
 
@@ -60,9 +110,19 @@ fn lqr_lateral_hand_case() {
 #[test]
 fn lqr_stopping_controller() {
     // Reference standing still and ego at 0.1 m/s: accel = -0.5 (0.1 - v_ref), steering rate 0.
-    let poses: Vec<Pose2> = (0..=8).map(|k| Pose2::new(1e-4 * k as f64, 0.0, 0.0)).collect();
+    let poses: Vec<Pose2> = (0..=8)
+        .map(|k| Pose2::new(1e-4 * k as f64, 0.0, 0.0))
+        .collect();
     let traj = Trajectory::new((0..=8).map(|k| k * 500_000).collect(), poses).unwrap();
-    let mut s = EgoState::from_log(&[b2dr::scene::EgoLogState { rear_axle: Pose2::default(), velocity: glam::DVec2::new(0.1, 0.0), accel: 0.0 }], 0, 0.1);
+    let mut s = EgoState::from_log(
+        &[b2dr::scene::EgoLogState {
+            rear_axle: Pose2::default(),
+            velocity: glam::DVec2::new(0.1, 0.0),
+            accel: 0.0,
+        }],
+        0,
+        0.1,
+    );
     s.vx = 0.1;
     let t = LqrTracker::new(LqrParams::nuplan(3.089));
     let c = t.track(0.0, &s, &traj);
@@ -109,14 +169,21 @@ fn bicycle_step_with_filters() {
     let n = m.propagate(&s, 1.0, 0.2, 0.1);
     assert!(close(n.ax, 0.3333333333333333, 1e-12));
     assert!(close(n.rear_axle.x, 0.5, 1e-12) && n.rear_axle.y == 0.0);
-    assert!(close(n.rear_axle.heading, 0.01624063970305124, 1e-12), "{}", n.rear_axle.heading);
+    assert!(
+        close(n.rear_axle.heading, 0.01624063970305124, 1e-12),
+        "{}",
+        n.rear_axle.heading
+    );
     assert!(close(n.vx, 5.033333333333333, 1e-12));
     assert!(close(n.steering, 0.11333333333333334, 1e-12));
     assert!(close(n.steering_rate, 0.13333333333333336, 1e-12));
     assert!(close(n.yaw_rate, 0.18546435920564983, 1e-12));
     assert!(close(n.yaw_accel, -0.14535640794350185, 1e-12));
     // Steering is clipped at pi/3.
-    let s2 = EgoState { steering: 1.04, ..s };
+    let s2 = EgoState {
+        steering: 1.04,
+        ..s
+    };
     assert!(m.propagate(&s2, 0.0, 10.0, 0.1).steering <= std::f64::consts::PI / 3.0);
 }
 
@@ -137,7 +204,10 @@ fn interpolated_path_drops_last_state_quirk() {
     assert_eq!(out.len(), 2);
     assert_eq!((out[0].x, out[1].x), (2.0, 3.0));
     p.trim_up_to(1.5, &mut out);
-    assert_eq!(out.iter().map(|q| q.x).collect::<Vec<_>>(), vec![1.5, 2.0, 3.0]);
+    assert_eq!(
+        out.iter().map(|q| q.x).collect::<Vec<_>>(),
+        vec![1.5, 2.0, 3.0]
+    );
 }
 
 /// The O(M^2) normal equations of `fit_velocity` / `fit_curvature` against a plain dense construction of
@@ -150,20 +220,35 @@ fn profile_fits_match_dense_reference() {
     // Deterministic pseudo-random data.
     let mut seed = 12345u64;
     let mut rnd = || {
-        seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+        seed = seed
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
         ((seed >> 11) as f64 / (1u64 << 53) as f64) - 0.5
     };
-    let headings: Vec<f64> = (0..m).map(|k| 0.3 + 0.02 * k as f64 + 0.01 * rnd()).collect();
-    let xy: Vec<[f64; 2]> = (0..m).map(|k| [0.8 * headings[k].cos() + 0.05 * rnd(), 0.8 * headings[k].sin() + 0.05 * rnd()]).collect();
+    let headings: Vec<f64> = (0..m)
+        .map(|k| 0.3 + 0.02 * k as f64 + 0.01 * rnd())
+        .collect();
+    let xy: Vec<[f64; 2]> = (0..m)
+        .map(|k| {
+            [
+                0.8 * headings[k].cos() + 0.05 * rnd(),
+                0.8 * headings[k].sin() + 0.05 * rnd(),
+            ]
+        })
+        .collect();
     // Dense velocity fit.
     let mut a = vec![vec![0.0; m]; 2 * m];
     let mut y = vec![0.0; 2 * m];
     for k in 0..m {
         for c in 0..2 {
-            let dir = if c == 0 { headings[k].cos() } else { headings[k].sin() };
+            let dir = if c == 0 {
+                headings[k].cos()
+            } else {
+                headings[k].sin()
+            };
             a[2 * k + c][0] = dir * dt;
-            for j in 1..=k {
-                a[2 * k + c][j] = dir * dt * dt;
+            for v in a[2 * k + c].iter_mut().take(k + 1).skip(1) {
+                *v = dir * dt * dt;
             }
             y[2 * k + c] = xy[k][c];
         }
@@ -191,10 +276,20 @@ fn profile_fits_match_dense_reference() {
     }
     // Dense curvature fit.
     let vel = integrate_profile(v0, &acc, dt);
-    let dpsi: Vec<f64> = (0..m).map(|k| 0.01 + 0.002 * rnd() + 0.0001 * k as f64).collect();
+    let dpsi: Vec<f64> = (0..m)
+        .map(|k| 0.01 + 0.002 * rnd() + 0.0001 * k as f64)
+        .collect();
     let mut ata = vec![0.0; m * m];
     let mut aty = vec![0.0; m];
-    let row = |k: usize, j: usize| if j == 0 { vel[k] * dt } else if j <= k { vel[k] * dt * dt } else { 0.0 };
+    let row = |k: usize, j: usize| {
+        if j == 0 {
+            vel[k] * dt
+        } else if j <= k {
+            vel[k] * dt * dt
+        } else {
+            0.0
+        }
+    };
     for i in 0..m {
         for j in 0..m {
             ata[i * m + j] = (0..m).map(|k| row(k, i) * row(k, j)).sum();
@@ -204,7 +299,11 @@ fn profile_fits_match_dense_reference() {
     }
     let x = solve(ata, aty);
     let (k0, kd) = fit_curvature(&dpsi, &vel, dt, 1e-2);
-    assert!((k0 - x[0]).abs() < 1e-9 * (1.0 + x[0].abs()), "{k0} vs {}", x[0]);
+    assert!(
+        (k0 - x[0]).abs() < 1e-9 * (1.0 + x[0].abs()),
+        "{k0} vs {}",
+        x[0]
+    );
     for (p, q) in kd.iter().zip(&x[1..]) {
         assert!((p - q).abs() < 1e-7 * (1.0 + q.abs()), "{p} vs {q}");
     }

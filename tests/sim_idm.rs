@@ -3,7 +3,9 @@
 use b2dr::scene::geometry::{OrientedBox, Polyline, Pose2};
 use b2dr::scene::index::PolygonSet;
 use b2dr::scene::map::{LaneKind, LaneSpec, Map, StopLine};
-use b2dr::scene::{ObjectClass, ObjectState, Route, Scenario, TrafficLightStatus, Track, VehicleParameters};
+use b2dr::scene::{
+    ObjectClass, ObjectState, Route, Scenario, Track, TrafficLightStatus, VehicleParameters,
+};
 use b2dr::sim::agents::{EgoObservation, IdmManager, LeaderRef};
 use b2dr::sim::idm::{idm_accel, IdmParams, Lead};
 use glam::DVec2;
@@ -13,14 +15,23 @@ fn line_lane(id: &str, x0: f64, x1: f64, kind: LaneKind) -> LaneSpec {
     LaneSpec {
         id: id.into(),
         kind,
-        centre: Polyline::new((0..=n).map(|i| DVec2::new(x0 + (x1 - x0) * i as f64 / n as f64, 0.0)).collect(), None),
+        centre: Polyline::new(
+            (0..=n)
+                .map(|i| DVec2::new(x0 + (x1 - x0) * i as f64 / n as f64, 0.0))
+                .collect(),
+            None,
+        ),
         polygon: None,
         width: 3.5,
         speed_limit_mps: None,
         successors: vec![],
         roadblock: None,
         has_traffic_light: kind == LaneKind::Connector,
-        stop_lines: if kind == LaneKind::Connector { vec![0] } else { vec![] },
+        stop_lines: if kind == LaneKind::Connector {
+            vec![0]
+        } else {
+            vec![]
+        },
     }
 }
 
@@ -28,7 +39,12 @@ fn line_lane(id: &str, x0: f64, x1: f64, kind: LaneKind) -> LaneSpec {
 fn map() -> Map {
     let stop = StopLine {
         id: "s".into(),
-        polygon: [DVec2::new(50.5, 1.75), DVec2::new(50.0, 1.75), DVec2::new(50.0, -1.75), DVec2::new(50.5, -1.75)],
+        polygon: [
+            DVec2::new(50.5, 1.75),
+            DVec2::new(50.0, 1.75),
+            DVec2::new(50.0, -1.75),
+            DVec2::new(50.5, -1.75),
+        ],
     };
     Map::build(
         "t",
@@ -53,7 +69,10 @@ fn vehicle(id: &str, x: f64, v: f64) -> Track {
         length: 4.0,
         width: 2.0,
         height: 1.5,
-        states: vec![Some(ObjectState { pose: Pose2::new(x, 0.0, 0.0), velocity: DVec2::new(v, 0.0) })],
+        states: vec![Some(ObjectState {
+            pose: Pose2::new(x, 0.0, 0.0),
+            velocity: DVec2::new(v, 0.0),
+        })],
     }
 }
 
@@ -87,14 +106,42 @@ fn follower_takes_agent_ahead_as_leader() {
     // Follower: leader = agent 1, distance between boxes [8, 12] and [23, 27] = 11, v_lead = 3 cos 0.
     assert_eq!(m.leaders[0], Some(LeaderRef::Agent(1)));
     let f = m.agents[0].as_ref().unwrap();
-    assert!((f.velocity - step_v(5.0, Lead { progress: 11.0, velocity: 3.0, length_rear: 0.0 })).abs() < 1e-12);
+    assert!(
+        (f.velocity
+            - step_v(
+                5.0,
+                Lead {
+                    progress: 11.0,
+                    velocity: 3.0,
+                    length_rear: 0.0
+                }
+            ))
+        .abs()
+            < 1e-12
+    );
     assert!((f.progress - 10.5).abs() < 1e-12);
     // Leader: the follower's new footprint ends at 10.5 + 2 + v 1.5 < 23: free road. The path runs A -> C -> B
     // (green) and its last state is dropped (quirk): end at 149, so x_lead = 149 - 25, l_r = 2.
     assert_eq!(m.leaders[1], None);
     let l = m.agents[1].as_ref().unwrap();
-    assert!((l.path.end() - l.progress - (149.0 - 25.3)).abs() < 1e-9, "{}", l.path.end() - l.progress);
-    assert!((l.velocity - step_v(3.0, Lead { progress: 149.0 - 25.0, velocity: 0.0, length_rear: 2.0 })).abs() < 1e-12);
+    assert!(
+        (l.path.end() - l.progress - (149.0 - 25.3)).abs() < 1e-9,
+        "{}",
+        l.path.end() - l.progress
+    );
+    assert!(
+        (l.velocity
+            - step_v(
+                3.0,
+                Lead {
+                    progress: 149.0 - 25.0,
+                    velocity: 0.0,
+                    length_rear: 2.0
+                }
+            ))
+        .abs()
+            < 1e-12
+    );
 }
 
 #[test]
@@ -108,7 +155,19 @@ fn projected_footprint_quirk_makes_leader_brake_for_follower() {
     let f_v = m.agents[0].as_ref().unwrap().velocity;
     let l = m.agents[1].as_ref().unwrap();
     // x_lead = 0 -> s_alpha = s0; v_lead = the follower's (new) speed projected with cos(0).
-    assert!((l.velocity - step_v(3.0, Lead { progress: 0.0, velocity: f_v, length_rear: 0.0 })).abs() < 1e-12);
+    assert!(
+        (l.velocity
+            - step_v(
+                3.0,
+                Lead {
+                    progress: 0.0,
+                    velocity: f_v,
+                    length_rear: 0.0
+                }
+            ))
+        .abs()
+            < 1e-12
+    );
 }
 
 #[test]
@@ -127,7 +186,19 @@ fn red_connector_stop_line_is_a_static_leader() {
     let front = before.progress + before.length / 2.0 + before.velocity * 1.5;
     let expected_gap = 50.0 - (30.0 + front - before.progress);
     let a = m.agents[0].as_ref().unwrap();
-    assert!((a.velocity - step_v(before.velocity, Lead { progress: expected_gap, velocity: 0.0, length_rear: 0.0 })).abs() < 1e-9);
+    assert!(
+        (a.velocity
+            - step_v(
+                before.velocity,
+                Lead {
+                    progress: expected_gap,
+                    velocity: 0.0,
+                    length_rear: 0.0
+                }
+            ))
+        .abs()
+            < 1e-9
+    );
 }
 
 #[test]
@@ -151,12 +222,34 @@ fn ego_is_a_leader_and_far_agents_are_removed() {
     let ego_box = OrientedBox::new(Pose2::new(24.0, 0.0, 0.0), 5.0, 2.0);
     let mut m = IdmManager::build(&sc, Some(&ego_box), 0.0, IdmParams::default());
     assert_eq!(m.agents.len(), 2);
-    let ego = EgoObservation { footprint: ego_box, rear_axle_heading: 0.1, speed: 4.0 };
-    m.step(&sc.map, Some(&ego), &[(1, TrafficLightStatus::Green)], &[], 0.1);
+    let ego = EgoObservation {
+        footprint: ego_box,
+        rear_axle_heading: 0.1,
+        speed: 4.0,
+    };
+    m.step(
+        &sc.map,
+        Some(&ego),
+        &[(1, TrafficLightStatus::Green)],
+        &[],
+        0.1,
+    );
     assert_eq!(m.leaders[0], Some(LeaderRef::Ego));
     // Gap from box [8, 12] to the ego box [21.5, 26.5] = 9.5; ego speed projected: 4 cos(0.1 - 0).
     let a = m.agents[0].as_ref().unwrap();
-    assert!((a.velocity - step_v(5.0, Lead { progress: 9.5, velocity: 4.0 * 0.1f64.cos(), length_rear: 0.0 })).abs() < 1e-12);
+    assert!(
+        (a.velocity
+            - step_v(
+                5.0,
+                Lead {
+                    progress: 9.5,
+                    velocity: 4.0 * 0.1f64.cos(),
+                    length_rear: 0.0
+                }
+            ))
+        .abs()
+            < 1e-12
+    );
     // The agent at x = 140 is 116 m from the ego centre: removed for good.
     assert!(m.agents[1].is_none());
     assert_eq!(m.active(), 1);

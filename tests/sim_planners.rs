@@ -17,7 +17,10 @@ fn trace_bytes(r: &b2dr::sim::SimResult) -> Vec<u8> {
 
 #[test]
 fn same_inputs_give_bit_identical_traces() {
-    let cfg = SimConfig { agents: AgentMode::Idm, ..SimConfig::default() };
+    let cfg = SimConfig {
+        agents: AgentMode::Idm,
+        ..SimConfig::default()
+    };
     let a = run(&synthetic::town(5, None), &mut ExpertPlanner, &cfg);
     let b = run(&synthetic::town(5, None), &mut ExpertPlanner, &cfg);
     assert_eq!(a.steps.len(), 151);
@@ -29,7 +32,8 @@ fn same_inputs_give_bit_identical_traces() {
             assert_eq!(p.bbox.center.x.to_bits(), q.bbox.center.x.to_bits());
         }
     }
-    let d = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/nuscenes-mini/scenes/scene-0061.json");
+    let d = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../shared/data/nuscenes-mini/scenes/scene-0061.json");
     if d.is_file() {
         let sc = b2dr::scene::import::scenarionet::load_file(&d).unwrap();
         let a = run(&sc, &mut ExpertPlanner, &cfg);
@@ -42,11 +46,18 @@ fn same_inputs_give_bit_identical_traces() {
 
 fn client(mode: &str) -> ExternalPlanner {
     let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("examples/planner_client.py");
-    ExternalPlanner::new(&format!("python3 {} --mode {mode}", script.display()), Duration::from_millis(1500)).unwrap()
+    ExternalPlanner::new(
+        &format!("python3 {} --mode {mode}", script.display()),
+        Duration::from_millis(1500),
+    )
+    .unwrap()
 }
 
 fn python_available() -> bool {
-    std::process::Command::new("python3").arg("--version").output().is_ok()
+    std::process::Command::new("python3")
+        .arg("--version")
+        .output()
+        .is_ok()
 }
 
 #[test]
@@ -56,7 +67,11 @@ fn external_planner_runs_and_failures_end_the_scenario() {
         return;
     }
     let sc = synthetic::town(2, None);
-    let cfg = SimConfig { agents: AgentMode::Idm, steps: 40, ..SimConfig::default() };
+    let cfg = SimConfig {
+        agents: AgentMode::Idm,
+        steps: 40,
+        ..SimConfig::default()
+    };
     let ok = run(&sc, &mut client("cv"), &cfg);
     assert!(ok.failure.is_none(), "{:?}", ok.failure);
     assert_eq!(ok.steps.len(), 41);
@@ -73,12 +88,20 @@ fn external_planner_runs_and_failures_end_the_scenario() {
         let f = r.failure.clone().unwrap_or_default();
         println!("{mode}: {f} ({:.2} s)", t0.elapsed().as_secs_f64());
         assert!(f.contains(needle), "{mode}: {f}");
-        let expected_steps = if matches!(mode, "crash" | "hang") { 11 } else { 1 };
+        let expected_steps = if matches!(mode, "crash" | "hang") {
+            11
+        } else {
+            1
+        };
         assert_eq!(r.steps.len(), expected_steps, "{mode}");
-        assert!(t0.elapsed() < Duration::from_secs(10), "{mode} took too long");
+        assert!(
+            t0.elapsed() < Duration::from_secs(10),
+            "{mode} took too long"
+        );
     }
     // A bad command line fails at start with a reason.
-    let mut bad = ExternalPlanner::new("/nonexistent/planner-binary", Duration::from_millis(500)).unwrap();
+    let mut bad =
+        ExternalPlanner::new("/nonexistent/planner-binary", Duration::from_millis(500)).unwrap();
     let r = run(&sc, &mut bad, &cfg);
     assert!(r.failure.is_some());
 }
@@ -86,12 +109,18 @@ fn external_planner_runs_and_failures_end_the_scenario() {
 #[test]
 fn idm_ego_planner_makes_progress_without_collisions_on_town() {
     let sc = synthetic::town(0, None);
-    let cfg = SimConfig { agents: AgentMode::Idm, ..SimConfig::default() };
+    let cfg = SimConfig {
+        agents: AgentMode::Idm,
+        ..SimConfig::default()
+    };
     let r = run(&sc, &mut IdmPlanner::default(), &cfg);
     assert!(r.failure.is_none(), "{:?}", r.failure);
     let d = (r.steps[150].ego.rear_axle.pos() - r.steps[0].ego.rear_axle.pos()).length();
     println!("idm planner: {:.1} m in 15 s", d);
     assert!(d > 40.0, "{d}");
     let s = b2dr::sim::score::score_run(&sc, &r, &Default::default()).unwrap();
-    println!("idm planner score {:.3} collisions {}", s.score, s.no_ego_at_fault_collisions);
+    println!(
+        "idm planner score {:.3} collisions {}",
+        s.score, s.no_ego_at_fault_collisions
+    );
 }

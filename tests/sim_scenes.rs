@@ -19,19 +19,31 @@ fn scenes_dir() -> Option<PathBuf> {
 
 fn load_all() -> Vec<Scenario> {
     let Some(d) = scenes_dir() else { return vec![] };
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&d).unwrap().map(|e| e.unwrap().path()).collect();
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&d)
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .collect();
     files.sort();
-    files.iter().map(|f| scenarionet::load_file(f).unwrap()).collect()
+    files
+        .iter()
+        .map(|f| scenarionet::load_file(f).unwrap())
+        .collect()
 }
 
 /// Max distance between the simulated rear axle and the logged one over the run.
 fn mean_tracking_error(sc: &Scenario, r: &SimResult) -> f64 {
-    r.steps.iter().map(|s| (s.ego.rear_axle.pos() - sc.ego[s.step].rear_axle.pos()).length()).sum::<f64>()
+    r.steps
+        .iter()
+        .map(|s| (s.ego.rear_axle.pos() - sc.ego[s.step].rear_axle.pos()).length())
+        .sum::<f64>()
         / r.steps.len() as f64
 }
 
 fn max_tracking_error(sc: &Scenario, r: &SimResult) -> f64 {
-    r.steps.iter().map(|s| (s.ego.rear_axle.pos() - sc.ego[s.step].rear_axle.pos()).length()).fold(0.0, f64::max)
+    r.steps
+        .iter()
+        .map(|s| (s.ego.rear_axle.pos() - sc.ego[s.step].rear_axle.pos()).length())
+        .fold(0.0, f64::max)
 }
 
 #[test]
@@ -39,7 +51,10 @@ fn expert_tracks_log_and_cv_deviates_more() {
     let scenes = load_all();
     let (mut sum_exp, mut sum_cv) = (0.0, 0.0);
     for sc in &scenes {
-        let cfg = SimConfig { agents: AgentMode::Replay, ..SimConfig::default() };
+        let cfg = SimConfig {
+            agents: AgentMode::Replay,
+            ..SimConfig::default()
+        };
         let r = run(sc, &mut ExpertPlanner, &cfg);
         assert!(r.failure.is_none(), "{}: {:?}", sc.name, r.failure);
         assert_eq!(r.steps.len(), 151);
@@ -50,11 +65,22 @@ fn expert_tracks_log_and_cv_deviates_more() {
         // nuPlan's tracker starts from steering 0 (log ego states carry none) and has no position feedback
         // along the path (it tracks the speed 1 s ahead), so scenes that start in a sharp turn (1077, 0916)
         // drift by 1-2.5 m; straight scenes stay within 1 m.
-        assert!(e_exp < 3.0, "{}: expert deviates {e_exp} m from its log", sc.name);
+        assert!(
+            e_exp < 3.0,
+            "{}: expert deviates {e_exp} m from its log",
+            sc.name
+        );
         assert!(m_exp < 2.0, "{}: expert mean deviation {m_exp} m", sc.name);
-        println!("{}: expert max position error {:.3} m (mean {:.3}), constant velocity max {:.3} m", sc.name, e_exp, m_exp, e_cv);
+        println!(
+            "{}: expert max position error {:.3} m (mean {:.3}), constant velocity max {:.3} m",
+            sc.name, e_exp, m_exp, e_cv
+        );
         // A standing ego (scene-0553) gives 0 for both; otherwise cv must deviate more.
-        assert!(e_cv >= e_exp, "{}: cv ({e_cv}) should deviate at least as much as expert ({e_exp})", sc.name);
+        assert!(
+            e_cv >= e_exp,
+            "{}: cv ({e_cv}) should deviate at least as much as expert ({e_exp})",
+            sc.name
+        );
         sum_exp += e_exp;
         sum_cv += e_cv;
     }
@@ -93,7 +119,10 @@ fn idm_runs() -> Vec<SimResult> {
     scenes
         .iter()
         .map(|sc| {
-            let cfg = SimConfig { agents: AgentMode::Idm, ..SimConfig::default() };
+            let cfg = SimConfig {
+                agents: AgentMode::Idm,
+                ..SimConfig::default()
+            };
             let r = run(sc, &mut ExpertPlanner, &cfg);
             assert!(r.failure.is_none(), "{}: {:?}", sc.name, r.failure);
             r
@@ -111,8 +140,19 @@ fn idm_runs() -> Vec<SimResult> {
 fn idm_agents_never_overlap_their_leader() {
     for r in idm_runs() {
         let (n, bad) = overlaps_with_leader(&r);
-        println!("{}: {} IDM agents, {} leader relations checked, {} overlaps", r.scenario, r.idm_agents, n, bad.len());
-        assert!(bad.is_empty(), "{}: overlaps {:?}", r.scenario, &bad[..bad.len().min(6)]);
+        println!(
+            "{}: {} IDM agents, {} leader relations checked, {} overlaps",
+            r.scenario,
+            r.idm_agents,
+            n,
+            bad.len()
+        );
+        assert!(
+            bad.is_empty(),
+            "{}: overlaps {:?}",
+            r.scenario,
+            &bad[..bad.len().min(6)]
+        );
     }
 }
 
@@ -122,8 +162,24 @@ fn idm_agents_never_overlap_their_leader() {
 fn idm_leader_overlaps_only_from_the_footprint_quirk() {
     for r in idm_runs() {
         let (n, bad) = overlaps_with_leader(&r);
-        println!("{}: {} IDM agents, {} leader relations checked, {} overlaps", r.scenario, r.idm_agents, n, bad.len());
-        assert!(bad.iter().all(|b| b.3), "{}: non-mutual overlap {:?}", r.scenario, bad.iter().find(|b| !b.3));
-        assert!(bad.is_empty() || r.scenario == "scene-0796", "{}: {} overlaps", r.scenario, bad.len());
+        println!(
+            "{}: {} IDM agents, {} leader relations checked, {} overlaps",
+            r.scenario,
+            r.idm_agents,
+            n,
+            bad.len()
+        );
+        assert!(
+            bad.iter().all(|b| b.3),
+            "{}: non-mutual overlap {:?}",
+            r.scenario,
+            bad.iter().find(|b| !b.3)
+        );
+        assert!(
+            bad.is_empty() || r.scenario == "scene-0796",
+            "{}: {} overlaps",
+            r.scenario,
+            bad.len()
+        );
     }
 }

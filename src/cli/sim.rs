@@ -48,7 +48,8 @@ pub struct SimArgs {
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     let tmp = path.with_extension("tmp");
     std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
+    std::fs::rename(&tmp, path)
+        .with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
     Ok(())
 }
 
@@ -56,24 +57,28 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 fn run_one(src: &Source, args: &SimArgs, cfg: &SimConfig, dir: &Path) -> Result<Value> {
     let t0 = Instant::now();
     let sc = src.load()?;
-    let mut planner = sim::planner_from_spec(&args.planner, Duration::from_secs_f64(args.planner_timeout))?;
+    let mut planner =
+        sim::planner_from_spec(&args.planner, Duration::from_secs_f64(args.planner_timeout))?;
     let r = sim::run(&sc, planner.as_mut(), cfg);
     let sim_ms = t0.elapsed().as_secs_f64() * 1e3;
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
     let trace_path = dir.join("trace.jsonl");
     let mut w = std::io::BufWriter::new(
-        std::fs::File::create(&trace_path).with_context(|| format!("creating {}", trace_path.display()))?,
+        std::fs::File::create(&trace_path)
+            .with_context(|| format!("creating {}", trace_path.display()))?,
     );
     for s in &r.steps {
         serde_json::to_writer(&mut w, s)?;
         w.write_all(b"\n")?;
     }
-    w.flush().with_context(|| format!("writing {}", trace_path.display()))?;
+    w.flush()
+        .with_context(|| format!("writing {}", trace_path.display()))?;
     sim::bev::write_frames(&sc, &r, dir, args.bev_every, &sim::bev::BevView::default())?;
-    let (score, metrics, metrics_error) = match sim::score::score_run(&sc, &r, &ScoreParams::default()) {
-        Ok(s) => (s.score, serde_json::to_value(&s)?, None),
-        Err(e) => (0.0, Value::Null, Some(format!("{e:#}"))),
-    };
+    let (score, metrics, metrics_error) =
+        match sim::score::score_run(&sc, &r, &ScoreParams::default()) {
+            Ok(s) => (s.score, serde_json::to_value(&s)?, None),
+            Err(e) => (0.0, Value::Null, Some(format!("{e:#}"))),
+        };
     let v = json!({
         "scenario": sc.name,
         "source": sc.source,
@@ -87,7 +92,10 @@ fn run_one(src: &Source, args: &SimArgs, cfg: &SimConfig, dir: &Path) -> Result<
         "metrics_error": metrics_error,
         "wall_ms": sim_ms,
     });
-    write_atomic(&dir.join("metrics.json"), serde_json::to_string_pretty(&v)?.as_bytes())?;
+    write_atomic(
+        &dir.join("metrics.json"),
+        serde_json::to_string_pretty(&v)?.as_bytes(),
+    )?;
     Ok(v)
 }
 
@@ -102,13 +110,20 @@ pub fn run(args: SimArgs) -> Result<()> {
     // Validate the planner spec before doing any work.
     sim::planner_from_spec(&args.planner, Duration::from_secs_f64(args.planner_timeout))?;
     let sources = resolve(&args.scenario)?;
-    std::fs::create_dir_all(&args.out).with_context(|| format!("creating {}", args.out.display()))?;
-    let cfg = SimConfig { agents, steps: args.steps, ..SimConfig::default() };
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let cfg = SimConfig {
+        agents,
+        steps: args.steps,
+        ..SimConfig::default()
+    };
     let bar = (sources.len() > 1).then(|| {
         let b = indicatif::ProgressBar::new(sources.len() as u64);
         b.set_style(
-            indicatif::ProgressStyle::with_template("{bar:30} {pos}/{len} {msg} [{elapsed_precise}]")
-                .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+            indicatif::ProgressStyle::with_template(
+                "{bar:30} {pos}/{len} {msg} [{elapsed_precise}]",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
         );
         b
     });
@@ -121,8 +136,11 @@ pub fn run(args: SimArgs) -> Result<()> {
             b.set_message(name.clone());
         }
         let v = if args.resume && done.is_file() {
-            let text = std::fs::read_to_string(&done).with_context(|| format!("reading {}", done.display()))?;
-            serde_json::from_str(&text).with_context(|| format!("{}: not valid JSON (delete it to rerun)", done.display()))?
+            let text = std::fs::read_to_string(&done)
+                .with_context(|| format!("reading {}", done.display()))?;
+            serde_json::from_str(&text).with_context(|| {
+                format!("{}: not valid JSON (delete it to rerun)", done.display())
+            })?
         } else {
             match run_one(src, &args, &cfg, &dir) {
                 Ok(v) => v,
@@ -140,7 +158,10 @@ pub fn run(args: SimArgs) -> Result<()> {
                 "{}: score {:.4}{}",
                 name,
                 v["score"].as_f64().unwrap_or(0.0),
-                v["failure"].as_str().map(|f| format!(" (failed: {f})")).unwrap_or_default()
+                v["failure"]
+                    .as_str()
+                    .map(|f| format!(" (failed: {f})"))
+                    .unwrap_or_default()
             );
         }
         results.push(v);
@@ -151,8 +172,15 @@ pub fn run(args: SimArgs) -> Result<()> {
     if let Some(b) = bar {
         b.finish_and_clear();
     }
-    let scores: Vec<f64> = results.iter().map(|v| v["score"].as_f64().unwrap_or(0.0)).collect();
-    let cls = if scores.is_empty() { 0.0 } else { scores.iter().sum::<f64>() / scores.len() as f64 };
+    let scores: Vec<f64> = results
+        .iter()
+        .map(|v| v["score"].as_f64().unwrap_or(0.0))
+        .collect();
+    let cls = if scores.is_empty() {
+        0.0
+    } else {
+        scores.iter().sum::<f64>() / scores.len() as f64
+    };
     let summary = json!({
         "planner": args.planner,
         "agents": agents,
@@ -160,7 +188,15 @@ pub fn run(args: SimArgs) -> Result<()> {
         "cls": cls,
         "scenarios": results,
     });
-    write_atomic(&args.out.join("metrics.json"), serde_json::to_string_pretty(&summary)?.as_bytes())?;
-    eprintln!("{} scenario(s), CLS {:.4} -> {}", scores.len(), cls, args.out.join("metrics.json").display());
+    write_atomic(
+        &args.out.join("metrics.json"),
+        serde_json::to_string_pretty(&summary)?.as_bytes(),
+    )?;
+    eprintln!(
+        "{} scenario(s), CLS {:.4} -> {}",
+        scores.len(),
+        cls,
+        args.out.join("metrics.json").display()
+    );
     Ok(())
 }

@@ -63,7 +63,11 @@ impl Pose2 {
     pub fn relative(&self, global: &Pose2) -> Pose2 {
         let (s, c) = self.heading.sin_cos();
         let d = global.pos() - self.pos();
-        Pose2::new(c * d.x + s * d.y, -s * d.x + c * d.y, wrap_angle(global.heading - self.heading))
+        Pose2::new(
+            c * d.x + s * d.y,
+            -s * d.x + c * d.y,
+            wrap_angle(global.heading - self.heading),
+        )
     }
 }
 
@@ -75,7 +79,10 @@ pub struct Aabb {
 }
 
 impl Aabb {
-    pub const EMPTY: Aabb = Aabb { min: DVec2::splat(f64::INFINITY), max: DVec2::splat(f64::NEG_INFINITY) };
+    pub const EMPTY: Aabb = Aabb {
+        min: DVec2::splat(f64::INFINITY),
+        max: DVec2::splat(f64::NEG_INFINITY),
+    };
     pub fn from_points(pts: &[DVec2]) -> Aabb {
         let mut b = Aabb::EMPTY;
         for p in pts {
@@ -90,15 +97,24 @@ impl Aabb {
     }
     #[inline]
     pub fn union(&self, o: &Aabb) -> Aabb {
-        Aabb { min: self.min.min(o.min), max: self.max.max(o.max) }
+        Aabb {
+            min: self.min.min(o.min),
+            max: self.max.max(o.max),
+        }
     }
     #[inline]
     pub fn expand(&self, r: f64) -> Aabb {
-        Aabb { min: self.min - DVec2::splat(r), max: self.max + DVec2::splat(r) }
+        Aabb {
+            min: self.min - DVec2::splat(r),
+            max: self.max + DVec2::splat(r),
+        }
     }
     #[inline]
     pub fn overlaps(&self, o: &Aabb) -> bool {
-        self.min.x <= o.max.x && o.min.x <= self.max.x && self.min.y <= o.max.y && o.min.y <= self.max.y
+        self.min.x <= o.max.x
+            && o.min.x <= self.max.x
+            && self.min.y <= o.max.y
+            && o.min.y <= self.max.y
     }
     #[inline]
     pub fn contains(&self, p: DVec2) -> bool {
@@ -119,7 +135,11 @@ pub struct OrientedBox {
 
 impl OrientedBox {
     pub fn new(center: Pose2, length: f64, width: f64) -> Self {
-        Self { center, length, width }
+        Self {
+            center,
+            length,
+            width,
+        }
     }
     /// Corners counter-clockwise: front-left, rear-left, rear-right, front-right.
     pub fn corners(&self) -> [DVec2; 4] {
@@ -135,7 +155,11 @@ impl OrientedBox {
 pub fn point_segment_distance(p: DVec2, a: DVec2, b: DVec2) -> f64 {
     let ab = b - a;
     let l2 = ab.length_squared();
-    let t = if l2 > 0.0 { ((p - a).dot(ab) / l2).clamp(0.0, 1.0) } else { 0.0 };
+    let t = if l2 > 0.0 {
+        ((p - a).dot(ab) / l2).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
     (a + ab * t - p).length()
 }
 
@@ -143,11 +167,17 @@ pub fn point_segment_distance(p: DVec2, a: DVec2, b: DVec2) -> f64 {
 pub fn segments_intersect(a: DVec2, b: DVec2, c: DVec2, d: DVec2) -> bool {
     let o = |p: DVec2, q: DVec2, r: DVec2| (q - p).perp_dot(r - p);
     let (d1, d2, d3, d4) = (o(c, d, a), o(c, d, b), o(a, b, c), o(a, b, d));
-    if ((d1 > 0.0 && d2 < 0.0) || (d1 < 0.0 && d2 > 0.0)) && ((d3 > 0.0 && d4 < 0.0) || (d3 < 0.0 && d4 > 0.0)) {
+    if ((d1 > 0.0 && d2 < 0.0) || (d1 < 0.0 && d2 > 0.0))
+        && ((d3 > 0.0 && d4 < 0.0) || (d3 < 0.0 && d4 > 0.0))
+    {
         return true;
     }
     let on = |p: DVec2, q: DVec2, r: DVec2, v: f64| {
-        v == 0.0 && r.x >= p.x.min(q.x) && r.x <= p.x.max(q.x) && r.y >= p.y.min(q.y) && r.y <= p.y.max(q.y)
+        v == 0.0
+            && r.x >= p.x.min(q.x)
+            && r.x <= p.x.max(q.x)
+            && r.y >= p.y.min(q.y)
+            && r.y <= p.y.max(q.y)
     };
     on(c, d, a, d1) || on(c, d, b, d2) || on(a, b, c, d3) || on(a, b, d, d4)
 }
@@ -265,7 +295,10 @@ impl Part {
     fn aabb(&self) -> Aabb {
         match self {
             Part::Quad(q) => Aabb::from_points(q),
-            Part::Disc(c, r) => Aabb { min: *c - DVec2::splat(*r), max: *c + DVec2::splat(*r) },
+            Part::Disc(c, r) => Aabb {
+                min: *c - DVec2::splat(*r),
+                max: *c + DVec2::splat(*r),
+            },
         }
     }
     fn distance(&self, o: &Part) -> f64 {
@@ -347,7 +380,9 @@ impl Shape {
         k * CHUNK..((k + 1) * CHUNK).min(self.parts.len())
     }
     pub fn intersects(&self, o: &Shape) -> bool {
-        let (Some(a), Some(b)) = (self.aabb, o.aabb) else { return false };
+        let (Some(a), Some(b)) = (self.aabb, o.aabb) else {
+            return false;
+        };
         if !a.overlaps(&b) {
             return false;
         }
@@ -458,7 +493,11 @@ impl PathBuffer {
     pub fn set(&mut self, pts: impl IntoIterator<Item = DVec2>, r: f64) {
         self.pts.clear();
         for p in pts {
-            if self.pts.last().map_or(true, |l: &DVec2| (p - *l).length() > 1e-9) {
+            if self
+                .pts
+                .last()
+                .map_or(true, |l: &DVec2| (p - *l).length() > 1e-9)
+            {
                 self.pts.push(p);
             }
         }
@@ -493,7 +532,9 @@ impl PathBuffer {
     }
     /// Whether the buffered path intersects `o`.
     pub fn intersects(&self, o: &Shape) -> bool {
-        let (Some(a), Some(b)) = (self.aabb, o.aabb) else { return false };
+        let (Some(a), Some(b)) = (self.aabb, o.aabb) else {
+            return false;
+        };
         if !a.overlaps(&b) {
             return false;
         }
@@ -545,7 +586,12 @@ impl Polyline {
                 }
             }
             pts.push(*p);
-            hs.push(headings.as_ref().and_then(|h| h.get(i).copied()).unwrap_or(f64::NAN));
+            hs.push(
+                headings
+                    .as_ref()
+                    .and_then(|h| h.get(i).copied())
+                    .unwrap_or(f64::NAN),
+            );
         }
         let n = pts.len();
         for i in 0..n {
@@ -568,7 +614,11 @@ impl Polyline {
             }
             s.push(acc);
         }
-        Self { points: pts, headings: hs, s }
+        Self {
+            points: pts,
+            headings: hs,
+            s,
+        }
     }
     pub fn length(&self) -> f64 {
         self.s.last().copied().unwrap_or(0.0)
@@ -586,7 +636,11 @@ impl Polyline {
             let (a, b) = (self.points[i], self.points[i + 1]);
             let ab = b - a;
             let l2 = ab.length_squared();
-            let t = if l2 > 0.0 { ((p - a).dot(ab) / l2).clamp(0.0, 1.0) } else { 0.0 };
+            let t = if l2 > 0.0 {
+                ((p - a).dot(ab) / l2).clamp(0.0, 1.0)
+            } else {
+                0.0
+            };
             let d = (a + ab * t - p).length();
             if d < best.1 {
                 best = (self.s[i] + t * (self.s[i + 1] - self.s[i]), d);
@@ -642,7 +696,11 @@ mod tests {
         let l = Pose2::new(3.0, -1.0, 0.2);
         let g = a.compose(&l);
         let back = a.relative(&g);
-        assert!((back.x - 3.0).abs() < 1e-12 && (back.y + 1.0).abs() < 1e-12 && (back.heading - 0.2).abs() < 1e-12);
+        assert!(
+            (back.x - 3.0).abs() < 1e-12
+                && (back.y + 1.0).abs() < 1e-12
+                && (back.heading - 0.2).abs() < 1e-12
+        );
     }
 
     #[test]
@@ -657,7 +715,10 @@ mod tests {
     #[test]
     fn flat_buffer_has_flat_caps_and_round_joins() {
         // L-shaped path (0,0)->(10,0)->(10,10), half width 1.
-        let s = Shape::buffered_path(&[DVec2::ZERO, DVec2::new(10.0, 0.0), DVec2::new(10.0, 10.0)], 1.0);
+        let s = Shape::buffered_path(
+            &[DVec2::ZERO, DVec2::new(10.0, 0.0), DVec2::new(10.0, 10.0)],
+            1.0,
+        );
         let probe = |x: f64, y: f64| {
             let mut p = Shape::new();
             p.push(Part::Disc(DVec2::new(x, y), 0.0));
@@ -673,13 +734,19 @@ mod tests {
 
     #[test]
     fn lazy_path_buffer_matches_shape() {
-        let pts: Vec<DVec2> = (0..40).map(|i| DVec2::new(i as f64, (i as f64 * 0.2).sin() * 3.0)).collect();
+        let pts: Vec<DVec2> = (0..40)
+            .map(|i| DVec2::new(i as f64, (i as f64 * 0.2).sin() * 3.0))
+            .collect();
         let full = Shape::buffered_path(&pts, 1.0);
         let mut lazy = PathBuffer::default();
         lazy.set(pts.iter().copied(), 1.0);
         for ix in -5..45 {
             for iy in -6..7 {
-                let b = OrientedBox::new(Pose2::new(ix as f64, iy as f64 * 0.7, 0.3 * ix as f64), 1.2, 0.4);
+                let b = OrientedBox::new(
+                    Pose2::new(ix as f64, iy as f64 * 0.7, 0.3 * ix as f64),
+                    1.2,
+                    0.4,
+                );
                 let s = Shape::from_box(&b);
                 assert_eq!(full.intersects(&s), lazy.intersects(&s), "{ix} {iy}");
             }
@@ -695,11 +762,18 @@ mod tests {
 
     #[test]
     fn polyline_project_and_pose() {
-        let pl = Polyline::new(vec![DVec2::ZERO, DVec2::new(10.0, 0.0), DVec2::new(10.0, 10.0)], None);
+        let pl = Polyline::new(
+            vec![DVec2::ZERO, DVec2::new(10.0, 0.0), DVec2::new(10.0, 10.0)],
+            None,
+        );
         assert_eq!(pl.length(), 20.0);
         let (s, d) = pl.project(DVec2::new(12.0, 4.0));
         assert!((s - 14.0).abs() < 1e-12 && (d - 2.0).abs() < 1e-12);
         let q = pl.pose_at(15.0);
-        assert!((q.x - 10.0).abs() < 1e-12 && (q.y - 5.0).abs() < 1e-12 && (q.heading - PI / 2.0).abs() < 1e-12);
+        assert!(
+            (q.x - 10.0).abs() < 1e-12
+                && (q.y - 5.0).abs() < 1e-12
+                && (q.heading - PI / 2.0).abs() < 1e-12
+        );
     }
 }

@@ -17,7 +17,12 @@ pub struct GridIndex {
 
 impl GridIndex {
     pub fn new(cell: f64) -> Self {
-        Self { cell, cells: HashMap::new(), boxes: Vec::new(), stamp: RefCell::new((0, Vec::new())) }
+        Self {
+            cell,
+            cells: HashMap::new(),
+            boxes: Vec::new(),
+            stamp: RefCell::new((0, Vec::new())),
+        }
     }
     #[inline]
     fn key(&self, v: f64) -> i32 {
@@ -107,7 +112,14 @@ impl PolygonSet {
             }
         }
         let band = 4.0;
-        let mut s = Self { rings, edges, band, y0: 0.0, bands: Vec::new(), grid: None };
+        let mut s = Self {
+            rings,
+            edges,
+            band,
+            y0: 0.0,
+            bands: Vec::new(),
+            grid: None,
+        };
         if s.edges.is_empty() {
             return s;
         }
@@ -149,9 +161,14 @@ impl PolygonSet {
     }
     /// Distance from p to the nearest boundary edge, searching up to `max_dist` (returns INFINITY beyond).
     pub fn boundary_distance(&self, p: DVec2, max_dist: f64) -> f64 {
-        let Some(grid) = &self.grid else { return f64::INFINITY };
+        let Some(grid) = &self.grid else {
+            return f64::INFINITY;
+        };
         let mut d = f64::INFINITY;
-        let q = Aabb { min: p - DVec2::splat(max_dist), max: p + DVec2::splat(max_dist) };
+        let q = Aabb {
+            min: p - DVec2::splat(max_dist),
+            max: p + DVec2::splat(max_dist),
+        };
         grid.query(&q, |i| {
             let (a, b) = self.edges[i as usize];
             d = d.min(point_segment_distance(p, a, b));
@@ -179,10 +196,22 @@ mod tests {
     #[test]
     fn grid_query_dedups_and_filters() {
         let mut g = GridIndex::new(1.0);
-        let a = g.insert(Aabb { min: DVec2::new(0.0, 0.0), max: DVec2::new(3.0, 3.0) });
-        let b = g.insert(Aabb { min: DVec2::new(5.0, 5.0), max: DVec2::new(6.0, 6.0) });
+        let a = g.insert(Aabb {
+            min: DVec2::new(0.0, 0.0),
+            max: DVec2::new(3.0, 3.0),
+        });
+        let b = g.insert(Aabb {
+            min: DVec2::new(5.0, 5.0),
+            max: DVec2::new(6.0, 6.0),
+        });
         let mut hits = vec![];
-        g.query(&Aabb { min: DVec2::new(-1.0, -1.0), max: DVec2::new(10.0, 10.0) }, |i| hits.push(i));
+        g.query(
+            &Aabb {
+                min: DVec2::new(-1.0, -1.0),
+                max: DVec2::new(10.0, 10.0),
+            },
+            |i| hits.push(i),
+        );
         hits.sort();
         assert_eq!(hits, vec![a, b]);
         hits.clear();
@@ -192,8 +221,18 @@ mod tests {
 
     #[test]
     fn polygon_set_with_hole() {
-        let outer = vec![DVec2::new(0.0, 0.0), DVec2::new(20.0, 0.0), DVec2::new(20.0, 20.0), DVec2::new(0.0, 20.0)];
-        let hole = vec![DVec2::new(5.0, 5.0), DVec2::new(15.0, 5.0), DVec2::new(15.0, 15.0), DVec2::new(5.0, 15.0)];
+        let outer = vec![
+            DVec2::new(0.0, 0.0),
+            DVec2::new(20.0, 0.0),
+            DVec2::new(20.0, 20.0),
+            DVec2::new(0.0, 20.0),
+        ];
+        let hole = vec![
+            DVec2::new(5.0, 5.0),
+            DVec2::new(15.0, 5.0),
+            DVec2::new(15.0, 15.0),
+            DVec2::new(5.0, 15.0),
+        ];
         let s = PolygonSet::new(vec![outer, hole]);
         assert!(s.contains(DVec2::new(2.0, 10.0)));
         assert!(!s.contains(DVec2::new(10.0, 10.0)));

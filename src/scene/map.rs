@@ -101,8 +101,16 @@ pub fn buffer_centre_line(c: &Polyline, half_width: f64) -> Vec<DVec2> {
         let d = if n == 1 {
             DVec2::new(c.headings[0].cos(), c.headings[0].sin())
         } else {
-            let a = if i > 0 { (c.points[i] - c.points[i - 1]).normalize_or_zero() } else { DVec2::ZERO };
-            let b = if i + 1 < n { (c.points[i + 1] - c.points[i]).normalize_or_zero() } else { DVec2::ZERO };
+            let a = if i > 0 {
+                (c.points[i] - c.points[i - 1]).normalize_or_zero()
+            } else {
+                DVec2::ZERO
+            };
+            let b = if i + 1 < n {
+                (c.points[i + 1] - c.points[i]).normalize_or_zero()
+            } else {
+                DVec2::ZERO
+            };
             (a + b).normalize_or(DVec2::X)
         };
         let nrm = d.perp() * half_width;
@@ -131,11 +139,22 @@ impl Map {
         let mut rb_by_id: HashMap<String, usize> = HashMap::new();
         let mut lanes = Vec::with_capacity(specs.len());
         for (i, s) in specs.iter().enumerate() {
-            anyhow::ensure!(s.centre.points.len() >= 2, "lane {}: centre line needs at least 2 distinct points", s.id);
-            anyhow::ensure!(lane_by_id.insert(s.id.clone(), i).is_none(), "duplicate lane id {}", s.id);
+            anyhow::ensure!(
+                s.centre.points.len() >= 2,
+                "lane {}: centre line needs at least 2 distinct points",
+                s.id
+            );
+            anyhow::ensure!(
+                lane_by_id.insert(s.id.clone(), i).is_none(),
+                "duplicate lane id {}",
+                s.id
+            );
             let rb_name = s.roadblock.clone().unwrap_or_else(|| s.id.clone());
             let rb = *rb_by_id.entry(rb_name.clone()).or_insert_with(|| {
-                roadblocks.push(Roadblock { id: rb_name.clone(), lanes: vec![] });
+                roadblocks.push(Roadblock {
+                    id: rb_name.clone(),
+                    lanes: vec![],
+                });
                 roadblocks.len() - 1
             });
             roadblocks[rb].lanes.push(i);
@@ -172,9 +191,9 @@ impl Map {
         } else {
             for (i, s) in specs.iter().enumerate() {
                 for succ in &s.successors {
-                    let j = *lane_by_id
-                        .get(succ)
-                        .ok_or_else(|| anyhow::anyhow!("lane {}: unknown successor {succ}", s.id))?;
+                    let j = *lane_by_id.get(succ).ok_or_else(|| {
+                        anyhow::anyhow!("lane {}: unknown successor {succ}", s.id)
+                    })?;
                     lanes[i].successors.push(j);
                     lanes[j].predecessors.push(i);
                 }
@@ -233,7 +252,9 @@ impl Map {
             return hit;
         }
         let mut hit = false;
-        self.intersection_grid.query_point(p, |i| hit |= point_in_polygon(p, &self.intersections[i as usize]));
+        self.intersection_grid.query_point(p, |i| {
+            hit |= point_in_polygon(p, &self.intersections[i as usize])
+        });
         hit
     }
 
@@ -254,8 +275,13 @@ impl Map {
             return self.drivable.distance(p, max_dist);
         }
         let mut d = f64::INFINITY;
-        let q = Aabb { min: p - DVec2::splat(max_dist), max: p + DVec2::splat(max_dist) };
-        self.lane_grid.query(&q, |i| d = d.min(point_polygon_distance(p, &self.lanes[i as usize].polygon)));
+        let q = Aabb {
+            min: p - DVec2::splat(max_dist),
+            max: p + DVec2::splat(max_dist),
+        };
+        self.lane_grid.query(&q, |i| {
+            d = d.min(point_polygon_distance(p, &self.lanes[i as usize].polygon))
+        });
         if d <= max_dist {
             d
         } else {
@@ -280,7 +306,10 @@ impl Map {
             }
         }
         let mut best: Option<(f64, usize)> = None;
-        let q = Aabb { min: p - DVec2::splat(max_dist), max: p + DVec2::splat(max_dist) };
+        let q = Aabb {
+            min: p - DVec2::splat(max_dist),
+            max: p + DVec2::splat(max_dist),
+        };
         self.lane_grid.query(&q, |i| {
             let i = i as usize;
             let (s, d) = self.lanes[i].centre.project(p);
@@ -313,7 +342,10 @@ pub fn infer_lane_links(lanes: &[Lane]) -> Vec<(usize, usize)> {
     for (a, la) in lanes.iter().enumerate() {
         let end = la.centre.last();
         let h_end = *la.centre.headings.last().unwrap_or(&0.0);
-        let q = Aabb { min: end - DVec2::splat(LINK_MAX_GAP_M), max: end + DVec2::splat(LINK_MAX_GAP_M) };
+        let q = Aabb {
+            min: end - DVec2::splat(LINK_MAX_GAP_M),
+            max: end + DVec2::splat(LINK_MAX_GAP_M),
+        };
         starts.query(&q, |b| {
             let b = b as usize;
             if b == a {

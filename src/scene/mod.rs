@@ -33,7 +33,10 @@ impl ObjectClass {
     /// Whether the object is an agent (moves by itself) rather than a static object (nuPlan `Agent` vs
     /// `StaticObject`).
     pub fn is_agent(self) -> bool {
-        matches!(self, ObjectClass::Vehicle | ObjectClass::Pedestrian | ObjectClass::Bicycle)
+        matches!(
+            self,
+            ObjectClass::Vehicle | ObjectClass::Pedestrian | ObjectClass::Bicycle
+        )
     }
     /// Open-loop (replayed) classes in reactive mode (nuPlan idm_agents_observation.yaml
     /// `open_loop_detections_types`): everything but vehicles (simulated) and bicycles (dropped: quirk).
@@ -75,7 +78,11 @@ pub struct Track {
 
 impl Track {
     pub fn box_at(&self, k: usize) -> Option<OrientedBox> {
-        self.states.get(k).copied().flatten().map(|s| OrientedBox::new(s.pose, self.length, self.width))
+        self.states
+            .get(k)
+            .copied()
+            .flatten()
+            .map(|s| OrientedBox::new(s.pose, self.length, self.width))
     }
 }
 

@@ -52,7 +52,12 @@ enum Entry {
 impl Occupancy {
     /// The geometry of an entry (entries are looked up right after being listed, so they exist).
     fn shape(&self, r: Entry) -> &Shape {
-        static EMPTY: Shape = Shape { parts: Vec::new(), boxes: Vec::new(), chunks: Vec::new(), aabb: None };
+        static EMPTY: Shape = Shape {
+            parts: Vec::new(),
+            boxes: Vec::new(),
+            chunks: Vec::new(),
+            aabb: None,
+        };
         match r {
             Entry::Ego => self.ego.as_ref().unwrap_or(&EMPTY),
             Entry::Agent(j) => self.agents[j].as_ref().unwrap_or(&EMPTY),
@@ -112,7 +117,12 @@ impl IdmManager {
     /// `build_idm_agents_on_map_rails`: every VEHICLE track valid at step 0 becomes an agent unless it is off
     /// the lanes or its snapped box overlaps the ego, an open-loop object or an earlier agent. Initial speed
     /// |velocity| (the ego's speed when NaN); target speed the lane's limit when known.
-    pub fn build(sc: &Scenario, ego_box: Option<&OrientedBox>, ego_speed: f64, params: IdmParams) -> IdmManager {
+    pub fn build(
+        sc: &Scenario,
+        ego_box: Option<&OrientedBox>,
+        ego_speed: f64,
+        params: IdmParams,
+    ) -> IdmManager {
         let mut init: Vec<Shape> = Vec::new();
         for tr in &sc.tracks {
             if tr.class.replayed_in_reactive_mode() {
@@ -129,8 +139,12 @@ impl IdmManager {
             if tr.class != ObjectClass::Vehicle {
                 continue;
             }
-            let Some(st) = tr.states.first().copied().flatten() else { continue };
-            let Some((lane, progress)) = starting_segment(&sc.map, &st.pose) else { continue };
+            let Some(st) = tr.states.first().copied().flatten() else {
+                continue;
+            };
+            let Some((lane, progress)) = starting_segment(&sc.map, &st.pose) else {
+                continue;
+            };
             let snapped = sc.map.lanes[lane].centre.pose_at(progress);
             let b = OrientedBox::new(snapped, tr.length, tr.width);
             let shape = Shape::from_box(&b);
@@ -138,9 +152,15 @@ impl IdmManager {
                 continue;
             }
             init.push(shape);
-            let Some(path) = IdmPath::from_states(&lane_states(&sc.map, lane)) else { continue };
+            let Some(path) = IdmPath::from_states(&lane_states(&sc.map, lane)) else {
+                continue;
+            };
             let v = st.velocity;
-            let velocity = if v.x.is_nan() || v.y.is_nan() { ego_speed } else { v.length() };
+            let velocity = if v.x.is_nan() || v.y.is_nan() {
+                ego_speed
+            } else {
+                v.length()
+            };
             let target_velocity = match sc.map.lanes[lane].speed_limit_mps {
                 Some(l) if l > 0.0 => l,
                 _ => params.target_velocity,
@@ -158,7 +178,10 @@ impl IdmManager {
         }
         let n = agents.len();
         let occ = Occupancy {
-            agents: agents.iter().map(|a| a.as_ref().map(|a| Shape::from_box(&a.oriented_box()))).collect(),
+            agents: agents
+                .iter()
+                .map(|a| a.as_ref().map(|a| Shape::from_box(&a.oriented_box())))
+                .collect(),
             ..Default::default()
         };
         IdmManager {
@@ -213,14 +236,18 @@ impl IdmManager {
         if let Some(e) = ego {
             let c = e.footprint.center.pos();
             for (i, a) in self.agents.iter_mut().enumerate() {
-                if a.as_ref().is_some_and(|a| (a.pose().pos() - c).length() > p.radius) {
+                if a.as_ref()
+                    .is_some_and(|a| (a.pose().pos() - c).length() > p.radius)
+                {
                     *a = None;
                     self.occ.agents[i] = None;
                 }
             }
         }
         for i in 0..self.agents.len() {
-            let Some(mut agent) = self.agents[i].take() else { continue };
+            let Some(mut agent) = self.agents[i].take() else {
+                continue;
+            };
             agent.plan_route(map, &self.lights, &p, &mut self.scratch_poses);
             // Stop lines of red connectors on this agent's route.
             self.occ.stop_lines.clear();
@@ -236,13 +263,20 @@ impl IdmManager {
                 }
             }
             // Path to go buffered by width/2 with flat caps.
-            agent.path.trim_up_to(agent.bounded_progress(), &mut self.scratch_poses);
-            self.path_shape.set(self.scratch_poses.iter().map(|q| q.pos()), agent.width / 2.0);
+            agent
+                .path
+                .trim_up_to(agent.bounded_progress(), &mut self.scratch_poses);
+            self.path_shape.set(
+                self.scratch_poses.iter().map(|q| q.pos()),
+                agent.width / 2.0,
+            );
             // The nearest geometry (by polygon distance to the agent's own geometry) among those intersecting
             // the buffered path to go, the agent itself excluded. Candidates are visited by increasing
             // bounding-box lower bound, so exact tests stop once no remaining candidate can be nearer; ties
             // go to the earlier entry in scan order (ego, agents, objects, stop lines).
-            let own = self.occ.agents[i].take().unwrap_or_else(|| Shape::from_box(&agent.oriented_box()));
+            let own = self.occ.agents[i]
+                .take()
+                .unwrap_or_else(|| Shape::from_box(&agent.oriented_box()));
             // A degenerate path (fewer than 2 distinct points) meets nothing: the empty box filters all.
             let path_box = self.path_shape.aabb.unwrap_or(Aabb::EMPTY);
             let own_box = own.aabb.unwrap_or(Aabb::EMPTY);
@@ -270,7 +304,8 @@ impl IdmManager {
             for (k, (_, s)) in self.occ.stop_lines.iter().enumerate() {
                 add(Entry::StopLine(k), s, &mut self.cands);
             }
-            self.cands.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            self.cands
+                .sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
             let mut nearest: Option<(LeaderRef, f64, usize)> = None;
             for &(lb, ord, r) in &self.cands {
                 if let Some((_, d, o)) = nearest {
@@ -305,11 +340,19 @@ impl IdmManager {
                     // rotate_angle(StateSE2(v, 0, 0), principal_value(rel)).x = v cos(rel).
                     let rel = crate::scene::geometry::wrap_angle(rel);
                     self.leaders[i] = Some(r);
-                    Lead { progress: dist, velocity: v * rel.cos(), length_rear: 0.0 }
+                    Lead {
+                        progress: dist,
+                        velocity: v * rel.cos(),
+                        length_rear: 0.0,
+                    }
                 }
                 None => {
                     self.leaders[i] = None;
-                    Lead { progress: agent.progress_to_go(), velocity: 0.0, length_rear: agent.length / 2.0 }
+                    Lead {
+                        progress: agent.progress_to_go(),
+                        velocity: 0.0,
+                        length_rear: agent.length / 2.0,
+                    }
                 }
             };
             // propagate: the end segment's speed limit replaces the target speed when positive.

@@ -18,7 +18,10 @@ pub struct BevView {
 
 impl Default for BevView {
     fn default() -> Self {
-        Self { size: 640, metres_per_px: 0.15625 } // 100 m across
+        Self {
+            size: 640,
+            metres_per_px: 0.15625,
+        } // 100 m across
     }
 }
 
@@ -31,11 +34,17 @@ struct Canvas {
 impl Canvas {
     fn to_px(&self, p: DVec2) -> DVec2 {
         let h = self.img.width() as f64 / 2.0;
-        DVec2::new(h + (p.x - self.center.x) / self.mpp, h - (p.y - self.center.y) / self.mpp)
+        DVec2::new(
+            h + (p.x - self.center.x) / self.mpp,
+            h - (p.y - self.center.y) / self.mpp,
+        )
     }
     fn to_world(&self, x: f64, y: f64) -> DVec2 {
         let h = self.img.width() as f64 / 2.0;
-        DVec2::new(self.center.x + (x - h) * self.mpp, self.center.y - (y - h) * self.mpp)
+        DVec2::new(
+            self.center.x + (x - h) * self.mpp,
+            self.center.y - (y - h) * self.mpp,
+        )
     }
     fn put(&mut self, x: i64, y: i64, c: Rgb<u8>) {
         if x >= 0 && y >= 0 && (x as u32) < self.img.width() && (y as u32) < self.img.height() {
@@ -62,8 +71,14 @@ impl Canvas {
         let px: Vec<DVec2> = poly.iter().map(|p| self.to_px(*p)).collect();
         let b = Aabb::from_points(&px);
         let (w, h) = (self.img.width() as f64, self.img.height() as f64);
-        let (x0, x1) = (b.min.x.max(0.0).floor() as i64, b.max.x.min(w - 1.0).ceil() as i64);
-        let (y0, y1) = (b.min.y.max(0.0).floor() as i64, b.max.y.min(h - 1.0).ceil() as i64);
+        let (x0, x1) = (
+            b.min.x.max(0.0).floor() as i64,
+            b.max.x.min(w - 1.0).ceil() as i64,
+        );
+        let (y0, y1) = (
+            b.min.y.max(0.0).floor() as i64,
+            b.max.y.min(h - 1.0).ceil() as i64,
+        );
         for y in y0..=y1 {
             for x in x0..=x1 {
                 if point_in_polygon(DVec2::new(x as f64 + 0.5, y as f64 + 0.5), &px) {
@@ -86,7 +101,12 @@ fn class_colour(c: ObjectClass) -> Rgb<u8> {
 }
 
 /// Draws one step of a run.
-pub fn render_step(sc: &Scenario, step: &StepRecord, last_plan: Option<&[Pose2]>, view: &BevView) -> RgbImage {
+pub fn render_step(
+    sc: &Scenario,
+    step: &StepRecord,
+    last_plan: Option<&[Pose2]>,
+    view: &BevView,
+) -> RgbImage {
     let mut cv = Canvas {
         img: RgbImage::from_pixel(view.size, view.size, Rgb([25, 25, 28])),
         center: step.ego_center.pos(),
@@ -103,13 +123,20 @@ pub fn render_step(sc: &Scenario, step: &StepRecord, last_plan: Option<&[Pose2]>
         }
     }
     let half = view.size as f64 / 2.0 * view.metres_per_px;
-    let q = Aabb { min: cv.center - DVec2::splat(half), max: cv.center + DVec2::splat(half) };
+    let q = Aabb {
+        min: cv.center - DVec2::splat(half),
+        max: cv.center + DVec2::splat(half),
+    };
     let mut lanes = Vec::new();
     map.lanes_in(&q, |i| lanes.push(i as usize));
     lanes.sort_unstable();
     for &i in &lanes {
         let l = &map.lanes[i];
-        let c = if l.kind == crate::scene::LaneKind::Lane { Rgb([110, 110, 118]) } else { Rgb([90, 90, 100]) };
+        let c = if l.kind == crate::scene::LaneKind::Lane {
+            Rgb([110, 110, 118])
+        } else {
+            Rgb([90, 90, 100])
+        };
         cv.polyline(&l.polygon, c, true);
         cv.polyline(&l.centre.points, Rgb([150, 150, 90]), false);
     }
@@ -142,7 +169,11 @@ pub fn render_step(sc: &Scenario, step: &StepRecord, last_plan: Option<&[Pose2]>
         }
         // Heading tick.
         let p = a.bbox.center;
-        cv.line(p.pos(), p.forward(a.bbox.length / 2.0).pos(), Rgb([0, 0, 0]));
+        cv.line(
+            p.pos(),
+            p.forward(a.bbox.length / 2.0).pos(),
+            Rgb([0, 0, 0]),
+        );
     }
     let eb = sc.ego_params.footprint(&step.ego.rear_axle).corners();
     cv.fill(&eb, Rgb([40, 210, 90]));
@@ -151,7 +182,13 @@ pub fn render_step(sc: &Scenario, step: &StepRecord, last_plan: Option<&[Pose2]>
 }
 
 /// Writes frames every `every` steps (and the last step) as `<dir>/bev_<step>.png`; returns the count.
-pub fn write_frames(sc: &Scenario, r: &SimResult, dir: &Path, every: usize, view: &BevView) -> Result<usize> {
+pub fn write_frames(
+    sc: &Scenario,
+    r: &SimResult,
+    dir: &Path,
+    every: usize,
+    view: &BevView,
+) -> Result<usize> {
     if every == 0 || r.steps.is_empty() {
         return Ok(0);
     }
@@ -165,7 +202,8 @@ pub fn write_frames(sc: &Scenario, r: &SimResult, dir: &Path, every: usize, view
         if k % every == 0 || k == last {
             let img = render_step(sc, s, last_plan, view);
             let f = dir.join(format!("bev_{:04}.png", s.step));
-            img.save(&f).with_context(|| format!("writing {}", f.display()))?;
+            img.save(&f)
+                .with_context(|| format!("writing {}", f.display()))?;
             n += 1;
         }
     }

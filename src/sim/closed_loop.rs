@@ -46,7 +46,12 @@ pub struct SimConfig {
 
 impl Default for SimConfig {
     fn default() -> Self {
-        Self { agents: AgentMode::Idm, steps: 150, planner_every: 5, idm: IdmParams::default() }
+        Self {
+            agents: AgentMode::Idm,
+            steps: 150,
+            planner_every: 5,
+            idm: IdmParams::default(),
+        }
     }
 }
 
@@ -96,14 +101,22 @@ pub struct SimResult {
     pub idm_agents: usize,
 }
 
-fn replay_objects(sc: &Scenario, k: usize, filter: impl Fn(ObjectClass) -> bool) -> Vec<AgentRecord> {
+fn replay_objects(
+    sc: &Scenario,
+    k: usize,
+    filter: impl Fn(ObjectClass) -> bool,
+) -> Vec<AgentRecord> {
     let mut out = Vec::new();
     for (ti, tr) in sc.tracks.iter().enumerate() {
         if !filter(tr.class) {
             continue;
         }
         if let Some(s) = tr.states.get(k).copied().flatten() {
-            let v = if s.velocity.is_finite() { s.velocity } else { DVec2::ZERO };
+            let v = if s.velocity.is_finite() {
+                s.velocity
+            } else {
+                DVec2::ZERO
+            };
             out.push(AgentRecord {
                 track: ti,
                 class: tr.class,
@@ -118,7 +131,12 @@ fn replay_objects(sc: &Scenario, k: usize, filter: impl Fn(ObjectClass) -> bool)
     out
 }
 
-fn objects_at(sc: &Scenario, mode: AgentMode, k: usize, idm: Option<&IdmManager>) -> Vec<AgentRecord> {
+fn objects_at(
+    sc: &Scenario,
+    mode: AgentMode,
+    k: usize,
+    idm: Option<&IdmManager>,
+) -> Vec<AgentRecord> {
     match mode {
         AgentMode::None => vec![],
         AgentMode::Replay => replay_objects(sc, k, |_| true),
@@ -148,7 +166,12 @@ fn objects_at(sc: &Scenario, mode: AgentMode, k: usize, idm: Option<&IdmManager>
 /// Images recorded at step k (a frame whose timestamp matches), empty otherwise.
 fn images_at(sc: &Scenario, k: usize) -> Vec<CameraImage> {
     let t_us = (k as f64 * sc.dt * 1e6).round() as i64;
-    sc.rig.frames.iter().find(|f| f.timestamp_us == t_us).map(|f| f.images.clone()).unwrap_or_default()
+    sc.rig
+        .frames
+        .iter()
+        .find(|f| f.timestamp_us == t_us)
+        .map(|f| f.images.clone())
+        .unwrap_or_default()
 }
 
 /// Runs one scenario in closed loop. Planner failures end the run with `failure` set; the steps simulated
@@ -167,11 +190,20 @@ pub fn run_with_images(
     let n = cfg.steps.min(sc.len().saturating_sub(1));
     let dt = sc.dt;
     let params = sc.ego_params;
-    let tracker = LqrTracker::new(LqrParams { dt, ..LqrParams::nuplan(params.wheel_base) });
+    let tracker = LqrTracker::new(LqrParams {
+        dt,
+        ..LqrParams::nuplan(params.wheel_base)
+    });
     let bicycle = BicycleModel::new(&params);
     let mut ego = EgoState::from_log(&sc.ego, 0, dt);
-    let mut idm = (cfg.agents == AgentMode::Idm)
-        .then(|| IdmManager::build(sc, Some(&params.footprint(&ego.rear_axle)), ego.speed(), cfg.idm));
+    let mut idm = (cfg.agents == AgentMode::Idm).then(|| {
+        IdmManager::build(
+            sc,
+            Some(&params.footprint(&ego.rear_axle)),
+            ego.speed(),
+            cfg.idm,
+        )
+    });
     let mut result = SimResult {
         scenario: sc.name.clone(),
         planner: planner.name(),
@@ -204,13 +236,32 @@ pub fn run_with_images(
             let views: Vec<ObjectView> = rec
                 .agents
                 .iter()
-                .map(|a| ObjectView { track: a.track, class: a.class, bbox: a.bbox, velocity: a.velocity })
+                .map(|a| ObjectView {
+                    track: a.track,
+                    class: a.class,
+                    bbox: a.bbox,
+                    velocity: a.velocity,
+                })
                 .collect();
             let imgs = images(sc, k);
-            let input = PlannerInput { scenario: sc, step: k, time_s: ego.time_s, ego: &ego, objects: &views, images: &imgs };
+            let input = PlannerInput {
+                scenario: sc,
+                step: k,
+                time_s: ego.time_s,
+                ego: &ego,
+                objects: &views,
+                images: &imgs,
+            };
             match planner.plan(&input) {
                 Ok(t) => {
-                    rec.plan = Some(t.poses.iter().map(|p| Pose2::new(p.x, p.y, crate::scene::geometry::wrap_angle(p.heading))).collect());
+                    rec.plan = Some(
+                        t.poses
+                            .iter()
+                            .map(|p| {
+                                Pose2::new(p.x, p.y, crate::scene::geometry::wrap_angle(p.heading))
+                            })
+                            .collect(),
+                    );
                     traj = Some(t);
                 }
                 Err(e) => {

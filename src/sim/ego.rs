@@ -75,11 +75,18 @@ impl BicycleModel {
     }
 
     /// One step of `dt` seconds under the commanded acceleration and steering rate.
-    pub fn propagate(&self, s: &EgoState, accel_cmd: f64, steering_rate_cmd: f64, dt: f64) -> EgoState {
+    pub fn propagate(
+        &self,
+        s: &EgoState,
+        accel_cmd: f64,
+        steering_rate_cmd: f64,
+        dt: f64,
+    ) -> EgoState {
         // _update_commands: low-pass filters.
         let a_f = dt / (dt + self.accel_time_constant) * (accel_cmd - s.ax) + s.ax;
         let delta_ideal = dt * steering_rate_cmd + s.steering;
-        let delta_f = dt / (dt + self.steering_time_constant) * (delta_ideal - s.steering) + s.steering;
+        let delta_f =
+            dt / (dt + self.steering_time_constant) * (delta_ideal - s.steering) + s.steering;
         let deltadot_f = (delta_f - s.steering) / dt;
         // get_state_dot + forward_integrate with the old speed and the old steering angle.
         let v = s.vx;

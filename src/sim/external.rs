@@ -28,7 +28,13 @@ impl ExternalPlanner {
         if command.trim().is_empty() {
             bail!("--planner cmd: needs a command line after `cmd:`");
         }
-        Ok(Self { command: command.to_string(), timeout, child: None, stdin: None, lines: None })
+        Ok(Self {
+            command: command.to_string(),
+            timeout,
+            child: None,
+            stdin: None,
+            lines: None,
+        })
     }
 
     fn spawn(&mut self) -> Result<()> {
@@ -44,7 +50,10 @@ impl ExternalPlanner {
             .stderr(Stdio::inherit())
             .spawn()
             .with_context(|| format!("starting planner process `{}`", self.command))?;
-        let stdout = child.stdout.take().ok_or_else(|| anyhow!("planner stdout unavailable"))?;
+        let stdout = child
+            .stdout
+            .take()
+            .ok_or_else(|| anyhow!("planner stdout unavailable"))?;
         self.stdin = child.stdin.take();
         let (tx, rx) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
@@ -76,23 +85,33 @@ impl ExternalPlanner {
     }
 
     fn request(&mut self, msg: &Value) -> Result<Value> {
-        let stdin = self.stdin.as_mut().ok_or_else(|| anyhow!("planner process is not running"))?;
+        let stdin = self
+            .stdin
+            .as_mut()
+            .ok_or_else(|| anyhow!("planner process is not running"))?;
         let mut line = serde_json::to_string(msg)?;
         line.push('\n');
         stdin
             .write_all(line.as_bytes())
             .and_then(|_| stdin.flush())
             .map_err(|e| anyhow!("planner process crashed or closed its input: {e}"))?;
-        let rx = self.lines.as_ref().ok_or_else(|| anyhow!("planner process is not running"))?;
+        let rx = self
+            .lines
+            .as_ref()
+            .ok_or_else(|| anyhow!("planner process is not running"))?;
         loop {
             match rx.recv_timeout(self.timeout) {
                 Ok(Ok(l)) if l.trim().is_empty() => continue,
                 Ok(Ok(l)) => {
-                    return serde_json::from_str(&l).map_err(|e| anyhow!("planner reply is not valid JSON ({e}): {l:.200}"))
+                    return serde_json::from_str(&l)
+                        .map_err(|e| anyhow!("planner reply is not valid JSON ({e}): {l:.200}"))
                 }
                 Ok(Err(e)) => bail!("reading the planner's output failed: {e}"),
                 Err(RecvTimeoutError::Timeout) => {
-                    bail!("planner timed out: no reply within {:.1} s", self.timeout.as_secs_f64())
+                    bail!(
+                        "planner timed out: no reply within {:.1} s",
+                        self.timeout.as_secs_f64()
+                    )
                 }
                 Err(RecvTimeoutError::Disconnected) => {
                     let status = self.child.as_mut().and_then(|c| c.wait().ok());
@@ -108,13 +127,23 @@ pub fn parse_reply(v: &Value) -> Result<Vec<Pose2>> {
     if let Some(e) = v.get("error") {
         bail!("planner reported an error: {e}");
     }
-    let poses = v.get("poses").ok_or_else(|| anyhow!("planner reply has no `poses` field"))?;
-    let arr = poses.as_array().ok_or_else(|| anyhow!("planner reply `poses` is not an array"))?;
+    let poses = v
+        .get("poses")
+        .ok_or_else(|| anyhow!("planner reply has no `poses` field"))?;
+    let arr = poses
+        .as_array()
+        .ok_or_else(|| anyhow!("planner reply `poses` is not an array"))?;
     arr.iter()
         .enumerate()
         .map(|(i, p)| {
-            let c = p.as_array().filter(|c| c.len() == 3).ok_or_else(|| anyhow!("poses[{i}] is not [x, y, heading]"))?;
-            let f = |j: usize| c[j].as_f64().ok_or_else(|| anyhow!("poses[{i}][{j}] is not a number (NaN?)"));
+            let c = p
+                .as_array()
+                .filter(|c| c.len() == 3)
+                .ok_or_else(|| anyhow!("poses[{i}] is not [x, y, heading]"))?;
+            let f = |j: usize| {
+                c[j].as_f64()
+                    .ok_or_else(|| anyhow!("poses[{i}][{j}] is not a number (NaN?)"))
+            };
             Ok(Pose2::new(f(0)?, f(1)?, f(2)?))
         })
         .collect()

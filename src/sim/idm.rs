@@ -44,7 +44,9 @@ pub struct Lead {
 
 /// IDM acceleration (before clipping) for an agent at progress 0 with speed v (`IDMPolicy.idm_model`).
 pub fn idm_accel(p: &IdmParams, target_velocity: f64, v: f64, lead: &Lead) -> f64 {
-    let s_star = p.min_gap + v * p.headway_time + v * (v - lead.velocity) / (2.0 * (p.accel_max * p.decel_max).sqrt());
+    let s_star = p.min_gap
+        + v * p.headway_time
+        + v * (v - lead.velocity) / (2.0 * (p.accel_max * p.decel_max).sqrt());
     let s_alpha = (lead.progress - 0.0 - lead.length_rear).max(p.min_gap);
     p.accel_max * (1.0 - (v / target_velocity).powi(4) - (s_star / s_alpha).powi(2))
 }
@@ -53,7 +55,10 @@ pub fn idm_accel(p: &IdmParams, target_velocity: f64, v: f64, lead: &Lead) -> f6
 /// increment, new speed) with the acceleration clipped to [-decel_max, accel_max] and the speed floored at 0.
 pub fn idm_step(p: &IdmParams, target_velocity: f64, v: f64, lead: &Lead, dt: f64) -> (f64, f64) {
     let a = idm_accel(p, target_velocity, v, lead);
-    (dt * v, (v + dt * a.clamp(-p.decel_max, p.accel_max)).max(0.0))
+    (
+        dt * v,
+        (v + dt * a.clamp(-p.decel_max, p.accel_max)).max(0.0),
+    )
 }
 
 /// nuPlan's InterpolatedPath: poses with progress, linear interpolation of x, y and the unwrapped heading.
@@ -81,7 +86,11 @@ impl IdmPath {
             acc += (states[i].pos() - states[i - 1].pos()).length();
             prog.push(acc);
         }
-        let mut p = IdmPath { pts: Vec::with_capacity(n), heading: Vec::with_capacity(n), prog: Vec::with_capacity(n) };
+        let mut p = IdmPath {
+            pts: Vec::with_capacity(n),
+            heading: Vec::with_capacity(n),
+            prog: Vec::with_capacity(n),
+        };
         for i in 0..n - 1 {
             if (prog[i + 1] - prog[i]).abs() <= 1e-8 {
                 continue;
@@ -162,7 +171,11 @@ impl IdmPath {
 /// Poses of a lane centre line (the `baseline_path.discrete_path`).
 pub fn lane_states(map: &Map, lane: usize) -> Vec<Pose2> {
     let c = &map.lanes[lane].centre;
-    c.points.iter().zip(&c.headings).map(|(p, h)| Pose2::new(p.x, p.y, *h)).collect()
+    c.points
+        .iter()
+        .zip(&c.headings)
+        .map(|(p, h)| Pose2::new(p.x, p.y, *h))
+        .collect()
 }
 
 /// One IDM agent on map rails.
@@ -205,8 +218,15 @@ impl IdmAgent {
     /// `plan_route`: while the path to go is shorter than minimum_path_length + v0 T, append the outgoing
     /// edge of smallest |curvature| at its start. Connectors with traffic lights are taken only when GREEN,
     /// other edges unless RED. The path is rebuilt from the path to go and the progress reset to 0.
-    pub fn plan_route(&mut self, map: &Map, lights: &[Option<TrafficLightStatus>], p: &IdmParams, scratch: &mut Vec<Pose2>) {
-        while self.progress_to_go() < p.minimum_path_length + self.target_velocity * p.headway_time {
+    pub fn plan_route(
+        &mut self,
+        map: &Map,
+        lights: &[Option<TrafficLightStatus>],
+        p: &IdmParams,
+        scratch: &mut Vec<Pose2>,
+    ) {
+        while self.progress_to_go() < p.minimum_path_length + self.target_velocity * p.headway_time
+        {
             let end = *self.route.back().expect("route is never empty");
             let mut best: Option<(f64, usize)> = None;
             for &e in &map.lanes[end].successors {
@@ -244,7 +264,9 @@ impl IdmAgent {
     /// (flat caps). Written into `out`.
     pub fn projected_footprint(&self, p: &IdmParams, pts: &mut Vec<DVec2>, out: &mut Shape) {
         let s0 = self.path.clamp(self.progress - self.length / 2.0);
-        let s1 = self.path.clamp(self.progress + self.length / 2.0 + self.velocity * p.headway_time);
+        let s1 = self
+            .path
+            .clamp(self.progress + self.length / 2.0 + self.velocity * p.headway_time);
         self.path.trim(s0, s1, pts);
         out.clear();
         out.push(Part::Quad(self.oriented_box().corners()));

@@ -48,7 +48,9 @@ const INITIAL_CURVATURE_PENALTY: f64 = 1e-10;
 pub fn solve(mut m: Vec<f64>, mut b: Vec<f64>) -> Vec<f64> {
     let n = b.len();
     for col in 0..n {
-        let piv = (col..n).max_by(|&i, &j| m[i * n + col].abs().total_cmp(&m[j * n + col].abs())).unwrap_or(col);
+        let piv = (col..n)
+            .max_by(|&i, &j| m[i * n + col].abs().total_cmp(&m[j * n + col].abs()))
+            .unwrap_or(col);
         if piv != col {
             for k in 0..n {
                 m.swap(col * n + k, piv * n + k);
@@ -91,7 +93,8 @@ pub fn solve_spd(m: &[f64], b: &[f64]) -> Vec<f64> {
         for k in 0..j {
             d -= l[j * n + k] * l[j * n + k];
         }
-        if !(d > 0.0) {
+        // Not positive (or NaN): not SPD, use the general solver.
+        if d.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
             return solve(m.to_vec(), b.to_vec());
         }
         let d = d.sqrt();
@@ -151,10 +154,17 @@ fn normal_equations(w2: &[f64], wy: &[f64], c0: f64, c1: f64) -> (Vec<f64>, Vec<
 /// sum_{j<k} a_j), jerk penalty on first differences of a (`_fit_initial_velocity_and_acceleration_profile`).
 /// The x and y rows of a step share the unit heading vector, so their weights add to 1 and the data enter
 /// through the displacement projected on the heading.
-pub fn fit_velocity(xy: &[[f64; 2]], headings: &[f64], dt: f64, jerk_penalty: f64) -> (f64, Vec<f64>) {
+pub fn fit_velocity(
+    xy: &[[f64; 2]],
+    headings: &[f64],
+    dt: f64,
+    jerk_penalty: f64,
+) -> (f64, Vec<f64>) {
     let m = xy.len();
     let w2 = vec![1.0; m];
-    let proj: Vec<f64> = (0..m).map(|k| headings[k].cos() * xy[k][0] + headings[k].sin() * xy[k][1]).collect();
+    let proj: Vec<f64> = (0..m)
+        .map(|k| headings[k].cos() * xy[k][0] + headings[k].sin() * xy[k][1])
+        .collect();
     let (mut ata, aty) = normal_equations(&w2, &proj, dt, dt * dt);
     // R = [0 | D] with D the (M-2) x (M-1) banded difference matrix: R'R adds the second-difference
     // stencil on the acceleration block.
@@ -180,7 +190,11 @@ pub fn fit_curvature(dpsi: &[f64], v: &[f64], dt: f64, penalty: f64) -> (f64, Ve
     let wy: Vec<f64> = (0..m).map(|k| v[k] * dpsi[k]).collect();
     let (mut ata, aty) = normal_equations(&w2, &wy, dt, dt * dt);
     for i in 0..m {
-        ata[i * m + i] += if i == 0 { INITIAL_CURVATURE_PENALTY } else { penalty };
+        ata[i * m + i] += if i == 0 {
+            INITIAL_CURVATURE_PENALTY
+        } else {
+            penalty
+        };
     }
     let x = solve_spd(&ata, &aty);
     (x[0], x[1..].to_vec())
@@ -278,7 +292,9 @@ impl LqrTracker {
         let curv = integrate_profile(k0, &kdot, p.dt);
         let ts = &times[..m];
         let v_ref = interp(t_now + p.horizon as f64 * p.dt, ts, &vel);
-        let kappa = (0..p.horizon).map(|k| interp(t_now + k as f64 * p.dt, ts, &curv)).collect();
+        let kappa = (0..p.horizon)
+            .map(|k| interp(t_now + k as f64 * p.dt, ts, &curv))
+            .collect();
         (v_ref, kappa)
     }
 
@@ -301,9 +317,16 @@ impl LqrTracker {
             };
         }
         let accel = self.longitudinal(v0, v_ref);
-        let vel: Vec<f64> = (0..p.horizon).map(|k| v0 + k as f64 * accel * p.dt).collect();
+        let vel: Vec<f64> = (0..p.horizon)
+            .map(|k| v0 + k as f64 * accel * p.dt)
+            .collect();
         let steering_rate = self.lateral(x0, &vel, &kappa);
-        TrackerCommand { accel, steering_rate, reference_velocity: v_ref, stopping: false }
+        TrackerCommand {
+            accel,
+            steering_rate,
+            reference_velocity: v_ref,
+            stopping: false,
+        }
     }
 
     /// One-step LQR with A = 1, B = N dt: u = -(B Q B + R)^-1 B Q (v0 - v_ref).

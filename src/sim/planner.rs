@@ -48,11 +48,22 @@ pub trait Planner {
 
 /// Converts an ego-frame reply (poses at t + 0.5 k, k = 1..=8) into a global trajectory that starts at the
 /// current rear-axle pose. Checks count and finiteness.
-pub fn trajectory_from_ego_frame(ego: &EgoState, local: &[Pose2], min_poses: usize) -> Result<Trajectory> {
+pub fn trajectory_from_ego_frame(
+    ego: &EgoState,
+    local: &[Pose2],
+    min_poses: usize,
+) -> Result<Trajectory> {
     ensure!(!local.is_empty(), "planner returned an empty trajectory");
-    ensure!(local.len() >= min_poses, "planner returned {} poses, at least {min_poses} are required", local.len());
+    ensure!(
+        local.len() >= min_poses,
+        "planner returned {} poses, at least {min_poses} are required",
+        local.len()
+    );
     for p in local {
-        ensure!(p.x.is_finite() && p.y.is_finite() && p.heading.is_finite(), "planner returned a non-finite pose");
+        ensure!(
+            p.x.is_finite() && p.y.is_finite() && p.heading.is_finite(),
+            "planner returned a non-finite pose"
+        );
     }
     let t0 = (ego.time_s * 1e6).round() as i64;
     let step = (PLAN_DT_S * 1e6) as i64;
@@ -79,7 +90,9 @@ impl Planner for ExpertPlanner {
         let k0 = input.step.min(sc.len() - 1);
         let k1 = (k0 + horizon).min(sc.len() - 1);
         ensure!(k1 > k0, "expert log ends at step {k0}");
-        let times = (k0..=k1).map(|k| (k as f64 * sc.dt * 1e6).round() as i64).collect();
+        let times = (k0..=k1)
+            .map(|k| (k as f64 * sc.dt * 1e6).round() as i64)
+            .collect();
         let poses = (k0..=k1).map(|k| sc.ego[k].rear_axle).collect();
         Trajectory::new(times, poses)
     }
@@ -94,22 +107,18 @@ impl Planner for ConstantVelocityPlanner {
     }
     fn plan(&mut self, input: &PlannerInput) -> Result<Trajectory> {
         let v = input.ego.vx;
-        let local: Vec<Pose2> =
-            (1..=PLAN_POSES).map(|k| Pose2::new(v * PLAN_DT_S * k as f64, 0.0, 0.0)).collect();
+        let local: Vec<Pose2> = (1..=PLAN_POSES)
+            .map(|k| Pose2::new(v * PLAN_DT_S * k as f64, 0.0, 0.0))
+            .collect();
         trajectory_from_ego_frame(input.ego, &local, PLAN_POSES)
     }
 }
 
 /// Privileged IDM lane follower: follows the expert route's lanes from the lane under the ego, with IDM
 /// speed control behind the nearest object on its path (or a red light's stop line).
+#[derive(Default)]
 pub struct IdmPlanner {
     pub params: IdmParams,
-}
-
-impl Default for IdmPlanner {
-    fn default() -> Self {
-        Self { params: IdmParams::default() }
-    }
 }
 
 impl Planner for IdmPlanner {
@@ -126,7 +135,12 @@ impl Planner for IdmPlanner {
             return ConstantVelocityPlanner.plan(input);
         };
         // Lanes ahead: along the route when it continues from this lane, else straightest successors.
-        let route: Vec<usize> = sc.route.lane_ids.iter().filter_map(|id| map.lane_index(id)).collect();
+        let route: Vec<usize> = sc
+            .route
+            .lane_ids
+            .iter()
+            .filter_map(|id| map.lane_index(id))
+            .collect();
         let mut lanes = vec![lane];
         let mut total = map.lanes[lane].centre.length();
         while total < 120.0 && lanes.len() < 12 {
@@ -136,9 +150,14 @@ impl Planner for IdmPlanner {
                 .iter()
                 .copied()
                 .find(|s| route.contains(s))
-                .or_else(|| succ.iter().copied().min_by(|a, b| {
-                    map.lanes[*a].centre.start_curvature().total_cmp(&map.lanes[*b].centre.start_curvature())
-                }));
+                .or_else(|| {
+                    succ.iter().copied().min_by(|a, b| {
+                        map.lanes[*a]
+                            .centre
+                            .start_curvature()
+                            .total_cmp(&map.lanes[*b].centre.start_curvature())
+                    })
+                });
             let Some(n) = next else { break };
             total += map.lanes[n].centre.length();
             lanes.push(n);
@@ -148,17 +167,29 @@ impl Planner for IdmPlanner {
             states.extend(lane_states(map, l));
         }
         states.push(*states.last().unwrap_or(&center));
-        let Some(path) = IdmPath::from_states(&states) else { return ConstantVelocityPlanner.plan(input) };
+        let Some(path) = IdmPath::from_states(&states) else {
+            return ConstantVelocityPlanner.plan(input);
+        };
         let arc = crate::scene::geometry::Polyline::new(path.pts.clone(), None);
         let (s0, _) = arc.project(center.pos());
         // Leader: nearest object whose box meets the path ahead buffered by half the ego width.
         let ahead: Vec<DVec2> = {
             let mut v = vec![arc.point_at(s0)];
-            v.extend(arc.points.iter().zip(&arc.s).filter(|(_, s)| **s > s0).map(|(p, _)| *p));
+            v.extend(
+                arc.points
+                    .iter()
+                    .zip(&arc.s)
+                    .filter(|(_, s)| **s > s0)
+                    .map(|(p, _)| *p),
+            );
             v
         };
         let buf = Shape::buffered_path(&ahead, sc.ego_params.width / 2.0);
-        let mut lead = Lead { progress: arc.length() - s0, velocity: 0.0, length_rear: 0.0 };
+        let mut lead = Lead {
+            progress: arc.length() - s0,
+            velocity: 0.0,
+            length_rear: 0.0,
+        };
         let half = sc.ego_params.length / 2.0;
         let mut consider = |shape: &Shape, pos: DVec2, vel: DVec2, len: f64| {
             if shape.intersects(&buf) {
@@ -166,16 +197,28 @@ impl Planner for IdmPlanner {
                 let gap = s - s0 - half - len / 2.0;
                 if s > s0 && gap < lead.progress {
                     let dir = arc.pose_at(s).dir();
-                    lead = Lead { progress: gap.max(0.0), velocity: vel.dot(dir).max(0.0), length_rear: 0.0 };
+                    lead = Lead {
+                        progress: gap.max(0.0),
+                        velocity: vel.dot(dir).max(0.0),
+                        length_rear: 0.0,
+                    };
                 }
             }
         };
         for o in input.objects {
-            consider(&Shape::from_box(&o.bbox), o.bbox.center.pos(), o.velocity, o.bbox.length);
+            consider(
+                &Shape::from_box(&o.bbox),
+                o.bbox.center.pos(),
+                o.velocity,
+                o.bbox.length,
+            );
         }
         let lights = sc.lights_at(input.step);
         for &l in &lanes {
-            if lights.iter().any(|&(i, s)| i == l && s == TrafficLightStatus::Red) {
+            if lights
+                .iter()
+                .any(|&(i, s)| i == l && s == TrafficLightStatus::Red)
+            {
                 for &sl in &map.lanes[l].stop_lines {
                     let mut s = Shape::new();
                     s.push(Part::Quad(map.stop_lines[sl].polygon));
@@ -184,13 +227,20 @@ impl Planner for IdmPlanner {
                 }
             }
         }
-        let target = map.lanes[lane].speed_limit_mps.filter(|v| *v > 0.0).unwrap_or(self.params.target_velocity);
+        let target = map.lanes[lane]
+            .speed_limit_mps
+            .filter(|v| *v > 0.0)
+            .unwrap_or(self.params.target_velocity);
         let (mut s, mut v) = (s0, ego.vx.max(0.0));
         let mut lead_pos = lead.progress;
         let mut local = Vec::with_capacity(PLAN_POSES);
         let origin = center;
         for k in 1..=PLAN_POSES * 5 {
-            let l = Lead { progress: lead_pos, velocity: lead.velocity, length_rear: 0.0 };
+            let l = Lead {
+                progress: lead_pos,
+                velocity: lead.velocity,
+                length_rear: 0.0,
+            };
             let (ds, nv) = idm_step(&self.params, target, v, &l, 0.1);
             s += ds;
             v = nv;

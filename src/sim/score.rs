@@ -6,8 +6,8 @@
 use super::closed_loop::SimResult;
 use super::ego::EgoState;
 use crate::metrics::{
-    score_scenario, EgoDims, EgoStep, LaneId, LaneView, MapQuery, ObjectClass as MClass, ObjectState as MObject,
-    ScenarioScore, ScenarioTrace, ScoreParams,
+    score_scenario, EgoDims, EgoStep, LaneId, LaneView, MapQuery, ObjectClass as MClass,
+    ObjectState as MObject, ScenarioScore, ScenarioTrace, ScoreParams,
 };
 use crate::scene::geometry::point_in_polygon;
 use crate::scene::map::{LaneKind, Map};
@@ -22,13 +22,24 @@ pub struct MetricsMap<'a> {
 }
 
 fn lane_id(map: &Map, i: usize) -> LaneId {
-    LaneId { id: i as u64, is_connector: map.lanes[i].kind == LaneKind::Connector }
+    LaneId {
+        id: i as u64,
+        is_connector: map.lanes[i].kind == LaneKind::Connector,
+    }
 }
 
 impl<'a> MetricsMap<'a> {
     pub fn new(map: &'a Map) -> Self {
-        let succ = map.lanes.iter().map(|l| l.successors.iter().map(|&j| lane_id(map, j)).collect()).collect();
-        let pred = map.lanes.iter().map(|l| l.predecessors.iter().map(|&j| lane_id(map, j)).collect()).collect();
+        let succ = map
+            .lanes
+            .iter()
+            .map(|l| l.successors.iter().map(|&j| lane_id(map, j)).collect())
+            .collect();
+        let pred = map
+            .lanes
+            .iter()
+            .map(|l| l.predecessors.iter().map(|&j| lane_id(map, j)).collect())
+            .collect();
         Self { map, succ, pred }
     }
 }
@@ -68,7 +79,12 @@ impl MapQuery for MetricsMap<'_> {
         self.map.is_in_intersection(p)
     }
     fn roadblock_contains(&self, roadblock: u64, is_connector: bool, p: DVec2) -> bool {
-        let Some(rb) = usize::try_from(roadblock).ok().and_then(|r| self.map.roadblocks.get(r)) else { return false };
+        let Some(rb) = usize::try_from(roadblock)
+            .ok()
+            .and_then(|r| self.map.roadblocks.get(r))
+        else {
+            return false;
+        };
         rb.lanes.iter().any(|&i| {
             let l = &self.map.lanes[i];
             (l.kind == LaneKind::Connector) == is_connector && point_in_polygon(p, &l.polygon)
@@ -118,14 +134,20 @@ pub fn trace_of(sc: &Scenario, r: &SimResult) -> ScenarioTrace {
                     heading: a.bbox.center.heading,
                     length: a.bbox.length,
                     width: a.bbox.width,
-                    velocity: if a.class.is_agent() { a.velocity } else { DVec2::ZERO },
+                    velocity: if a.class.is_agent() {
+                        a.velocity
+                    } else {
+                        DVec2::ZERO
+                    },
                     is_agent: a.class.is_agent(),
                 })
                 .collect()
         })
         .collect();
     let n = r.steps.len().max(1);
-    let mut expert: Vec<EgoStep> = (0..n.min(sc.len())).map(|k| ego_step(&EgoState::from_log(&sc.ego, k, sc.dt))).collect();
+    let mut expert: Vec<EgoStep> = (0..n.min(sc.len()))
+        .map(|k| ego_step(&EgoState::from_log(&sc.ego, k, sc.dt)))
+        .collect();
     // Yaw acceleration of the log by differences of the yaw rate.
     for k in 1..expert.len() {
         expert[k].yaw_acceleration = (expert[k].yaw_rate - expert[k - 1].yaw_rate) / sc.dt;
@@ -134,7 +156,13 @@ pub fn trace_of(sc: &Scenario, r: &SimResult) -> ScenarioTrace {
         .route
         .roadblock_ids
         .iter()
-        .filter_map(|id| sc.map.roadblocks.iter().position(|rb| rb.id == *id).map(|i| i as u64))
+        .filter_map(|id| {
+            sc.map
+                .roadblocks
+                .iter()
+                .position(|rb| rb.id == *id)
+                .map(|i| i as u64)
+        })
         .collect();
     ScenarioTrace {
         name: sc.name.clone(),
@@ -148,7 +176,11 @@ pub fn trace_of(sc: &Scenario, r: &SimResult) -> ScenarioTrace {
 
 /// Scores a run. A run that ended early (planner failure) still gets its metrics computed on the steps it
 /// has (when there are enough), but its score is 0: a planner that crashes earns nothing.
-pub fn score_run(sc: &Scenario, r: &SimResult, params: &ScoreParams) -> anyhow::Result<ScenarioScore> {
+pub fn score_run(
+    sc: &Scenario,
+    r: &SimResult,
+    params: &ScoreParams,
+) -> anyhow::Result<ScenarioScore> {
     let trace = trace_of(sc, r);
     let map = MetricsMap::new(&sc.map);
     let mut s = score_scenario(&map, &trace, params)?;

@@ -13,8 +13,17 @@ pub struct Trajectory {
 impl Trajectory {
     /// Builds a trajectory; headings are unwrapped so interpolation never takes the long way round.
     pub fn new(times_us: Vec<i64>, mut poses: Vec<Pose2>) -> anyhow::Result<Self> {
-        anyhow::ensure!(times_us.len() == poses.len(), "trajectory: {} times but {} poses", times_us.len(), poses.len());
-        anyhow::ensure!(poses.len() >= 2, "trajectory needs at least 2 poses, got {}", poses.len());
+        anyhow::ensure!(
+            times_us.len() == poses.len(),
+            "trajectory: {} times but {} poses",
+            times_us.len(),
+            poses.len()
+        );
+        anyhow::ensure!(
+            poses.len() >= 2,
+            "trajectory needs at least 2 poses, got {}",
+            poses.len()
+        );
         for w in times_us.windows(2) {
             anyhow::ensure!(w[1] > w[0], "trajectory times must increase strictly");
         }
@@ -51,6 +60,10 @@ impl Trajectory {
         let (t0, t1) = (self.times_us[i] as f64, self.times_us[i + 1] as f64);
         let a = (t as f64 - t0) / (t1 - t0);
         let (p, q) = (self.poses[i], self.poses[i + 1]);
-        Pose2::new(p.x + a * (q.x - p.x), p.y + a * (q.y - p.y), wrap_angle(p.heading + a * (q.heading - p.heading)))
+        Pose2::new(
+            p.x + a * (q.x - p.x),
+            p.y + a * (q.y - p.y),
+            wrap_angle(p.heading + a * (q.heading - p.heading)),
+        )
     }
 }

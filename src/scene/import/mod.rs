@@ -15,7 +15,10 @@ use std::path::PathBuf;
 /// One scenario to load.
 #[derive(Clone, Debug, PartialEq)]
 pub enum Source {
-    Builtin { seed: u64, n_vehicles: Option<usize> },
+    Builtin {
+        seed: u64,
+        n_vehicles: Option<usize>,
+    },
     File(PathBuf),
 }
 
@@ -23,9 +26,18 @@ impl Source {
     /// Stable name used for output folders and `--resume` bookkeeping.
     pub fn name(&self) -> String {
         match self {
-            Source::Builtin { seed, n_vehicles: None } => format!("town-{seed}"),
-            Source::Builtin { seed, n_vehicles: Some(n) } => format!("town-{seed}-{n}v"),
-            Source::File(p) => p.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_default(),
+            Source::Builtin {
+                seed,
+                n_vehicles: None,
+            } => format!("town-{seed}"),
+            Source::Builtin {
+                seed,
+                n_vehicles: Some(n),
+            } => format!("town-{seed}-{n}v"),
+            Source::File(p) => p
+                .file_stem()
+                .map(|s| s.to_string_lossy().into_owned())
+                .unwrap_or_default(),
         }
     }
     pub fn load(&self) -> Result<Scenario> {
@@ -44,11 +56,16 @@ pub fn resolve(spec: &str) -> Result<Vec<Source>> {
             bail!("unknown builtin scenario {spec:?}: expected builtin:town[:seed[:n_vehicles]]");
         }
         let seed = match parts.get(1) {
-            Some(s) => s.parse::<u64>().with_context(|| format!("{spec}: seed {s:?} is not an integer"))?,
+            Some(s) => s
+                .parse::<u64>()
+                .with_context(|| format!("{spec}: seed {s:?} is not an integer"))?,
             None => 0,
         };
         let n_vehicles = match parts.get(2) {
-            Some(s) => Some(s.parse::<usize>().with_context(|| format!("{spec}: n_vehicles {s:?} is not an integer"))?),
+            Some(s) => Some(
+                s.parse::<usize>()
+                    .with_context(|| format!("{spec}: n_vehicles {s:?} is not an integer"))?,
+            ),
             None => None,
         };
         if parts.len() > 3 {
@@ -87,8 +104,14 @@ pub fn ego2global(p: &Pose2) -> DMat4 {
 }
 
 /// nuScenes camera channel names in the order of the dataset.
-pub const CAMERAS: [&str; 6] =
-    ["CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT"];
+pub const CAMERAS: [&str; 6] = [
+    "CAM_FRONT",
+    "CAM_FRONT_RIGHT",
+    "CAM_FRONT_LEFT",
+    "CAM_BACK",
+    "CAM_BACK_LEFT",
+    "CAM_BACK_RIGHT",
+];
 
 /// A nuScenes-like 6-camera rig: 1600x900, f = 1266.4 px, mounting yaws and positions close to the nuScenes
 /// car's (camera frame x right, y down, z forward).
@@ -105,7 +128,7 @@ pub fn nuscenes_like_cameras() -> Vec<Camera> {
     mounts
         .iter()
         .map(|&(name, yaw_deg, x, y, z)| {
-            let yaw: f64 = (yaw_deg as f64).to_radians();
+            let yaw: f64 = f64::to_radians(yaw_deg);
             let (s, c) = yaw.sin_cos();
             // Columns: camera x (right), y (down), z (forward) axes and the centre, in the ego frame.
             let cam2ego = DMat4::from_cols(
@@ -131,7 +154,12 @@ pub fn nuscenes_like_cameras() -> Vec<Camera> {
 
 /// Recorded frames every `every` log steps (0.5 s at 10 Hz with every = 5) from the ego log. The image paths
 /// `<scenario>/<CAM>/<step>.jpg` are placeholders until a renderer writes them.
-pub fn frames_from_ego(name: &str, ego: &[super::EgoLogState], dt: f64, every: usize) -> Vec<RecordedFrame> {
+pub fn frames_from_ego(
+    name: &str,
+    ego: &[super::EgoLogState],
+    dt: f64,
+    every: usize,
+) -> Vec<RecordedFrame> {
     (0..ego.len())
         .step_by(every.max(1))
         .map(|k| {
@@ -157,5 +185,8 @@ pub fn frames_from_ego(name: &str, ego: &[super::EgoLogState], dt: f64, every: u
 /// The rig of a scenario: nuScenes-like cameras plus frames every 0.5 s.
 pub fn default_rig(name: &str, ego: &[super::EgoLogState], dt: f64) -> CameraRig {
     let every = ((0.5 / dt).round() as usize).max(1);
-    CameraRig { cameras: nuscenes_like_cameras(), frames: frames_from_ego(name, ego, dt, every) }
+    CameraRig {
+        cameras: nuscenes_like_cameras(),
+        frames: frames_from_ego(name, ego, dt, every),
+    }
 }

@@ -17,7 +17,8 @@ use crate::scene::geometry::{Polyline, Pose2};
 use crate::scene::index::PolygonSet;
 use crate::scene::map::{Crosswalk, LaneKind, LaneSpec, Map};
 use crate::scene::{
-    EgoLogState, ObjectClass, ObjectState, Route, Scenario, TrafficLightStatus, Track, VehicleParameters,
+    EgoLogState, ObjectClass, ObjectState, Route, Scenario, Track, TrafficLightStatus,
+    VehicleParameters,
 };
 use anyhow::{anyhow, bail, Context, Result};
 use glam::DVec2;
@@ -37,7 +38,8 @@ impl Ctx<'_> {
         anyhow!("{}: field `{}`: {}", self.file, field, what)
     }
     fn get<'v>(&self, v: &'v Value, key: &str, path: &str) -> Result<&'v Value> {
-        v.get(key).ok_or_else(|| self.err(&format!("{path}.{key}").trim_start_matches('.').to_string(), "missing"))
+        v.get(key)
+            .ok_or_else(|| self.err(format!("{path}.{key}").trim_start_matches('.'), "missing"))
     }
     fn f64(&self, v: &Value, path: &str) -> Result<f64> {
         match v {
@@ -48,10 +50,12 @@ impl Ctx<'_> {
         }
     }
     fn arr<'v>(&self, v: &'v Value, path: &str) -> Result<&'v Vec<Value>> {
-        v.as_array().ok_or_else(|| self.err(path, &format!("expected an array, found {}", kind(v))))
+        v.as_array()
+            .ok_or_else(|| self.err(path, &format!("expected an array, found {}", kind(v))))
     }
     fn str<'v>(&self, v: &'v Value, path: &str) -> Result<&'v str> {
-        v.as_str().ok_or_else(|| self.err(path, &format!("expected a string, found {}", kind(v))))
+        v.as_str()
+            .ok_or_else(|| self.err(path, &format!("expected a string, found {}", kind(v))))
     }
     /// An array of points (each [x, y] or [x, y, z/heading]); returns (xy, third column if present).
     fn points(&self, v: &Value, path: &str) -> Result<(Vec<DVec2>, Option<Vec<f64>>)> {
@@ -82,7 +86,10 @@ impl Ctx<'_> {
         let p = format!("{path}.{key}");
         let a = self.arr(self.get(v, key, path)?, &p)?;
         if a.len() != t {
-            return Err(self.err(&p, &format!("has {} entries, expected `length` = {t}", a.len())));
+            return Err(self.err(
+                &p,
+                &format!("has {} entries, expected `length` = {t}", a.len()),
+            ));
         }
         Ok(a)
     }
@@ -126,10 +133,14 @@ fn light_of(s: &str) -> TrafficLightStatus {
 
 /// Loads one ScenarioNet JSON file.
 pub fn load_file(path: &Path) -> Result<Scenario> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading scenario file {}", path.display()))?;
-    let v: Value =
-        serde_json::from_str(&text).with_context(|| format!("{}: not valid JSON", path.display()))?;
-    let maps_dir = path.parent().and_then(|p| p.parent()).map(|p| p.join("maps"));
+    let text = std::fs::read_to_string(path)
+        .with_context(|| format!("reading scenario file {}", path.display()))?;
+    let v: Value = serde_json::from_str(&text)
+        .with_context(|| format!("{}: not valid JSON", path.display()))?;
+    let maps_dir = path
+        .parent()
+        .and_then(|p| p.parent())
+        .map(|p| p.join("maps"));
     parse(&v, &path.display().to_string(), maps_dir.as_deref())
 }
 
@@ -151,23 +162,38 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
     }
     let t = t as usize;
     let meta = c.get(v, "metadata", "")?;
-    let sdc = c.str(c.get(meta, "sdc_id", "metadata")?, "metadata.sdc_id")?.to_string();
-    let map_name = c.str(c.get(meta, "map", "metadata")?, "metadata.map")?.to_string();
+    let sdc = c
+        .str(c.get(meta, "sdc_id", "metadata")?, "metadata.sdc_id")?
+        .to_string();
+    let map_name = c
+        .str(c.get(meta, "map", "metadata")?, "metadata.map")?
+        .to_string();
     let dt = match meta.get("sample_rate") {
         Some(s) => c.f64(s, "metadata.sample_rate")?,
         None => 0.1,
     };
     if !(dt > 0.0 && dt < 10.0) {
-        return Err(c.err("metadata.sample_rate", "must be a positive time step in seconds"));
+        return Err(c.err(
+            "metadata.sample_rate",
+            "must be a positive time step in seconds",
+        ));
     }
     let name = v
         .get("id")
         .and_then(|s| s.as_str())
         .map(String::from)
-        .unwrap_or_else(|| Path::new(file).file_stem().map(|s| s.to_string_lossy().into()).unwrap_or_default());
+        .unwrap_or_else(|| {
+            Path::new(file)
+                .file_stem()
+                .map(|s| s.to_string_lossy().into())
+                .unwrap_or_default()
+        });
 
     // --- tracks
-    let tracks_v = c.get(v, "tracks", "")?.as_object().ok_or_else(|| c.err("tracks", "expected an object"))?;
+    let tracks_v = c
+        .get(v, "tracks", "")?
+        .as_object()
+        .ok_or_else(|| c.err("tracks", "expected an object"))?;
     let mut ids: Vec<&String> = tracks_v.keys().collect();
     ids.sort();
     let mut tracks = Vec::new();
@@ -176,7 +202,8 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
         let tv = &tracks_v[id.as_str()];
         let p = format!("tracks.{id}");
         let ty = c.str(c.get(tv, "type", &p)?, &format!("{p}.type"))?;
-        let class = class_of(ty).ok_or_else(|| c.err(&format!("{p}.type"), &format!("unknown object type {ty:?}")))?;
+        let class = class_of(ty)
+            .ok_or_else(|| c.err(&format!("{p}.type"), &format!("unknown object type {ty:?}")))?;
         let st = c.get(tv, "state", &p)?;
         let sp = format!("{p}.state");
         let pos = c.steps(st, "position", &sp, t)?;
@@ -217,31 +244,63 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
                     c.f64(&hei[k], &format!("{sp}.height[{k}]"))?,
                 ));
             }
-            states.push(Some(ObjectState { pose: Pose2::new(x, y, h), velocity: DVec2::new(vx, vy) }));
+            states.push(Some(ObjectState {
+                pose: Pose2::new(x, y, h),
+                velocity: DVec2::new(vx, vy),
+            }));
         }
         let Some((l, w, hgt)) = size else { continue };
         if !(l > 0.0 && w > 0.0) {
             return Err(c.err(&format!("{sp}.length"), "object size must be positive"));
         }
-        let tr = Track { id: id.clone(), class, length: l, width: w, height: hgt, states };
+        let tr = Track {
+            id: id.clone(),
+            class,
+            length: l,
+            width: w,
+            height: hgt,
+            states,
+        };
         if *id == sdc {
             ego_track = Some(tr);
         } else {
             tracks.push(tr);
         }
     }
-    let ego_tr = ego_track.ok_or_else(|| c.err("metadata.sdc_id", &format!("no track {sdc:?} in `tracks`")))?;
+    let ego_tr = ego_track
+        .ok_or_else(|| c.err("metadata.sdc_id", &format!("no track {sdc:?} in `tracks`")))?;
     let mut ego = Vec::with_capacity(t);
     for (k, s) in ego_tr.states.iter().enumerate() {
-        let s = s.ok_or_else(|| c.err(&format!("tracks.{sdc}.state.valid[{k}]"), "the ego must be valid at every step"))?;
-        ego.push(EgoLogState { rear_axle: s.pose, velocity: s.velocity, accel: 0.0 });
+        let s = s.ok_or_else(|| {
+            c.err(
+                &format!("tracks.{sdc}.state.valid[{k}]"),
+                "the ego must be valid at every step",
+            )
+        })?;
+        ego.push(EgoLogState {
+            rear_axle: s.pose,
+            velocity: s.velocity,
+            accel: 0.0,
+        });
     }
     fill_ego_accel(&mut ego, dt);
-    let (el, ew) = if ego_tr.width > ego_tr.length { (ego_tr.width, ego_tr.length) } else { (ego_tr.length, ego_tr.width) };
-    let ego_params = VehicleParameters { width: ew, length: el, height: ego_tr.height, ..VehicleParameters::PACIFICA };
+    let (el, ew) = if ego_tr.width > ego_tr.length {
+        (ego_tr.width, ego_tr.length)
+    } else {
+        (ego_tr.length, ego_tr.width)
+    };
+    let ego_params = VehicleParameters {
+        width: ew,
+        length: el,
+        height: ego_tr.height,
+        ..VehicleParameters::PACIFICA
+    };
 
     // --- map
-    let feats = c.get(v, "map_features", "")?.as_object().ok_or_else(|| c.err("map_features", "expected an object"))?;
+    let feats = c
+        .get(v, "map_features", "")?
+        .as_object()
+        .ok_or_else(|| c.err("map_features", "expected an object"))?;
     let mut fids: Vec<&String> = feats.keys().collect();
     fids.sort();
     let mut specs = Vec::new();
@@ -254,7 +313,10 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
             let (pts, third) = c.points(c.get(f, "polyline", &p)?, &format!("{p}.polyline"))?;
             let centre = Polyline::new(pts, third);
             if centre.points.len() < 2 {
-                return Err(c.err(&format!("{p}.polyline"), "a lane needs at least 2 distinct points"));
+                return Err(c.err(
+                    &format!("{p}.polyline"),
+                    "a lane needs at least 2 distinct points",
+                ));
             }
             let polygon = match f.get("polygon") {
                 Some(pg) => {
@@ -263,7 +325,11 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
                 }
                 None => None,
             };
-            let kind = if polygon.is_some() { LaneKind::Lane } else { LaneKind::Connector };
+            let kind = if polygon.is_some() {
+                LaneKind::Lane
+            } else {
+                LaneKind::Connector
+            };
             specs.push(LaneSpec {
                 id: id.clone(),
                 kind,
@@ -279,7 +345,10 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
         } else if ty == "CROSSWALK" {
             if let Some(pg) = f.get("polygon") {
                 let (pp, _) = c.points(pg, &format!("{p}.polygon"))?;
-                crosswalks.push(Crosswalk { id: id.clone(), polygon: pp });
+                crosswalks.push(Crosswalk {
+                    id: id.clone(),
+                    polygon: pp,
+                });
             }
         }
     }
@@ -293,7 +362,9 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
     // --- traffic lights
     let mut lights = vec![Vec::new(); t];
     if let Some(dms) = v.get("dynamic_map_states") {
-        let o = dms.as_object().ok_or_else(|| c.err("dynamic_map_states", "expected an object"))?;
+        let o = dms
+            .as_object()
+            .ok_or_else(|| c.err("dynamic_map_states", "expected an object"))?;
         let mut keys: Vec<&String> = o.keys().collect();
         keys.sort();
         for id in keys {
@@ -303,7 +374,11 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
             let li = map
                 .lane_index(lane)
                 .ok_or_else(|| c.err(&format!("{p}.lane"), &format!("unknown lane {lane:?}")))?;
-            let st = c.get(c.get(d, "state", &p)?, "object_state", &format!("{p}.state"))?;
+            let st = c.get(
+                c.get(d, "state", &p)?,
+                "object_state",
+                &format!("{p}.state"),
+            )?;
             let arr = c.arr(st, &format!("{p}.state.object_state"))?;
             map.lanes[li].has_traffic_light = true;
             for (k, s) in arr.iter().enumerate().take(t) {
@@ -334,20 +409,27 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
 /// would give accelerations of +-10 m/s^2.
 pub fn fill_ego_accel(ego: &mut [EgoLogState], dt: f64) {
     let n = ego.len();
-    let v: Vec<f64> = ego.iter().map(|e| e.velocity.dot(e.rear_axle.dir())).collect();
+    let v: Vec<f64> = ego
+        .iter()
+        .map(|e| e.velocity.dot(e.rear_axle.dir()))
+        .collect();
     const HALF: usize = 5;
-    for k in 0..n {
+    for (k, e) in ego.iter_mut().enumerate() {
         let (a, b) = (k.saturating_sub(HALF), (k + HALF).min(n - 1));
         let m = (b - a + 1) as f64;
         let tm = (a..=b).map(|i| i as f64).sum::<f64>() / m;
-        let vm = (a..=b).map(|i| v[i]).sum::<f64>() / m;
+        let vm = v[a..=b].iter().sum::<f64>() / m;
         let (mut num, mut den) = (0.0, 0.0);
-        for i in a..=b {
+        for (i, vi) in v.iter().enumerate().take(b + 1).skip(a) {
             let t = i as f64 - tm;
-            num += t * (v[i] - vm);
+            num += t * (vi - vm);
             den += t * t;
         }
-        ego[k].accel = if den > 0.0 && num.is_finite() { num / den / dt } else { 0.0 };
+        e.accel = if den > 0.0 && num.is_finite() {
+            num / den / dt
+        } else {
+            0.0
+        };
     }
 }
 
@@ -375,7 +457,8 @@ pub fn route_from_ego(map: &Map, ego: &[EgoLogState], params: &VehicleParameters
 pub fn load_geojson_polygons(path: &Path) -> Result<PolygonSet> {
     let file = path.display().to_string();
     let text = std::fs::read_to_string(path).with_context(|| format!("reading {file}"))?;
-    let v: Value = serde_json::from_str(&text).with_context(|| format!("{file}: not valid JSON"))?;
+    let v: Value =
+        serde_json::from_str(&text).with_context(|| format!("{file}: not valid JSON"))?;
     let c = Ctx { file: &file };
     let mut rings = Vec::new();
     fn geometry(c: &Ctx, g: &Value, path: &str, rings: &mut Vec<Vec<DVec2>>) -> Result<()> {
@@ -383,11 +466,23 @@ pub fn load_geojson_polygons(path: &Path) -> Result<PolygonSet> {
         let coords = c.get(g, "coordinates", path)?;
         let polys: Vec<&Value> = match ty {
             "Polygon" => vec![coords],
-            "MultiPolygon" => c.arr(coords, &format!("{path}.coordinates"))?.iter().collect(),
-            other => return Err(c.err(&format!("{path}.type"), &format!("unsupported geometry {other:?}"))),
+            "MultiPolygon" => c
+                .arr(coords, &format!("{path}.coordinates"))?
+                .iter()
+                .collect(),
+            other => {
+                return Err(c.err(
+                    &format!("{path}.type"),
+                    &format!("unsupported geometry {other:?}"),
+                ))
+            }
         };
         for (i, poly) in polys.iter().enumerate() {
-            for (j, ring) in c.arr(poly, &format!("{path}.coordinates[{i}]"))?.iter().enumerate() {
+            for (j, ring) in c
+                .arr(poly, &format!("{path}.coordinates[{i}]"))?
+                .iter()
+                .enumerate()
+            {
                 let (pts, _) = c.points(ring, &format!("{path}.coordinates[{i}][{j}]"))?;
                 rings.push(pts);
             }
@@ -396,8 +491,17 @@ pub fn load_geojson_polygons(path: &Path) -> Result<PolygonSet> {
     }
     match v.get("type").and_then(|t| t.as_str()) {
         Some("FeatureCollection") => {
-            for (i, f) in c.arr(c.get(&v, "features", "")?, "features")?.iter().enumerate() {
-                geometry(&c, c.get(f, "geometry", &format!("features[{i}]"))?, &format!("features[{i}].geometry"), &mut rings)?;
+            for (i, f) in c
+                .arr(c.get(&v, "features", "")?, "features")?
+                .iter()
+                .enumerate()
+            {
+                geometry(
+                    &c,
+                    c.get(f, "geometry", &format!("features[{i}]"))?,
+                    &format!("features[{i}].geometry"),
+                    &mut rings,
+                )?;
             }
         }
         Some("Feature") => geometry(&c, c.get(&v, "geometry", "")?, "geometry", &mut rings)?,
