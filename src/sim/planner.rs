@@ -234,7 +234,6 @@ impl Planner for IdmPlanner {
         let (mut s, mut v) = (s0, ego.vx.max(0.0));
         let mut lead_pos = lead.progress;
         let mut local = Vec::with_capacity(PLAN_POSES);
-        let origin = center;
         for k in 1..=PLAN_POSES * 5 {
             let l = Lead {
                 progress: lead_pos,
@@ -244,11 +243,11 @@ impl Planner for IdmPlanner {
             let (ds, nv) = idm_step(&self.params, target, v, &l, 0.1);
             s += ds;
             v = nv;
+            // The leader keeps its speed: the gap changes by (v_lead - v_ego) dt.
             lead_pos += (lead.velocity - ds / 0.1) * 0.1;
             if k % 5 == 0 {
                 let c = arc.pose_at(s);
                 let rear = sc.ego_params.rear_axle_of(&c);
-                let _ = origin;
                 local.push(ego.rear_axle.relative(&rear));
             }
         }
