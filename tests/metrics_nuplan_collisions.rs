@@ -46,7 +46,7 @@ struct Fixture {
     scenes: Vec<Scene>,
 }
 
-pub fn to_ego(e: &Ego) -> EgoStep {
+fn to_ego(e: &Ego) -> EgoStep {
     EgoStep {
         time_s: e.time_us as f64 * 1e-6,
         position: DVec2::new(e.pose[0], e.pose[1]),
@@ -58,7 +58,7 @@ pub fn to_ego(e: &Ego) -> EgoStep {
     }
 }
 
-pub fn to_obj(o: &Obj) -> ObjectState {
+fn to_obj(o: &Obj) -> ObjectState {
     ObjectState {
         track_id: o.id,
         class: o.class,

@@ -52,7 +52,11 @@ fn clean_drive_scores_one_and_overspeed_is_weighted() {
     // score is the weighted mean (5 + 5 + 4 s + 2) / 16 (all multipliers 1).
     let s = score_scenario(&map, &clean(17.0), &p).unwrap();
     let speed = 1.0 - 31.0 * 2.0 * 0.1 / (2.23 * 3.0);
-    assert!((s.speed_limit_compliance - speed).abs() < 1e-9, "{}", s.speed_limit_compliance);
+    assert!(
+        (s.speed_limit_compliance - speed).abs() < 1e-9,
+        "{}",
+        s.speed_limit_compliance
+    );
     assert!((s.score - (12.0 + 4.0 * speed) / 16.0).abs() < 1e-9);
     // CLS = mean of scenario scores.
     let all = score_all(&map, &[clean(10.0), clean(17.0)], &p).unwrap();
@@ -94,13 +98,20 @@ fn deterministic_and_serde_round_trip() {
     assert_eq!(a.score.to_bits(), b.score.to_bits());
     let back: b2dr::metrics::ScenarioScore = serde_json::from_str(&ja).unwrap();
     assert!(back == a, "serde round trip changed the result");
-    for v in [a.ego_progress_along_expert_route, a.speed_limit_compliance, a.score] {
+    for v in [
+        a.ego_progress_along_expert_route,
+        a.speed_limit_compliance,
+        a.score,
+    ] {
         assert!((0.0..=1.0).contains(&v));
     }
     // The trace itself round-trips too (the simulator may hand traces over as JSON).
     let tj = serde_json::to_string(&trace).unwrap();
     let t2: ScenarioTrace = serde_json::from_str(&tj).unwrap();
-    assert!(serde_json::to_string(&score_scenario(&map, &t2, &p).unwrap()).unwrap() == ja, "trace round trip changed the score");
+    assert!(
+        serde_json::to_string(&score_scenario(&map, &t2, &p).unwrap()).unwrap() == ja,
+        "trace round trip changed the score"
+    );
 }
 
 #[test]

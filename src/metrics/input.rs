@@ -147,6 +147,8 @@ pub struct ScenarioTrace {
     /// Expert (logged) ego over the same time span (at least the same start and end).
     pub expert: Vec<EgoStep>,
     /// Route: roadblock ids in driving order (nuPlan `scenario.get_route_roadblock_ids()`); may be empty.
+    /// Carried for reports: nuPlan's closed-loop metrics derive the route from the expert's driven lanes
+    /// (ego_progress_along_expert_route), not from this list.
     #[serde(default)]
     pub route_roadblocks: Vec<u64>,
 }

@@ -19,10 +19,26 @@ pub fn straight_road(lanes: usize, blocks: usize) -> VecMap {
         let x0 = b as f64 * BLOCK_LEN;
         for l in 0..lanes {
             let y = l as f64 * LANE_WIDTH;
-            let id = LaneId { id: (b * 100 + l) as u64, is_connector: false };
-            m.add_straight_lane(id, b as u64, DVec2::new(x0, y), DVec2::new(x0 + BLOCK_LEN, y), LANE_WIDTH, Some(15.0));
+            let id = LaneId {
+                id: (b * 100 + l) as u64,
+                is_connector: false,
+            };
+            m.add_straight_lane(
+                id,
+                b as u64,
+                DVec2::new(x0, y),
+                DVec2::new(x0 + BLOCK_LEN, y),
+                LANE_WIDTH,
+                Some(15.0),
+            );
             if b > 0 {
-                m.connect(LaneId { id: ((b - 1) * 100 + l) as u64, is_connector: false }, id);
+                m.connect(
+                    LaneId {
+                        id: ((b - 1) * 100 + l) as u64,
+                        is_connector: false,
+                    },
+                    id,
+                );
             }
         }
         m.roadblocks.retain(|r| r.id != b as u64);
@@ -96,7 +112,10 @@ pub fn busy_scenario(steps: usize, objects: usize, seed: u64) -> (VecMap, Scenar
                 let lane = rng.gen_range(0..4) as f64;
                 Init {
                     class: ObjectClass::Vehicle,
-                    p: DVec2::new(rng.gen_range(-50.0..450.0), lane * LANE_WIDTH + rng.gen_range(-0.3..0.3)),
+                    p: DVec2::new(
+                        rng.gen_range(-50.0..450.0),
+                        lane * LANE_WIDTH + rng.gen_range(-0.3..0.3),
+                    ),
                     v: rng.gen_range(0.0..14.0),
                     h: rng.gen_range(-0.05..0.05),
                     l: 4.7,
@@ -114,7 +133,10 @@ pub fn busy_scenario(steps: usize, objects: usize, seed: u64) -> (VecMap, Scenar
             } else {
                 Init {
                     class: ObjectClass::TrafficCone,
-                    p: DVec2::new(rng.gen_range(0.0..400.0), 4.0 * LANE_WIDTH + rng.gen_range(0.0..2.0)),
+                    p: DVec2::new(
+                        rng.gen_range(0.0..400.0),
+                        4.0 * LANE_WIDTH + rng.gen_range(0.0..2.0),
+                    ),
                     v: 0.0,
                     h: 0.0,
                     l: 0.5,
