@@ -151,10 +151,12 @@ impl IdmManager {
             if init.iter().any(|s| s.intersects(&shape)) {
                 continue;
             }
-            init.push(shape);
+            // A lane too short for a path (fewer than 2 states after the dropped last one) cannot carry an
+            // agent; checked before the box is registered.
             let Some(path) = IdmPath::from_states(&lane_states(&sc.map, lane)) else {
                 continue;
             };
+            init.push(shape);
             let v = st.velocity;
             let velocity = if v.x.is_nan() || v.y.is_nan() {
                 ego_speed
