@@ -308,3 +308,33 @@ fn profile_fits_match_dense_reference() {
         assert!((p - q).abs() < 1e-7 * (1.0 + q.abs()), "{p} vs {q}");
     }
 }
+
+/// nuPlan test_kinematic_motion_model: without time constants the commands pass unfiltered; with them the
+/// applied commands are smaller; steering saturates exactly at pi/3.
+#[test]
+fn bicycle_filters_and_steering_limit_like_nuplan_tests() {
+    let s = EgoState {
+        time_s: 0.0,
+        rear_axle: Pose2::new(0.0, 0.0, 0.0),
+        vx: 0.0,
+        vy: 0.0,
+        ax: 0.0,
+        ay: 0.0,
+        steering: std::f64::consts::PI / 3.0 - 1e-4,
+        steering_rate: 0.0,
+        yaw_rate: 0.0,
+        yaw_accel: 0.0,
+    };
+    let base = BicycleModel::new(&VehicleParameters::PACIFICA);
+    let no_delay = BicycleModel {
+        accel_time_constant: 0.0,
+        steering_time_constant: 0.0,
+        ..base
+    };
+    let n = no_delay.propagate(&s, 1.0, 0.5, 1.0);
+    assert!((n.ax - 1.0).abs() < 1e-10 && (n.steering_rate - 0.5).abs() < 1e-10);
+    let f = base.propagate(&s, 1.0, 0.5, 1.0);
+    assert!(f.ax < 1.0 && f.steering_rate < 0.5);
+    let sat = base.propagate(&s, 0.0, 10.0, 1.0);
+    assert_eq!(sat.steering, std::f64::consts::PI / 3.0);
+}

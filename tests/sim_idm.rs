@@ -254,3 +254,40 @@ fn ego_is_a_leader_and_far_agents_are_removed() {
     assert!(m.agents[1].is_none());
     assert_eq!(m.active(), 1);
 }
+
+#[test]
+fn open_loop_object_is_a_static_leader() {
+    // A moving pedestrian on the lane ahead: open-loop objects count with velocity 0 (nuPlan's "else"
+    // branch), whatever their own speed.
+    let sc = scenario(vec![vehicle("a", 10.0, 5.0)]);
+    let mut m = IdmManager::build(&sc, None, 0.0, IdmParams::default());
+    let ped = OrientedBox::new(Pose2::new(30.0, 0.5, 1.0), 0.6, 0.6);
+    m.step(
+        &sc.map,
+        None,
+        &[(1, TrafficLightStatus::Green)],
+        &[(7, ped)],
+        0.1,
+    );
+    assert_eq!(m.leaders[0], Some(LeaderRef::Object(7)));
+    let gap = b2dr::scene::geometry::Shape::from_box(&OrientedBox::new(
+        Pose2::new(10.0, 0.0, 0.0),
+        4.0,
+        2.0,
+    ))
+    .distance(&b2dr::scene::geometry::Shape::from_box(&ped));
+    let a = m.agents[0].as_ref().unwrap();
+    assert!(
+        (a.velocity
+            - step_v(
+                5.0,
+                Lead {
+                    progress: gap,
+                    velocity: 0.0,
+                    length_rear: 0.0
+                }
+            ))
+        .abs()
+            < 1e-12
+    );
+}
