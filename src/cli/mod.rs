@@ -6,6 +6,7 @@ mod forward;
 mod info;
 mod project;
 mod sample;
+mod sim;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -37,6 +38,8 @@ pub enum Command {
     Forward(forward::ForwardArgs),
     /// Run a full guided sampling loop (UNet + ControlNet + VAE decode) and write PNG and EXR.
     Sample(sample::SampleArgs),
+    /// Closed-loop simulation of a planner over scenarios, with the nuPlan closed-loop score.
+    Sim(sim::SimArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -89,5 +92,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Project(a) => project::run(a),
         Command::Forward(a) => forward::run(cli.device, a),
         Command::Sample(a) => sample::run(cli.device, a),
+        Command::Sim(a) => sim::run(a),
     }
 }

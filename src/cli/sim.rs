@@ -1,0 +1,202 @@
+//! `b2dr sim`: closed-loop runs of a planner over scenarios, writing per scenario a JSON-lines trace, a
+//! metrics.json and bird's-eye-view PNG frames, plus the aggregate (CLS) in `<out>/metrics.json`.
+//!
+//! Layout of `--out`:
+//!   <out>/<scenario>/trace.jsonl    one line per step (ego state, command, plan, objects)
+//!   <out>/<scenario>/metrics.json   the scenario's score, every metric, the failure reason (written last:
+//!                                   its presence marks the scenario done for --resume)
+//!   <out>/<scenario>/bev_<step>.png frames every --bev-every steps
+//!   <out>/metrics.json              all scenarios and the aggregate CLS
+use anyhow::{bail, Context, Result};
+use b2dr::metrics::ScoreParams;
+use b2dr::scene::import::{resolve, Source};
+use b2dr::sim::{self, AgentMode, SimConfig};
+use clap::Args;
+use serde_json::{json, Value};
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+#[derive(Args, Debug)]
+pub struct SimArgs {
+    /// Scenario(s): builtin:town[:seed[:n_vehicles]], a ScenarioNet .json file, or a directory of them.
+    #[arg(long, default_value = "builtin:town")]
+    pub scenario: String,
+    /// Planner: expert, cv, idm or cmd:<command line> (see docs/planner_protocol.md).
+    #[arg(long, default_value = "expert")]
+    pub planner: String,
+    /// Other traffic: idm (reactive, R-CLS), replay (log replay, CLS-NR) or none.
+    #[arg(long, default_value = "idm")]
+    pub agents: String,
+    /// Output directory.
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Skip scenarios whose metrics.json already exists in --out.
+    #[arg(long)]
+    pub resume: bool,
+    /// Steps per scenario (10 Hz; capped by the log length).
+    #[arg(long, default_value_t = 150)]
+    pub steps: usize,
+    /// Seconds an external planner may take per call before the scenario is ended.
+    #[arg(long, default_value_t = 10.0)]
+    pub planner_timeout: f64,
+    /// Write a bird's-eye-view PNG every this many steps (0: none).
+    #[arg(long, default_value_t = 25)]
+    pub bev_every: usize,
+}
+
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path)
+        .with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
+    Ok(())
+}
+
+/// Runs one scenario and writes its folder; returns its metrics.json value.
+fn run_one(src: &Source, args: &SimArgs, cfg: &SimConfig, dir: &Path) -> Result<Value> {
+    let t0 = Instant::now();
+    let sc = src.load()?;
+    let mut planner =
+        sim::planner_from_spec(&args.planner, Duration::from_secs_f64(args.planner_timeout))?;
+    let r = sim::run(&sc, planner.as_mut(), cfg);
+    let sim_ms = t0.elapsed().as_secs_f64() * 1e3;
+    std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    let trace_path = dir.join("trace.jsonl");
+    let mut w = std::io::BufWriter::new(
+        std::fs::File::create(&trace_path)
+            .with_context(|| format!("creating {}", trace_path.display()))?,
+    );
+    for s in &r.steps {
+        serde_json::to_writer(&mut w, s)?;
+        w.write_all(b"\n")?;
+    }
+    w.flush()
+        .with_context(|| format!("writing {}", trace_path.display()))?;
+    sim::bev::write_frames(&sc, &r, dir, args.bev_every, &sim::bev::BevView::default())?;
+    let (score, metrics, metrics_error) =
+        match sim::score::score_run(&sc, &r, &ScoreParams::default()) {
+            Ok(s) => (s.score, serde_json::to_value(&s)?, None),
+            Err(e) => (0.0, Value::Null, Some(format!("{e:#}"))),
+        };
+    let v = json!({
+        "scenario": sc.name,
+        "source": sc.source,
+        "planner": r.planner,
+        "agents": r.agent_mode,
+        "steps": r.steps.len().saturating_sub(1),
+        "idm_agents": r.idm_agents,
+        "failure": r.failure,
+        "score": score,
+        "metrics": metrics,
+        "metrics_error": metrics_error,
+        "wall_ms": sim_ms,
+    });
+    write_atomic(
+        &dir.join("metrics.json"),
+        serde_json::to_string_pretty(&v)?.as_bytes(),
+    )?;
+    Ok(v)
+}
+
+pub fn run(args: SimArgs) -> Result<()> {
+    let agents: AgentMode = args.agents.parse()?;
+    if args.steps == 0 {
+        bail!("--steps must be at least 1");
+    }
+    if !(args.planner_timeout > 0.0 && args.planner_timeout.is_finite()) {
+        bail!("--planner-timeout must be a positive number of seconds");
+    }
+    // Validate the planner spec before doing any work.
+    sim::planner_from_spec(&args.planner, Duration::from_secs_f64(args.planner_timeout))?;
+    let sources = resolve(&args.scenario)?;
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating {}", args.out.display()))?;
+    let cfg = SimConfig {
+        agents,
+        steps: args.steps,
+        ..SimConfig::default()
+    };
+    let bar = (sources.len() > 1).then(|| {
+        let b = indicatif::ProgressBar::new(sources.len() as u64);
+        b.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{bar:30} {pos}/{len} {msg} [{elapsed_precise}]",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        b
+    });
+    let mut results = Vec::new();
+    for src in &sources {
+        let name = src.name();
+        let dir = args.out.join(&name);
+        let done = dir.join("metrics.json");
+        if let Some(b) = &bar {
+            b.set_message(name.clone());
+        }
+        let v = if args.resume && done.is_file() {
+            let text = std::fs::read_to_string(&done)
+                .with_context(|| format!("reading {}", done.display()))?;
+            serde_json::from_str(&text).with_context(|| {
+                format!("{}: not valid JSON (delete it to rerun)", done.display())
+            })?
+        } else {
+            match run_one(src, &args, &cfg, &dir) {
+                Ok(v) => v,
+                Err(e) => {
+                    // A scenario that cannot be loaded or written is reported, and the run goes on.
+                    let v = json!({ "scenario": name, "failure": format!("{e:#}"), "score": 0.0 });
+                    std::fs::create_dir_all(&dir).ok();
+                    write_atomic(&done, serde_json::to_string_pretty(&v)?.as_bytes())?;
+                    v
+                }
+            }
+        };
+        if bar.is_none() {
+            eprintln!(
+                "{}: score {:.4}{}",
+                name,
+                v["score"].as_f64().unwrap_or(0.0),
+                v["failure"]
+                    .as_str()
+                    .map(|f| format!(" (failed: {f})"))
+                    .unwrap_or_default()
+            );
+        }
+        results.push(v);
+        if let Some(b) = &bar {
+            b.inc(1);
+        }
+    }
+    if let Some(b) = bar {
+        b.finish_and_clear();
+    }
+    let scores: Vec<f64> = results
+        .iter()
+        .map(|v| v["score"].as_f64().unwrap_or(0.0))
+        .collect();
+    let cls = if scores.is_empty() {
+        0.0
+    } else {
+        scores.iter().sum::<f64>() / scores.len() as f64
+    };
+    let summary = json!({
+        "planner": args.planner,
+        "agents": agents,
+        "cls_kind": match agents { AgentMode::Idm => "R-CLS", AgentMode::Replay => "CLS-NR", AgentMode::None => "CLS (no agents)" },
+        "cls": cls,
+        "scenarios": results,
+    });
+    write_atomic(
+        &args.out.join("metrics.json"),
+        serde_json::to_string_pretty(&summary)?.as_bytes(),
+    )?;
+    eprintln!(
+        "{} scenario(s), CLS {:.4} -> {}",
+        scores.len(),
+        cls,
+        args.out.join("metrics.json").display()
+    );
+    Ok(())
+}

@@ -1,0 +1,302 @@
+//! The closed loop: 10 Hz steps, planner every 5th step (the latest trajectory keeps being tracked), ego first
+//! (LQR + bicycle), then the agents, which see the ego before it moved and the lights/objects of the next step.
+use super::agents::{EgoObservation, IdmManager, LeaderRef};
+use super::ego::{BicycleModel, EgoState};
+use super::idm::IdmParams;
+use super::lqr::{LqrParams, LqrTracker, TrackerCommand};
+use super::planner::{ObjectView, Planner, PlannerInput};
+use super::trajectory::Trajectory;
+use crate::scene::geometry::{OrientedBox, Pose2};
+use crate::scene::{CameraImage, ObjectClass, Scenario};
+use glam::DVec2;
+
+/// How other traffic behaves.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum AgentMode {
+    /// IDM vehicles + replayed pedestrians and static objects (R-CLS).
+    Idm,
+    /// Everything replayed from the log (CLS-NR).
+    Replay,
+    /// No other objects.
+    None,
+}
+
+impl std::str::FromStr for AgentMode {
+    type Err = anyhow::Error;
+    fn from_str(s: &str) -> anyhow::Result<Self> {
+        Ok(match s {
+            "idm" => AgentMode::Idm,
+            "replay" => AgentMode::Replay,
+            "none" => AgentMode::None,
+            _ => anyhow::bail!("unknown agent mode {s:?}: expected idm, replay or none"),
+        })
+    }
+}
+
+#[derive(Clone, Copy, Debug)]
+pub struct SimConfig {
+    pub agents: AgentMode,
+    /// Steps to simulate (150 = 15 s), capped by the log length.
+    pub steps: usize,
+    /// The planner runs every this many steps (5 = 2 Hz).
+    pub planner_every: usize,
+    pub idm: IdmParams,
+}
+
+impl Default for SimConfig {
+    fn default() -> Self {
+        Self {
+            agents: AgentMode::Idm,
+            steps: 150,
+            planner_every: 5,
+            idm: IdmParams::default(),
+        }
+    }
+}
+
+/// One object in a trace step.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct AgentRecord {
+    /// Index of the log track.
+    pub track: usize,
+    pub class: ObjectClass,
+    pub bbox: OrientedBox,
+    #[serde(serialize_with = "crate::scene::geometry::ser_dvec2")]
+    pub velocity: DVec2,
+    /// Simulated by IDM (else replayed).
+    pub idm: bool,
+    /// Index in the IDM manager (what [`LeaderRef::Agent`] refers to).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub manager_index: Option<usize>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub leader: Option<LeaderRef>,
+}
+
+/// One trace line: the state at `step` and the command applied from it.
+#[derive(Clone, Debug, PartialEq, serde::Serialize)]
+pub struct StepRecord {
+    pub step: usize,
+    pub time_s: f64,
+    pub ego: EgoState,
+    /// Ego box centre pose.
+    pub ego_center: Pose2,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub command: Option<TrackerCommand>,
+    /// The trajectory returned by the planner at this step (global rear-axle poses), if it planned.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub plan: Option<Vec<Pose2>>,
+    pub agents: Vec<AgentRecord>,
+}
+
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct SimResult {
+    pub scenario: String,
+    pub planner: String,
+    pub agent_mode: AgentMode,
+    pub steps: Vec<StepRecord>,
+    /// Why the scenario ended early (planner crash, timeout, invalid trajectory).
+    pub failure: Option<String>,
+    /// IDM agents built at step 0.
+    pub idm_agents: usize,
+}
+
+fn replay_objects(
+    sc: &Scenario,
+    k: usize,
+    filter: impl Fn(ObjectClass) -> bool,
+) -> Vec<AgentRecord> {
+    let mut out = Vec::new();
+    for (ti, tr) in sc.tracks.iter().enumerate() {
+        if !filter(tr.class) {
+            continue;
+        }
+        if let Some(s) = tr.states.get(k).copied().flatten() {
+            let v = if s.velocity.is_finite() {
+                s.velocity
+            } else {
+                DVec2::ZERO
+            };
+            out.push(AgentRecord {
+                track: ti,
+                class: tr.class,
+                bbox: OrientedBox::new(s.pose, tr.length, tr.width),
+                velocity: v,
+                idm: false,
+                manager_index: None,
+                leader: None,
+            });
+        }
+    }
+    out
+}
+
+fn objects_at(
+    sc: &Scenario,
+    mode: AgentMode,
+    k: usize,
+    idm: Option<&IdmManager>,
+) -> Vec<AgentRecord> {
+    match mode {
+        AgentMode::None => vec![],
+        AgentMode::Replay => replay_objects(sc, k, |_| true),
+        AgentMode::Idm => {
+            let mut out = Vec::new();
+            if let Some(m) = idm {
+                for (i, a) in m.agents.iter().enumerate() {
+                    if let Some(a) = a {
+                        out.push(AgentRecord {
+                            track: a.track,
+                            class: ObjectClass::Vehicle,
+                            bbox: a.oriented_box(),
+                            velocity: a.velocity_vec(),
+                            idm: true,
+                            manager_index: Some(i),
+                            leader: m.leaders[i],
+                        });
+                    }
+                }
+            }
+            out.extend(replay_objects(sc, k, |c| c.replayed_in_reactive_mode()));
+            out
+        }
+    }
+}
+
+/// Images recorded at step k (a frame whose timestamp matches), empty otherwise.
+fn images_at(sc: &Scenario, k: usize) -> Vec<CameraImage> {
+    let t_us = (k as f64 * sc.dt * 1e6).round() as i64;
+    sc.rig
+        .frames
+        .iter()
+        .find(|f| f.timestamp_us == t_us)
+        .map(|f| f.images.clone())
+        .unwrap_or_default()
+}
+
+/// Runs one scenario in closed loop. Planner failures end the run with `failure` set; the steps simulated
+/// so far are kept.
+pub fn run(sc: &Scenario, planner: &mut dyn Planner, cfg: &SimConfig) -> SimResult {
+    run_with_images(sc, planner, cfg, &|sc, k| images_at(sc, k))
+}
+
+/// Like [`run`], with a callback giving the camera images for a planning step.
+pub fn run_with_images(
+    sc: &Scenario,
+    planner: &mut dyn Planner,
+    cfg: &SimConfig,
+    images: &dyn Fn(&Scenario, usize) -> Vec<CameraImage>,
+) -> SimResult {
+    let n = cfg.steps.min(sc.len().saturating_sub(1));
+    let dt = sc.dt;
+    let params = sc.ego_params;
+    let tracker = LqrTracker::new(LqrParams {
+        dt,
+        ..LqrParams::nuplan(params.wheel_base)
+    });
+    let bicycle = BicycleModel::new(&params);
+    let mut ego = EgoState::from_log(&sc.ego, 0, dt);
+    let mut idm = (cfg.agents == AgentMode::Idm).then(|| {
+        IdmManager::build(
+            sc,
+            Some(&params.footprint(&ego.rear_axle)),
+            ego.speed(),
+            cfg.idm,
+        )
+    });
+    let mut result = SimResult {
+        scenario: sc.name.clone(),
+        planner: planner.name(),
+        agent_mode: cfg.agents,
+        steps: Vec::with_capacity(n + 1),
+        failure: None,
+        idm_agents: idm.as_ref().map_or(0, |m| m.agents.len()),
+    };
+    if let Err(e) = planner.start(sc) {
+        result.failure = Some(format!("planner failed to start: {e:#}"));
+        return result;
+    }
+    let mut traj: Option<Trajectory> = None;
+    let mut agents = objects_at(sc, cfg.agents, 0, idm.as_ref());
+    for k in 0..=n {
+        let mut rec = StepRecord {
+            step: k,
+            time_s: ego.time_s,
+            ego,
+            ego_center: params.center_of(&ego.rear_axle),
+            command: None,
+            plan: None,
+            agents: std::mem::take(&mut agents),
+        };
+        if k == n {
+            result.steps.push(rec);
+            break;
+        }
+        if k % cfg.planner_every.max(1) == 0 || traj.is_none() {
+            let views: Vec<ObjectView> = rec
+                .agents
+                .iter()
+                .map(|a| ObjectView {
+                    track: a.track,
+                    class: a.class,
+                    bbox: a.bbox,
+                    velocity: a.velocity,
+                })
+                .collect();
+            let imgs = images(sc, k);
+            let input = PlannerInput {
+                scenario: sc,
+                step: k,
+                time_s: ego.time_s,
+                ego: &ego,
+                objects: &views,
+                images: &imgs,
+            };
+            match planner.plan(&input) {
+                Ok(t) => {
+                    rec.plan = Some(
+                        t.poses
+                            .iter()
+                            .map(|p| {
+                                Pose2::new(p.x, p.y, crate::scene::geometry::wrap_angle(p.heading))
+                            })
+                            .collect(),
+                    );
+                    traj = Some(t);
+                }
+                Err(e) => {
+                    result.failure = Some(format!("step {k}: {e:#}"));
+                    result.steps.push(rec);
+                    planner.finish();
+                    return result;
+                }
+            }
+        }
+        let Some(t) = traj.as_ref() else { break };
+        let cmd = tracker.track(ego.time_s, &ego, t);
+        rec.command = Some(cmd);
+        let next_ego = bicycle.propagate(&ego, cmd.accel, cmd.steering_rate, dt);
+        if let Some(m) = idm.as_mut() {
+            let obs = EgoObservation {
+                footprint: params.footprint(&ego.rear_axle),
+                rear_axle_heading: ego.rear_axle.heading,
+                speed: ego.vx.hypot(ego.vy),
+            };
+            let open: Vec<(usize, OrientedBox)> = sc
+                .tracks
+                .iter()
+                .enumerate()
+                .filter(|(_, tr)| tr.class.replayed_in_reactive_mode())
+                .filter_map(|(i, tr)| tr.box_at(k + 1).map(|b| (i, b)))
+                .collect();
+            m.step(&sc.map, Some(&obs), sc.lights_at(k + 1), &open, dt);
+        }
+        ego = next_ego;
+        // Keep the time on the 0.1 s grid (no drift from repeated additions).
+        ego.time_s = (k + 1) as f64 * dt;
+        agents = objects_at(sc, cfg.agents, k + 1, idm.as_ref());
+        result.steps.push(rec);
+    }
+    planner.finish();
+    result
+}
