@@ -5,6 +5,7 @@ use b2dr::tensor::DType;
 use common::*;
 
 /// q: (B, Lq, H*d), k, v: (B, Lk, H*d) -> (B, Lq, H*d), softmax(q k^T / sqrt(d)) v per head.
+#[allow(clippy::too_many_arguments)]
 fn reference(
     q: &[f64],
     k: &[f64],

@@ -76,7 +76,7 @@ fn bicubic_known_values() {
     // align_corners=False). Note A = -0.75 does not reproduce linear data exactly (only A = -0.5 does), and
     // border taps are clamped: e.g. out[2] = 1 * w(0.25) + 2 * w(1.25) = 0.87890625 - 0.2109375.
     let want = [
-        -0.10546875f32,
+        -0.10546875f64,
         0.19140625,
         0.66796875,
         1.296875,
@@ -87,7 +87,7 @@ fn bicubic_known_values() {
     ];
     for (i, want) in want.into_iter().enumerate() {
         assert!(
-            (got[i] - want).abs() < 1e-6,
+            (got[i] as f64 - want).abs() < 1e-6,
             "out[{i}] = {} != {want}",
             got[i]
         );

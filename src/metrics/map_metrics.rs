@@ -216,7 +216,7 @@ fn speed_limit_violation(map: &dyn MapQuery, e: &EgoStep, r: &RouteObjs) -> Opti
     if limits.is_empty()
         || limits
             .iter()
-            .any(|l| l.map_or(true, |v| v == 0.0 || v.is_nan()))
+            .any(|l| l.is_none_or(|v| v == 0.0 || v.is_nan()))
     {
         return None;
     }

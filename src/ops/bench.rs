@@ -10,12 +10,15 @@ use super::norm;
 use crate::tensor::{DType, Tensor};
 use crate::vk::{Context, Recording};
 
+/// Builds a case's recording on a context.
+pub type BuildFn = Box<dyn Fn(&Context) -> Result<Recording>>;
+
 /// A benchmark case: `flops` (2 x MAC, or a nominal count for memory-bound ops) and `bytes` moved.
 pub struct BenchCase {
     pub name: String,
     pub flops: f64,
     pub bytes: f64,
-    pub build: Box<dyn Fn(&Context) -> Result<Recording>>,
+    pub build: BuildFn,
 }
 
 /// Timing of one case: median over the timed replays.

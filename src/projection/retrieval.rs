@@ -84,9 +84,9 @@ pub fn retrieve(frames: &[RecordedFrame], camera: &str, ego2global: &DMat4) -> R
     let mut front: Option<(usize, usize, f64)> = None;
     let mut rear: Option<(usize, usize, f64)> = None;
     for c in along_distances(frames, camera, ego2global) {
-        if c.2 > 0.0 && front.map_or(true, |b| c.2 < b.2) {
+        if c.2 > 0.0 && front.is_none_or(|b| c.2 < b.2) {
             front = Some(c);
-        } else if c.2 < 0.0 && rear.map_or(true, |b| c.2 > b.2) {
+        } else if c.2 < 0.0 && rear.is_none_or(|b| c.2 > b.2) {
             rear = Some(c);
         }
     }

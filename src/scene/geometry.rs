@@ -496,7 +496,7 @@ impl PathBuffer {
             if self
                 .pts
                 .last()
-                .map_or(true, |l: &DVec2| (p - *l).length() > 1e-9)
+                .is_none_or(|l: &DVec2| (p - *l).length() > 1e-9)
             {
                 self.pts.push(p);
             }

@@ -233,7 +233,7 @@ impl Map {
     pub fn for_lanes_at(&self, p: DVec2, kind: Option<LaneKind>, mut f: impl FnMut(usize)) {
         self.lane_grid.query_point(p, |i| {
             let l = &self.lanes[i as usize];
-            if kind.map_or(true, |k| k == l.kind) && point_in_polygon(p, &l.polygon) {
+            if kind.is_none_or(|k| k == l.kind) && point_in_polygon(p, &l.polygon) {
                 f(i as usize)
             }
         });
@@ -296,7 +296,7 @@ impl Map {
         self.for_lanes_at(p, None, |i| {
             let (s, _) = self.lanes[i].centre.project(p);
             let dh = angle_diff(self.lanes[i].centre.pose_at(s).heading, heading).abs();
-            if best.map_or(true, |(b, bi)| dh < b || (dh == b && i < bi)) {
+            if best.is_none_or(|(b, bi)| dh < b || (dh == b && i < bi)) {
                 best = Some((dh, i));
             }
         });
@@ -316,7 +316,7 @@ impl Map {
             let dh = angle_diff(self.lanes[i].centre.pose_at(s).heading, heading).abs();
             if d <= max_dist && dh < std::f64::consts::FRAC_PI_2 {
                 let cost = d + 2.0 * dh;
-                if best.map_or(true, |(b, bi)| cost < b || (cost == b && i < bi)) {
+                if best.is_none_or(|(b, bi)| cost < b || (cost == b && i < bi)) {
                     best = Some((cost, i));
                 }
             }

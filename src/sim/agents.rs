@@ -106,7 +106,7 @@ pub fn starting_segment(map: &Map, center: &Pose2) -> Option<(usize, f64)> {
     for i in segs {
         let (s, _) = map.lanes[i].centre.project(p);
         let dh = (map.lanes[i].centre.pose_at(s).heading - center.heading).abs();
-        if best.map_or(true, |(b, _, _)| dh < b) {
+        if best.is_none_or(|(b, _, _)| dh < b) {
             best = Some((dh, i, s));
         }
     }
@@ -320,7 +320,7 @@ impl IdmManager {
                     continue;
                 }
                 let d = own.distance(s);
-                if nearest.map_or(true, |(_, bd, bo)| d < bd || (d == bd && ord < bo)) {
+                if nearest.is_none_or(|(_, bd, bo)| d < bd || (d == bd && ord < bo)) {
                     nearest = Some((self.occ.leader_ref(r), d, ord));
                 }
             }

@@ -241,7 +241,7 @@ impl IdmAgent {
                 }
                 let k = map.lanes[e].centre.start_curvature();
                 // np.argmin: first minimum wins.
-                if best.map_or(true, |(b, _)| k < b) {
+                if best.is_none_or(|(b, _)| k < b) {
                     best = Some((k, e));
                 }
             }

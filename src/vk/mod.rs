@@ -67,6 +67,8 @@ pub(crate) struct Inner {
     _entry: ash::Entry,
     pub instance: ash::Instance,
     debug: Option<(ash::ext::debug_utils::Instance, vk::DebugUtilsMessengerEXT)>,
+    #[allow(dead_code)]
+    // kept for users of the raw handles (explicit Vulkan control) and future queries
     pub physical: vk::PhysicalDevice,
     pub device: ash::Device,
     pub queue: Mutex<vk::Queue>,

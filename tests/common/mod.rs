@@ -71,6 +71,8 @@ pub fn run(ctx: &Context, f: impl FnOnce(&mut Recorder) -> anyhow::Result<()>) {
     rec.finish().expect("finish").submit_wait().expect("submit");
 }
 
+// Not every test binary uses it (each includes this module).
+#[allow(unused_imports)]
 pub use b2dr::ops::reference::nmse;
 
 /// Threshold for an elementwise result stored in `dtype`: the spec's 1e-7 in f32; in f16 the output rounding
