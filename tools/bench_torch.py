@@ -57,27 +57,60 @@ def cases(dtype):
     return out
 
 
+def model_cases():
+    """diffusers b2dr-tiny (configs from tests/golden/models.json): one guided step (ControlNet + UNet, batch 2,
+    latent 28x50, context 77x64, conditioning image 224x400) and one VAE decode to 224x400. Random weights."""
+    import os
+    from diffusers import AutoencoderKL, ControlNetModel, UNet2DConditionModel
+
+    root = os.path.join(os.path.dirname(__file__), "..", "tests", "golden", "models.json")
+    cfgs = json.load(open(root))["sets"]["tiny"]["configs"]
+    clean = lambda c: {k: v for k, v in c.items() if not k.startswith("_")}
+    unet = UNet2DConditionModel(**clean(cfgs["unet"])).eval()
+    cn = ControlNetModel(**clean(cfgs["controlnet"])).eval()
+    vae = AutoencoderKL(**clean(cfgs["vae"])).eval()
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(2, 4, 28, 50, generator=g)
+    t = torch.tensor([500.0, 500.0])
+    c = torch.randn(2, 77, cfgs["unet"]["cross_attention_dim"], generator=g)
+    cond = torch.rand(2, 3, 224, 400, generator=g)
+    z = torch.randn(1, 4, 28, 50, generator=g)
+
+    def step():
+        down, mid = cn(x, t, c, controlnet_cond=cond, return_dict=False)
+        unet(x, t, c, down_block_additional_residuals=down, mid_block_additional_residual=mid)
+
+    return {
+        "guided_step_tiny_f32_28x50_b2": (step, 0),
+        "vae_decode_tiny_f32_224x400": (lambda: vae.decode(z), 0),
+    }
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--min-time", type=float, default=1.0)
     ap.add_argument("--f16", action="store_true", help="also time f16 on the CPU (slow/unsupported on many CPUs)")
-    ap.add_argument("--compare", help="b2dr bench ops --json output to compare against")
+    ap.add_argument("--compare", help="b2dr bench ops/model --json output to compare against")
+    ap.add_argument("--models", action="store_true", help="time the b2dr-tiny model cases (needs diffusers)")
     a = ap.parse_args()
     torch.set_num_threads(a.threads)
     res = {}
-    dtypes = [torch.float32] + ([torch.float16] if a.f16 else [])
     with torch.no_grad():
-        for dt in dtypes:
-            for name, (fn, flops) in cases(dt).items():
+        if a.models:
+            suites = [model_cases()]
+        else:
+            suites = [cases(dt) for dt in [torch.float32] + ([torch.float16] if a.f16 else [])]
+        for suite in suites:
+            for name, (fn, flops) in suite.items():
                 s = timeit(fn, a.min_time)
                 res[name] = {"ms": s * 1e3, "gflops": flops / s * 1e-9}
     if a.compare:
         b = json.load(open(a.compare))
-        print(f"{'case':<40} {'b2dr GFLOP/s':>13} {'torch GFLOP/s':>14} {'ratio':>7}")
+        print(f"{'case':<40} {'b2dr ms':>10} {'torch ms':>10} {'b2dr/torch time':>16}")
         for k, v in res.items():
             if k in b:
-                print(f"{k:<40} {b[k]['gflops']:>13.2f} {v['gflops']:>14.2f} {b[k]['gflops'] / v['gflops']:>7.3f}")
+                print(f"{k:<40} {b[k]['ms']:>10.2f} {v['ms']:>10.2f} {b[k]['ms'] / v['ms']:>16.3f}")
     else:
         print(json.dumps(res, indent=2))
 

@@ -6,7 +6,7 @@ use std::time::Instant;
 use anyhow::Result;
 use rand::{Rng, SeedableRng};
 
-use super::norm;
+use super::{attention, conv2d, matmul, norm};
 use crate::tensor::{DType, Tensor};
 use crate::vk::{Context, Recording};
 
@@ -76,10 +76,84 @@ fn group_norm_case(dtype: DType) -> BenchCase {
     }
 }
 
+/// matmul MxNxK = 1400 x 1280 x 320 as a Linear layer: x (1400, 320) * W^T, W (1280, 320), + bias.
+fn matmul_case(dtype: DType) -> BenchCase {
+    let (m, n, k) = (1400usize, 1280usize, 320usize);
+    BenchCase {
+        name: format!("matmul_{}_{m}x{n}x{k}", dtype.name()),
+        flops: 2.0 * (m * n * k) as f64,
+        bytes: ((m * k + n * k + m * n) * dtype.size()) as f64,
+        build: Box::new(move |ctx| {
+            let x = random_tensor(ctx, &[m, k], dtype, 1)?;
+            let w = random_tensor(ctx, &[n, k], dtype, 2)?;
+            let b = random_tensor(ctx, &[n], dtype, 3)?;
+            let y = Tensor::empty(ctx, &[m, n], dtype, "bench-out")?;
+            record(ctx, |rec| matmul::linear(rec, &x, &w, Some(&b), &y))
+        }),
+    }
+}
+
+/// conv 3x3, 320 -> 320 channels at 28 x 50, pad 1, bias, batch 1; weights packed once beforehand (as the
+/// models do at load time).
+fn conv_case(dtype: DType) -> BenchCase {
+    let (c, h, w) = (320usize, 28usize, 50usize);
+    BenchCase {
+        name: format!("conv2d_{}_3x3_320to320_28x50", dtype.name()),
+        flops: 2.0 * (c * c * 9 * h * w) as f64,
+        bytes: ((2 * c * h * w + c * c * 9) * dtype.size()) as f64,
+        build: Box::new(move |ctx| {
+            let x = random_tensor(ctx, &[1, c, h, w], dtype, 1)?;
+            let wt = random_tensor(ctx, &[c, c, 3, 3], dtype, 2)?;
+            let b = random_tensor(ctx, &[c], dtype, 3)?;
+            let packed = Tensor::empty(ctx, &[3, 3, c, c], dtype, "packed-w")?;
+            record(ctx, |rec| conv2d::pack_weight(rec, &wt, &packed))?.submit_wait()?;
+            let y = Tensor::empty(ctx, &[1, c, h, w], dtype, "bench-out")?;
+            record(ctx, |rec| {
+                conv2d::conv2d_ex(
+                    rec,
+                    &conv2d::Conv2dArgs {
+                        x: &x,
+                        w: &wt,
+                        bias: Some(&b),
+                        out: &y,
+                        stride: 1,
+                        pad: [1; 4],
+                        path: conv2d::ConvPath::Auto,
+                        packed_w: Some(&packed),
+                    },
+                )
+            })
+        }),
+    }
+}
+
+/// attention: 1400 queries, `lk` keys, 8 heads of dim 40, batch 1; FLOP = 4 B H Lq Lk d.
+fn attention_case(dtype: DType, lk: usize) -> BenchCase {
+    let (lq, h, d) = (1400usize, 8usize, 40usize);
+    BenchCase {
+        name: format!("attention_{}_{lq}x{lk}_h{h}_d{d}", dtype.name()),
+        flops: 4.0 * (h * lq * lk * d) as f64,
+        bytes: ((2 * lq * h * d + 2 * lk * h * d) * dtype.size()) as f64,
+        build: Box::new(move |ctx| {
+            let q = random_tensor(ctx, &[1, lq, h * d], dtype, 1)?;
+            let k = random_tensor(ctx, &[1, lk, h * d], dtype, 2)?;
+            let v = random_tensor(ctx, &[1, lk, h * d], dtype, 3)?;
+            let o = Tensor::empty(ctx, &[1, lq, h * d], dtype, "bench-out")?;
+            record(ctx, |rec| {
+                attention::attention(rec, &q, &k, &v, &o, h, None)
+            })
+        }),
+    }
+}
+
 /// Every op benchmark case.
 pub fn cases() -> Vec<BenchCase> {
     let mut v = vec![];
     for dtype in [DType::F32, DType::F16] {
+        v.push(matmul_case(dtype));
+        v.push(conv_case(dtype));
+        v.push(attention_case(dtype, 1400));
+        v.push(attention_case(dtype, 77));
         v.push(group_norm_case(dtype));
     }
     v
