@@ -540,3 +540,33 @@ fn position_encoding_matches_direct_computation() {
     assert!((d[1] - (1.0 + 60.2 / 4160.0 * 2.0)).abs() < 1e-12);
     assert!((inverse_sigmoid(0.0, 1e-5) + 11.512925464970229).abs() < 1e-9);
 }
+
+#[test]
+fn box_z_reading_is_detected_from_vehicle_bottoms() {
+    use b2dr::projection::geometry::{Box3d, BoxClass};
+    use b2dr::projection::keyframe::KeyFrame;
+    use glam::{DMat4, DVec3};
+    let frame = |z_of: &dyn Fn(f64) -> f64, n: usize| KeyFrame {
+        dir: std::path::PathBuf::new(),
+        // the ego stands at z = 2 m (a sloped city): bottoms are measured against it
+        ego2global: DMat4::from_translation(DVec3::new(10.0, 20.0, 2.0)),
+        cameras: vec![],
+        boxes: (0..n)
+            .map(|i| {
+                let h = 1.5 + 0.5 * i as f64;
+                Box3d {
+                    class: BoxClass::Car,
+                    center: DVec3::new(i as f64 * 5.0, 0.0, 2.0 + z_of(h)),
+                    size: DVec3::new(4.5, 1.9, h),
+                    yaw: 0.0,
+                }
+            })
+            .collect(),
+    };
+    // documented format: z = gravity centre = h / 2 above the ground
+    assert!(!frame(&|h| 0.5 * h, 5).z_looks_like_top());
+    // top face: z = h above the ground
+    assert!(frame(&|h| h, 5).z_looks_like_top());
+    // too few vehicles to tell: the documented reading
+    assert!(!frame(&|h| h, 2).z_looks_like_top());
+}

@@ -32,9 +32,10 @@ pub struct ProjectArgs {
     /// Width of the overlay images (default: the camera's native width).
     #[arg(long)]
     pub overlay_width: Option<u32>,
-    /// How to read `boxes[].center[2]`: `center` (the format's gravity centre) or `top` (the box's top face; what
-    /// the shared keyframe-scene-0061/frame.json actually holds, see docs/projection.md).
-    #[arg(long, default_value = "center", value_parser = ["center", "top"])]
+    /// How to read `boxes[].center[2]`: `center` (the format's gravity centre), `top` (the box's top face; what
+    /// the shared keyframe-scene-0061/frame.json actually holds, see docs/projection.md), or `auto` (decide from
+    /// where vehicle bottoms land relative to the ego's ground plane; prints the choice).
+    #[arg(long, default_value = "auto", value_parser = ["auto", "center", "top"])]
     pub box_z: String,
     /// Write the overlays as PNG (overlay.png) instead of JPEG (overlay.jpg).
     #[arg(long)]
@@ -91,7 +92,19 @@ pub fn run(args: ProjectArgs) -> Result<()> {
         );
     }
     let mut frame = KeyFrame::load(&args.frame)?;
-    if args.box_z == "top" {
+    let top = match args.box_z.as_str() {
+        "top" => true,
+        "center" => false,
+        _ => {
+            let t = frame.z_looks_like_top();
+            eprintln!(
+                "--box-z auto: reading boxes[].center[2] as the {} (vehicle bottoms land nearest the ego's ground plane)",
+                if t { "top face" } else { "gravity centre" }
+            );
+            t
+        }
+    };
+    if top {
         frame.boxes_z_from_top();
     }
     let cfg = ProjectionConfig {

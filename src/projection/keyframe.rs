@@ -168,6 +168,34 @@ impl KeyFrame {
         }
     }
 
+    /// Decides how `center.z` is stored from the data: vehicles stand on the road, so under the right reading
+    /// the median height of vehicle-box bottoms above the ego's ground (`ego2global` z) is near 0. Returns
+    /// true ("top face") when reading z as the top puts the bottoms closer to the ground than reading it as
+    /// the centre, by more than 0.3 m; false with fewer than 3 vehicle boxes (the documented reading).
+    pub fn z_looks_like_top(&self) -> bool {
+        use super::geometry::BoxClass as C;
+        let ground = self.ego2global.w_axis.z;
+        let mut as_center = vec![];
+        let mut as_top = vec![];
+        for b in &self.boxes {
+            if matches!(
+                b.class,
+                C::Car | C::Truck | C::Bus | C::Trailer | C::ConstructionVehicle
+            ) {
+                as_center.push(b.center.z - 0.5 * b.size.z - ground);
+                as_top.push(b.center.z - b.size.z - ground);
+            }
+        }
+        if as_center.len() < 3 {
+            return false;
+        }
+        let median = |v: &mut Vec<f64>| {
+            v.sort_by(|a, b| a.total_cmp(b));
+            v[v.len() / 2]
+        };
+        median(&mut as_top).abs() + 0.3 < median(&mut as_center).abs()
+    }
+
     /// Path of a camera's image file.
     pub fn image_path(&self, img: &CameraImage) -> PathBuf {
         self.dir.join(&img.path)
