@@ -28,6 +28,10 @@ pub struct SimArgs {
     /// Other traffic: idm (reactive, R-CLS), replay (log replay, CLS-NR) or none.
     #[arg(long, default_value = "idm")]
     pub agents: String,
+    /// Ego controller: lqr (LQR tracker + kinematic bicycle, the benchmark's) or perfect (the ego is placed on
+    /// the planned trajectory; a diagnostic, like nuPlan's perfect_tracking).
+    #[arg(long, default_value = "lqr")]
+    pub controller: String,
     /// Output directory.
     #[arg(long)]
     pub out: PathBuf,
@@ -114,6 +118,7 @@ pub fn run(args: SimArgs) -> Result<()> {
         .with_context(|| format!("creating {}", args.out.display()))?;
     let cfg = SimConfig {
         agents,
+        controller: args.controller.parse()?,
         steps: args.steps,
         ..SimConfig::default()
     };

@@ -37,6 +37,8 @@ impl std::str::FromStr for AgentMode {
 #[derive(Clone, Copy, Debug)]
 pub struct SimConfig {
     pub agents: AgentMode,
+    /// How the ego follows the planned trajectory.
+    pub controller: Controller,
     /// Steps to simulate (150 = 15 s), capped by the log length.
     pub steps: usize,
     /// The planner runs every this many steps (5 = 2 Hz).
@@ -48,10 +50,59 @@ impl Default for SimConfig {
     fn default() -> Self {
         Self {
             agents: AgentMode::Idm,
+            controller: Controller::Lqr,
             steps: 150,
             planner_every: 5,
             idm: IdmParams::default(),
         }
+    }
+}
+
+/// The ego controller (nuPlan's `two_stage_controller` or `perfect_tracking`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Controller {
+    /// LQR tracker + kinematic bicycle (the benchmark's controller).
+    Lqr,
+    /// The ego is placed on the planned trajectory at the next step (nuPlan's PerfectTrackingController):
+    /// velocity, acceleration and yaw rates from differences of the trajectory. Diagnostic: it separates what
+    /// the planner asks for from what the tracker does.
+    Perfect,
+}
+
+impl std::str::FromStr for Controller {
+    type Err = anyhow::Error;
+    fn from_str(s: &str) -> anyhow::Result<Self> {
+        match s {
+            "lqr" => Ok(Self::Lqr),
+            "perfect" => Ok(Self::Perfect),
+            _ => anyhow::bail!("unknown controller {s:?} (lqr or perfect)"),
+        }
+    }
+}
+
+/// The ego state on trajectory `t` at time `time_s`, with rates from differences (perfect tracking).
+fn state_on_trajectory(t: &Trajectory, prev: &EgoState, time_s: f64, dt: f64) -> EgoState {
+    let us = |x: f64| (x * 1e6).round() as i64;
+    let p = t.pose_at_us(us(time_s));
+    let a = t.pose_at_us(us(time_s - dt));
+    let b = t.pose_at_us(us(time_s + dt));
+    let (s, c) = p.heading.sin_cos();
+    let (dx, dy) = ((b.x - a.x) / (2.0 * dt), (b.y - a.y) / (2.0 * dt));
+    let vx = c * dx + s * dy;
+    let vy = -s * dx + c * dy;
+    let yaw_rate = crate::scene::geometry::wrap_angle(b.heading - a.heading) / (2.0 * dt);
+    EgoState {
+        time_s,
+        rear_axle: p,
+        vx,
+        vy,
+        ax: (vx - prev.vx) / dt,
+        ay: (vy - prev.vy) / dt,
+        steering: prev.steering,
+        steering_rate: 0.0,
+        yaw_rate,
+        yaw_accel: (yaw_rate - prev.yaw_rate) / dt,
     }
 }
 
@@ -275,7 +326,10 @@ pub fn run_with_images(
         let Some(t) = traj.as_ref() else { break };
         let cmd = tracker.track(ego.time_s, &ego, t);
         rec.command = Some(cmd);
-        let next_ego = bicycle.propagate(&ego, cmd.accel, cmd.steering_rate, dt);
+        let next_ego = match cfg.controller {
+            Controller::Lqr => bicycle.propagate(&ego, cmd.accel, cmd.steering_rate, dt),
+            Controller::Perfect => state_on_trajectory(t, &ego, (k + 1) as f64 * dt, dt),
+        };
         if let Some(m) = idm.as_mut() {
             let obs = EgoObservation {
                 footprint: params.footprint(&ego.rear_axle),

@@ -14,7 +14,7 @@ pub mod planner;
 pub mod score;
 pub mod trajectory;
 
-pub use closed_loop::{run, AgentMode, SimConfig, SimResult, StepRecord};
+pub use closed_loop::{run, AgentMode, Controller, SimConfig, SimResult, StepRecord};
 pub use planner::{ConstantVelocityPlanner, ExpertPlanner, IdmPlanner, Planner, PlannerInput};
 
 use anyhow::{bail, Result};
