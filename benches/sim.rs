@@ -27,6 +27,14 @@ fn bench_one(c: &mut Criterion, name: &str, sc: &Scenario, agents: AgentMode) {
     c.bench_function(name, |b| {
         b.iter(|| black_box(run(black_box(sc), &mut ExpertPlanner, &cfg)))
     });
+    // The measure: the simulation plus the full nuPlan score of the run.
+    let params = b2dr::metrics::ScoreParams::default();
+    c.bench_function(&format!("{name}_with_score"), |b| {
+        b.iter(|| {
+            let r = run(black_box(sc), &mut ExpertPlanner, &cfg);
+            black_box(b2dr::sim::score::score_run(sc, &r, &params).expect("score"))
+        })
+    });
 }
 
 fn benches(c: &mut Criterion) {
