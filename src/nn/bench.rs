@@ -8,23 +8,9 @@ use super::device::{DeviceWeights, Fwd, Workspace};
 use super::unet::{Residuals, UNet};
 use super::vae::VaeDecoder;
 use super::weights::{self, Weights};
-use crate::ops::bench::{BenchCase, BenchResult};
+use crate::ops::bench::{random_tensor as rnd, BenchCase, BenchResult};
 use crate::tensor::{DType, Tensor};
 use crate::vk::Context;
-
-fn rnd(ctx: &Context, shape: &[usize], dtype: DType, seed: u64) -> Result<Tensor> {
-    let n: usize = shape.iter().product();
-    let mut s = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
-    let v: Vec<f32> = (0..n)
-        .map(|_| {
-            s ^= s << 13;
-            s ^= s >> 7;
-            s ^= s << 17;
-            (s >> 40) as f32 / (1u64 << 24) as f32 * 2.0 - 1.0
-        })
-        .collect();
-    Tensor::from_f32(ctx, shape, dtype, &v, "bench-input")
-}
 
 /// UNet + ControlNet forward at batch 2 (one guided step), latent (h, w), context 77 x cross_attention_dim.
 pub fn guided_step_case(
