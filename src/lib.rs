@@ -12,16 +12,26 @@
 //! - [`tensor`]: device tensors (shape, dtype f32/f16) owning their buffer.
 //! - [`ops`]: one launcher file per kernel family; each checks shapes, picks a pipeline, pushes parameters,
 //!   records a dispatch. Every op has a plain CPU f64 reference in [`ops::reference`].
+//! - [`sampling`]: UniPC and DDIM planned on the host in f64 as linear combinations of stored tensors (the
+//!   device applies them with one kernel; a CPU executor is the oracle).
+//! - [`nn`]: the SD1.5 family (UNet, ControlNet, VAE) built on the ops, modules named after diffusers';
+//!   [`nn::pipeline`] plans a guided sampling run once per shape and replays it.
 //! - [`scene`], [`sim`], [`metrics`], [`projection`]: the CPU side (scenario model and importers, ego
 //!   controller and IDM agents, the nuPlan closed-loop score, camera projection / retrieval / position
 //!   encodings). None of them imports `ash` or touches the GPU.
 //! - `cli` (binary only): the `b2dr` command.
 //!
 //! ## Synchronisation
-//! Ops are recorded into a [`vk::Recorder`] (one command buffer); between two dispatches that touch the same
-//! buffer a compute->compute buffer memory barrier is inserted (read-after-write and write-after-read
-//! tracking per buffer). A recorder is submitted once and waited on with a fence; host reads happen after the
-//! fence. Nothing is shared between threads without the device's queue mutex.
+//! Ops are recorded into a [`vk::Recorder`] (one command buffer, its own command pool, so threads record
+//! concurrently); before a dispatch that reads or writes a buffer an earlier dispatch since the last barrier
+//! wrote (RAW/WAW), or writes one it read (WAR), a global compute/transfer memory barrier is inserted.
+//! `finish()` gives a [`vk::Recording`] that can be submitted many times; each submit waits on a fence, and host
+//! reads happen after it. Submits are serialised by the queue mutex.
+//!
+//! ## Who validates
+//! Launchers check shapes, dtypes and limits (`ensure!` with the op name and shapes) before recording; the
+//! recorder checks binding counts, parameter sizes and grid limits; `build.rs` checks kernels (naga validation)
+//! and parameter layouts at build time; tests run with the Khronos validation layer and fail on any error.
 pub mod kernels;
 pub mod metrics;
 pub mod nn;
