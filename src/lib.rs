@@ -11,7 +11,7 @@
 //!   `#[repr(C)]` parameter structs generated from (and size-checked against) the WGSL structs.
 //! - [`tensor`]: device tensors (shape, dtype f32/f16) owning their buffer.
 //! - [`ops`]: one launcher file per kernel family; each checks shapes, picks a pipeline, pushes parameters,
-//!   records a dispatch. Every op has a plain CPU f64 reference in [`ops::reference`].
+//!   records a dispatch. Every op has a plain CPU f64 reference in [`ops::reference`](mod@ops::reference).
 //! - [`sampling`]: UniPC and DDIM planned on the host in f64 as linear combinations of stored tensors (the
 //!   device applies them with one kernel; a CPU executor is the oracle).
 //! - [`nn`]: the SD1.5 family (UNet, ControlNet, VAE) built on the ops, modules named after diffusers';
