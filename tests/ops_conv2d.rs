@@ -133,7 +133,7 @@ fn run_case(ctx: &b2dr::vk::Context, c: &Case, dtype: DType, path: ConvPath, see
 fn fast_and_direct_match_reference() {
     let Some(ctx) = ctx() else { return };
     for dtype in [DType::F32, DType::F16] {
-        for path in [ConvPath::Auto, ConvPath::Direct] {
+        for path in [ConvPath::Auto, ConvPath::FastHwnc, ConvPath::Direct] {
             let mut worst = 0.0f64;
             for (i, c) in CASES.iter().enumerate() {
                 if path == ConvPath::Direct && !c.direct {
@@ -164,7 +164,7 @@ fn long_reductions_are_not_truncated() {
         case("vae_3x3_512to8_14x25", 512, 8, 14, 25, 3, 1),
     ];
     for c in &cases {
-        for path in [ConvPath::Auto, ConvPath::Direct] {
+        for path in [ConvPath::Auto, ConvPath::FastHwnc, ConvPath::Direct] {
             let e = run_case(&ctx, c, DType::F32, path, 9);
             eprintln!("{} {path:?}: nmse {e:.2e}", c.name);
             assert!(e <= 1e-6, "{} {path:?}: nmse {e:e}", c.name);

@@ -28,6 +28,12 @@ pub enum ConvPath {
     Fast,
     /// The direct kernel, whatever the shape.
     Direct,
+    /// Implicit GEMM on an input transposed to (H, W, N, C) first (vec4 channel loads; C % 4 == 0). `Auto` uses
+    /// it only for f16 inputs of >= 256 channels: elsewhere the per-call transpose costs more than it saves
+    /// (b2dr-tiny f32 guided step 1.29 s -> 1.06 s and VAE decode 3.08 s -> 2.53 s without it, f16 1.36 s ->
+    /// 1.03 s and 3.00 s -> 2.67 s; the f32 320-channel 3x3 case is equal within noise, f16 is 64 vs 73 ms in
+    /// its favour; lavapipe, 2026-11-23).
+    FastHwnc,
 }
 
 /// lavapipe stops every loop of an invocation after 65535 back-edges in total: stay well below.
@@ -145,7 +151,7 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
     let bias = a.bias.unwrap_or(a.x);
     let fast = match a.path {
         ConvPath::Direct => false,
-        ConvPath::Fast => true,
+        ConvPath::Fast | ConvPath::FastHwnc => true,
         ConvPath::Auto => tiled_supported(rec),
     };
     if fast && kh == 1 && kw == 1 && a.stride == 1 && a.pad == [0; 4] {
@@ -204,7 +210,11 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
         bufs[1] = packed.buffer();
         let (rows, cols) = tile_shape(rec);
         let g = [o.div_ceil(cols) as u32, np.div_ceil(rows) as u32, n as u32];
-        if c % 4 == 0 {
+        // The (H, W, N, C) transpose pays off only for wide f16 inputs (320 ch 3x3: 64 vs 73 ms); elsewhere its
+        // per-call cost exceeds the gain (see ConvPath::FastHwnc).
+        let hwnc = a.path == ConvPath::FastHwnc
+            || (a.path == ConvPath::Auto && d == DType::F16 && c >= 256);
+        if c % 4 == 0 && hwnc {
             // input transposed to (H, W, N, C) so channels load as vectors (conv2d_packed.wgsl `hwnc`)
             xt = Tensor::empty(rec.context(), &[h, w, n, c], d, "conv2d-x-hwnc")?;
             let pp = PackParams {
