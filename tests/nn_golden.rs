@@ -53,6 +53,18 @@ impl Io {
     }
 }
 
+/// Records one forward pass with `f`, submits it and waits.
+fn record<T>(
+    ctx: &Context,
+    ws: &mut Workspace,
+    f: impl FnOnce(&mut Fwd) -> anyhow::Result<T>,
+) -> T {
+    let mut rec = ctx.recorder().unwrap();
+    let out = f(&mut Fwd { rec: &mut rec, ws }).unwrap();
+    rec.finish().unwrap().submit_wait().unwrap();
+    out
+}
+
 fn check(what: &str, got: &Tensor, ctx: &Context, want: &HostTensor, tol: f64) -> f64 {
     assert_eq!(got.shape(), &want.shape[..], "{what}: shape");
     let g = got.to_f32(ctx).unwrap();
@@ -110,20 +122,7 @@ fn run_case(ctx: &Context, models: &Value, case: &Value, dtype: DType) {
     if comps.contains_key("unet") {
         let (u, _) = unet.as_ref().unwrap();
         let (s, c) = (sample(), ehs());
-        let mut rec = ctx.recorder().unwrap();
-        let out = u
-            .forward(
-                &mut Fwd {
-                    rec: &mut rec,
-                    ws: &mut ws,
-                },
-                &s,
-                &t,
-                &c,
-                None,
-            )
-            .unwrap();
-        rec.finish().unwrap().submit_wait().unwrap();
+        let out = record(ctx, &mut ws, |f| u.forward(f, &s, &t, &c, None));
         check("unet", &out, ctx, &io.t["out.unet.sample"], tol);
     }
     if comps.contains_key("controlnet") {
@@ -131,21 +130,7 @@ fn run_case(ctx: &Context, models: &Value, case: &Value, dtype: DType) {
         let (s, c) = (sample(), ehs());
         let cond = io.up(ctx, "in.controlnet_cond", dtype);
         let scale = io.t["in.conditioning_scale"].data[0];
-        let mut rec = ctx.recorder().unwrap();
-        let o = cn
-            .forward(
-                &mut Fwd {
-                    rec: &mut rec,
-                    ws: &mut ws,
-                },
-                &s,
-                &t,
-                &c,
-                &cond,
-                scale,
-            )
-            .unwrap();
-        rec.finish().unwrap().submit_wait().unwrap();
+        let o = record(ctx, &mut ws, |f| cn.forward(f, &s, &t, &c, &cond, scale));
         for (i, d) in o.down.iter().enumerate() {
             check(
                 &format!("controlnet down_residual_{i}"),
@@ -175,13 +160,9 @@ fn run_case(ctx: &Context, models: &Value, case: &Value, dtype: DType) {
             .map(|i| io.up(ctx, &format!("out.controlnet.down_residual_{i}"), dtype))
             .collect();
         let mid = io.up(ctx, "out.controlnet.mid_residual", dtype);
-        let mut rec = ctx.recorder().unwrap();
-        let out = u
-            .forward(
-                &mut Fwd {
-                    rec: &mut rec,
-                    ws: &mut ws,
-                },
+        let out = record(ctx, &mut ws, |f| {
+            u.forward(
+                f,
                 &s,
                 &t,
                 &c,
@@ -190,8 +171,7 @@ fn run_case(ctx: &Context, models: &Value, case: &Value, dtype: DType) {
                     mid: &mid,
                 }),
             )
-            .unwrap();
-        rec.finish().unwrap().submit_wait().unwrap();
+        });
         check(
             "unet with residuals",
             &out,
@@ -204,17 +184,7 @@ fn run_case(ctx: &Context, models: &Value, case: &Value, dtype: DType) {
         let (enc, _, _) = vae.as_ref().unwrap();
         let input = comps["vae_encoder"]["inputs"][0].as_str().unwrap();
         let img = io.up(ctx, input, dtype);
-        let mut rec = ctx.recorder().unwrap();
-        let out = enc
-            .forward(
-                &mut Fwd {
-                    rec: &mut rec,
-                    ws: &mut ws,
-                },
-                &img,
-            )
-            .unwrap();
-        rec.finish().unwrap().submit_wait().unwrap();
+        let out = record(ctx, &mut ws, |f| enc.forward(f, &img));
         check(
             "vae encoder moments",
             &out,
@@ -226,17 +196,7 @@ fn run_case(ctx: &Context, models: &Value, case: &Value, dtype: DType) {
     if comps.contains_key("vae_decoder") {
         let (_, dec, _) = vae.as_ref().unwrap();
         let z = io.up(ctx, "in.z", dtype);
-        let mut rec = ctx.recorder().unwrap();
-        let out = dec
-            .forward(
-                &mut Fwd {
-                    rec: &mut rec,
-                    ws: &mut ws,
-                },
-                &z,
-            )
-            .unwrap();
-        rec.finish().unwrap().submit_wait().unwrap();
+        let out = record(ctx, &mut ws, |f| dec.forward(f, &z));
         check(
             "vae decoder",
             &out,
