@@ -92,6 +92,7 @@ fn conv_case(
             pad: [p; 4],
             path,
             packed_w: None,
+            wino_w: None,
         },
     )
     .expect("conv2d");

@@ -114,6 +114,7 @@ fn run_case(ctx: &b2dr::vk::Context, c: &Case, dtype: DType, path: ConvPath, see
                 pad: c.pad,
                 path,
                 packed_w: None,
+                wino_w: None,
             },
         )
     });
@@ -133,10 +134,18 @@ fn run_case(ctx: &b2dr::vk::Context, c: &Case, dtype: DType, path: ConvPath, see
 fn fast_and_direct_match_reference() {
     let Some(ctx) = ctx() else { return };
     for dtype in [DType::F32, DType::F16] {
-        for path in [ConvPath::Auto, ConvPath::FastHwnc, ConvPath::Direct] {
+        for path in [
+            ConvPath::Auto,
+            ConvPath::FastHwnc,
+            ConvPath::Winograd,
+            ConvPath::Direct,
+        ] {
             let mut worst = 0.0f64;
             for (i, c) in CASES.iter().enumerate() {
                 if path == ConvPath::Direct && !c.direct {
+                    continue;
+                }
+                if path == ConvPath::Winograd && (c.k != (3, 3) || c.stride != 1) {
                     continue;
                 }
                 let e = run_case(&ctx, c, dtype, path, 300 + i as u64);
@@ -173,6 +182,107 @@ fn long_reductions_are_not_truncated() {
     assert_no_validation_errors();
 }
 
+/// Winograd F(4x4, 3x3) on its edge cases: outputs that are not multiples of the 4x4 tile, asymmetric and
+/// zero padding, a 1x1 image, batches, several slabs of tiles (the intermediates are split at 16 MiB), large
+/// inputs, and weights transformed once beforehand.
+#[test]
+fn winograd_edges_match_reference() {
+    let Some(ctx) = ctx() else { return };
+    let cases = [
+        Case {
+            n: 2,
+            pad: [2, 0, 1, 2],
+            ..case("asym_pad2012_9to12_10x7_batch2", 9, 12, 10, 7, 3, 0)
+        },
+        case("no_pad_8to8_6x6", 8, 8, 6, 6, 3, 0),
+        case("pad1_on_1x1", 8, 8, 1, 1, 3, 1),
+        case("prime_out_5to3_13x17", 5, 3, 13, 17, 3, 1),
+        Case {
+            n: 2,
+            direct: false,
+            ..case("slabs_256to8_76x76_batch2", 256, 8, 76, 76, 3, 1)
+        },
+        Case {
+            scale: 1e3,
+            ..case("large_inputs_x1e3_16to16_12x12", 16, 16, 12, 12, 3, 1)
+        },
+    ];
+    for dtype in [DType::F32, DType::F16] {
+        for (i, c) in cases.iter().enumerate() {
+            let e = run_case(&ctx, c, dtype, ConvPath::Winograd, 700 + i as u64);
+            eprintln!("{dtype:?} winograd {}: nmse {e:.2e}", c.name);
+            let tol = if dtype == DType::F32 { 1e-6 } else { 5e-4 };
+            assert!(e <= tol, "{} {dtype:?}: nmse {e:e}", c.name);
+        }
+    }
+    // transformed once, as the layers do at load
+    let (x, w) = (uniform(12 * 9 * 11, 1.0, 3), uniform(16 * 12 * 9, 1.0, 4));
+    let tx = upload(&ctx, &[1, 12, 9, 11], DType::F32, &x);
+    let tw = upload(&ctx, &[16, 12, 3, 3], DType::F32, &w);
+    let u = empty(
+        &ctx,
+        &b2dr::ops::winograd::weight_shape(tw.shape()),
+        DType::F32,
+    );
+    let out = empty(&ctx, &[1, 16, 9, 11], DType::F32);
+    run(&ctx, |rec| {
+        b2dr::ops::winograd::transform_weight(rec, &tw, &u)?;
+        cv::conv2d_ex(
+            rec,
+            &Conv2dArgs {
+                x: &tx,
+                w: &tw,
+                bias: None,
+                out: &out,
+                stride: 1,
+                pad: [1; 4],
+                path: ConvPath::Winograd,
+                packed_w: None,
+                wino_w: Some(&u),
+            },
+        )
+    });
+    let g = ConvGeom {
+        kh: 3,
+        kw: 3,
+        stride: 1,
+        pad: [1; 4],
+    };
+    let want = rc::conv2d(
+        &stored(&x, DType::F32),
+        &stored(&w, DType::F32),
+        None,
+        (1, 12, 9, 11),
+        16,
+        g,
+    );
+    let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
+    assert!(e <= 1e-6, "pre-transformed: nmse {e:e}");
+    // the Winograd path refuses other geometries
+    let x5 = empty(&ctx, &[1, 4, 8, 8], DType::F32);
+    let w5 = empty(&ctx, &[4, 4, 3, 3], DType::F32);
+    let o5 = empty(&ctx, &[1, 4, 4, 4], DType::F32);
+    let mut rec = ctx.recorder().unwrap();
+    let r = cv::conv2d_ex(
+        &mut rec,
+        &Conv2dArgs {
+            x: &x5,
+            w: &w5,
+            bias: None,
+            out: &o5,
+            stride: 2,
+            pad: [1; 4],
+            path: ConvPath::Winograd,
+            packed_w: None,
+            wino_w: None,
+        },
+    );
+    let msg = format!("{:#}", r.expect_err("stride 2 must be refused"));
+    assert!(msg.contains("3x3 stride-1"), "{msg}");
+    drop(rec);
+    assert_no_validation_errors();
+}
+
 /// Weights packed once by `pack_weight` (what a model does at load time) give the same result.
 #[test]
 fn prepacked_weights_match() {
@@ -199,6 +309,7 @@ fn prepacked_weights_match() {
                     pad: [1, 1, 1, 1],
                     path: ConvPath::Fast,
                     packed_w: Some(&packed),
+                    wino_w: None,
                 },
             )
         });

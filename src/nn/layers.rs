@@ -3,13 +3,16 @@ use anyhow::{Context as _, Result};
 
 use super::device::{DeviceWeights, Fwd};
 use crate::ops::{conv2d, matmul, norm};
-use crate::tensor::Tensor;
+use crate::tensor::{DType, Tensor};
 
 /// torch.nn.Conv2d with symmetric or explicit padding.
 pub struct Conv {
     pub w: Tensor,
     /// The weight repacked once at load to (KH, KW, C, O) for the implicit-GEMM kernel (when it applies).
     packed: Option<Tensor>,
+    /// 3x3 stride-1 weights Winograd-transformed once at load ((36, C, O) f32), on CPU devices where the
+    /// Winograd path runs, when that copy stays under 16 MiB (larger ones are transformed per call).
+    wino: Option<Tensor>,
     pub b: Option<Tensor>,
     pub stride: usize,
     pub pad: [usize; 4],
@@ -40,9 +43,29 @@ impl Conv {
                 packed = Some(p);
             }
         }
+        let mut wino = None;
+        let ush = conv2d::winograd_weight_shape(&s);
+        if dw.ctx.info().is_cpu()
+            && s[2] == 3
+            && s[3] == 3
+            && stride == 1
+            && ush.iter().product::<usize>() * 4 <= 16 << 20
+        {
+            let u = Tensor::empty(
+                &dw.ctx,
+                &ush,
+                DType::F32,
+                &format!("{name}.weight.winograd"),
+            )?;
+            let mut rec = dw.ctx.recorder()?;
+            crate::ops::winograd::transform_weight(&mut rec, &w, &u)?;
+            rec.finish()?.submit_wait()?;
+            wino = Some(u);
+        }
         Ok(Self {
             w,
             packed,
+            wino,
             b,
             stride,
             pad,
@@ -75,6 +98,7 @@ impl Conv {
             pad: self.pad,
             path: conv2d::ConvPath::Auto,
             packed_w: self.packed.as_ref(),
+            wino_w: self.wino.as_ref(),
         };
         conv2d::conv2d_ex(f.rec, &args).with_context(|| format!("conv {}", self.name))?;
         Ok(out)

@@ -6,7 +6,7 @@ use std::time::Instant;
 use anyhow::Result;
 use rand::{Rng, SeedableRng};
 
-use super::{attention, conv2d, matmul, norm};
+use super::{attention, conv2d, matmul, norm, winograd};
 use crate::tensor::{DType, Tensor};
 use crate::vk::{Context, Recording};
 
@@ -93,12 +93,18 @@ fn matmul_case(dtype: DType) -> BenchCase {
     }
 }
 
-/// conv 3x3, 320 -> 320 channels at 28 x 50, pad 1, bias, batch 1; weights packed once beforehand (as the
-/// models do at load time).
-fn conv_case(dtype: DType) -> BenchCase {
+/// conv 3x3, 320 -> 320 channels at 28 x 50, pad 1, bias, batch 1; weights packed (and Winograd-transformed)
+/// once beforehand, as the models do at load time. `path` Auto is the required case; the implicit-GEMM case
+/// (`_implicit`) shows what Winograd gains. FLOP counts are the direct conv's in both.
+fn conv_case(dtype: DType, path: conv2d::ConvPath) -> BenchCase {
     let (c, h, w) = (320usize, 28usize, 50usize);
+    let suffix = if path == conv2d::ConvPath::Fast {
+        "_implicit"
+    } else {
+        ""
+    };
     BenchCase {
-        name: format!("conv2d_{}_3x3_320to320_28x50", dtype.name()),
+        name: format!("conv2d_{}_3x3_320to320_28x50{suffix}", dtype.name()),
         flops: 2.0 * (c * c * 9 * h * w) as f64,
         bytes: ((2 * c * h * w + c * c * 9) * dtype.size()) as f64,
         build: Box::new(move |ctx| {
@@ -107,6 +113,13 @@ fn conv_case(dtype: DType) -> BenchCase {
             let b = random_tensor(ctx, &[c], dtype, 3)?;
             let packed = Tensor::empty(ctx, &[3, 3, c, c], dtype, "packed-w")?;
             record(ctx, |rec| conv2d::pack_weight(rec, &wt, &packed))?.submit_wait()?;
+            let wino = Tensor::empty(
+                ctx,
+                &winograd::weight_shape(wt.shape()),
+                DType::F32,
+                "wino-w",
+            )?;
+            record(ctx, |rec| winograd::transform_weight(rec, &wt, &wino))?.submit_wait()?;
             let y = Tensor::empty(ctx, &[1, c, h, w], dtype, "bench-out")?;
             record(ctx, |rec| {
                 conv2d::conv2d_ex(
@@ -118,8 +131,9 @@ fn conv_case(dtype: DType) -> BenchCase {
                         out: &y,
                         stride: 1,
                         pad: [1; 4],
-                        path: conv2d::ConvPath::Auto,
+                        path,
                         packed_w: Some(&packed),
+                        wino_w: Some(&wino),
                     },
                 )
             })
@@ -151,7 +165,8 @@ pub fn cases() -> Vec<BenchCase> {
     let mut v = vec![];
     for dtype in [DType::F32, DType::F16] {
         v.push(matmul_case(dtype));
-        v.push(conv_case(dtype));
+        v.push(conv_case(dtype, conv2d::ConvPath::Auto));
+        v.push(conv_case(dtype, conv2d::ConvPath::Fast));
         v.push(attention_case(dtype, 1400));
         v.push(attention_case(dtype, 77));
         v.push(group_norm_case(dtype));

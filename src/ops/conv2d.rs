@@ -1,7 +1,9 @@
 //! conv2d launchers: NCHW input, (O, C, KH, KW) weights, any kernel size, stride, asymmetric padding
 //! (top, bottom, left, right), fused bias; f32 or f16 storage with f32 accumulation.
 //!
-//! Paths: 1x1 stride-1 unpadded convs run as a GEMM (`matmul::gemm`, weights shared over the batch). Other
+//! Paths: 1x1 stride-1 unpadded convs run as a GEMM (`matmul::gemm`, weights shared over the batch). On CPU
+//! devices, 3x3 stride-1 convs where it pays ([`winograd_pays`]) run Winograd F(4x4, 3x3) ([`super::winograd`]).
+//! Other
 //! convs with O % 4 == 0 run an implicit GEMM on weights repacked to (KH, KW, C, O) (`kernels/conv2d_packed.wgsl`;
 //! with C % 4 == 0 the input is also transposed to (H, W, N, C) first, entry `hwnc`, the fastest on lavapipe:
 //! both transposes are small next to the conv and live in temporaries kept by the recording). Other O run the
@@ -15,13 +17,15 @@ use super::{expect_shape, same_dtype, Recorder};
 use crate::kernels::params::{Conv2dParams, PackParams};
 use crate::kernels::KernelId as K;
 use crate::tensor::{DType, Tensor};
+use crate::vk::DeviceInfo;
 
 pub use super::reference::conv2d::ConvGeom;
 
 /// Which kernel runs a conv.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
 pub enum ConvPath {
-    /// GEMM for 1x1, implicit GEMM otherwise when supported, else direct.
+    /// GEMM for 1x1, Winograd for 3x3 stride 1 where [`winograd_pays`], implicit GEMM otherwise when
+    /// supported, else direct.
     #[default]
     Auto,
     /// Implicit GEMM (or GEMM for 1x1); error if the device lacks suitable subgroups.
@@ -34,6 +38,24 @@ pub enum ConvPath {
     /// 1.03 s and 3.00 s -> 2.67 s; the f32 320-channel 3x3 case is equal within noise, f16 is 64 vs 73 ms in
     /// its favour; lavapipe, 2026-11-23).
     FastHwnc,
+    /// Winograd F(4x4, 3x3) (3x3, stride 1 only; see [`super::winograd`]). `Auto` uses it for 3x3 stride-1
+    /// convs when [`winograd_pays`] says so.
+    Winograd,
+}
+
+/// Whether `Auto` runs a 3x3 stride-1 conv (batch N, C -> O channels, OH x OW output) through Winograd: only on
+/// CPU devices (lavapipe), where it was measured (GPUs keep the implicit GEMM; the f32 transformed weights are
+/// 4x the 3x3 weights), and only where the transforms pay: wide convs (C, O >= 256: the 320-channel 28x50 op
+/// case takes 30 ms instead of 74), or >= 180 output tiles of 4x4 (b2dr-tiny VAE decode 2.58 s -> 2.06 s; on
+/// the small UNet convs it gained nothing measurable). lavapipe 22.3, 2026-11-23, see BENCHMARKS.md.
+pub fn winograd_pays(dev: &DeviceInfo, n: usize, c: usize, o: usize, oh: usize, ow: usize) -> bool {
+    let tiles = n * oh.div_ceil(4) * ow.div_ceil(4);
+    dev.is_cpu() && c >= 8 && o >= 8 && (tiles >= 180 || c.min(o) >= 256)
+}
+
+/// Shape of the Winograd-transformed weight of a (O, C, 3, 3) weight: (36, C, O).
+pub fn winograd_weight_shape(w: &[usize]) -> [usize; 3] {
+    super::winograd::weight_shape(w)
 }
 
 /// lavapipe stops every loop of an invocation after 65535 back-edges in total: stay well below.
@@ -57,6 +79,9 @@ pub struct Conv2dArgs<'a> {
     /// `w` already repacked by [`pack_weight`] ((KH, KW, C, O)); without it the fast path repacks into a
     /// temporary on every call (cheap next to the conv: O C KH KW elements).
     pub packed_w: Option<&'a Tensor>,
+    /// 3x3 `w` already transformed by [`super::winograd::transform_weight`] ((36, C, O), f32); without it the
+    /// Winograd path transforms into a temporary on every call.
+    pub wino_w: Option<&'a Tensor>,
 }
 
 /// Output shape of x: (N, C, H, W) convolved with w: (O, C, KH, KW), with checks naming the shapes.
@@ -151,9 +176,45 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
     let bias = a.bias.unwrap_or(a.x);
     let fast = match a.path {
         ConvPath::Direct => false,
-        ConvPath::Fast | ConvPath::FastHwnc => true,
+        ConvPath::Fast | ConvPath::FastHwnc | ConvPath::Winograd => true,
         ConvPath::Auto => tiled_supported(rec),
     };
+    let wino_shape = kh == 3 && kw == 3 && a.stride == 1;
+    let wino = match a.path {
+        ConvPath::Winograd => {
+            ensure!(
+                wino_shape,
+                "conv2d: the Winograd path needs a 3x3 stride-1 conv (x {xs:?}, w {ws:?}, stride {})",
+                a.stride
+            );
+            ensure!(
+                tiled_supported(rec),
+                "conv2d: the Winograd path needs subgroups of 8 to 64 lanes, which {:?} lacks",
+                rec.context().info().name
+            );
+            true
+        }
+        ConvPath::Auto => {
+            fast && wino_shape && winograd_pays(rec.context().info(), n, c, o, os[2], os[3])
+        }
+        _ => false,
+    };
+    if wino {
+        let tmp;
+        let u = match a.wino_w {
+            Some(u) => u,
+            None => {
+                // transformed per call into the recording's shared scratch (slot 2; 0 and 1 are the
+                // Winograd intermediates)
+                let sh = super::winograd::weight_shape(ws);
+                let b = rec.scratch(2, (sh.iter().product::<usize>() * 4) as u64)?;
+                tmp = Tensor::on_buffer(b, &sh, DType::F32)?;
+                super::winograd::transform_weight(rec, a.w, &tmp)?;
+                &tmp
+            }
+        };
+        return super::winograd::conv3x3(rec, a.x, u, a.bias, a.out, a.pad);
+    }
     if fast && kh == 1 && kw == 1 && a.stride == 1 && a.pad == [0; 4] {
         // (O, C) x (C, H W) per image -> (O, H W) per image
         let g = Gemm {
@@ -295,6 +356,7 @@ pub fn conv2d(
             pad,
             path: ConvPath::Auto,
             packed_w: None,
+            wino_w: None,
         },
     )
 }

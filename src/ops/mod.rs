@@ -15,6 +15,7 @@ pub mod norm;
 pub mod reference;
 pub mod resample;
 pub mod softmax;
+pub mod winograd;
 
 use anyhow::{ensure, Result};
 

@@ -36,6 +36,8 @@ pub struct Recorder {
     queries: Option<(vk::QueryPool, u32)>,
     labels: Vec<String>,
     dispatches: usize,
+    // op-internal temporaries shared by all ops of this recording (see `scratch`)
+    scratch: Vec<Option<Arc<Buffer>>>,
 }
 
 /// A finished command buffer, ready to submit (repeatedly).
@@ -98,6 +100,7 @@ impl Recorder {
             queries: None,
             labels: vec![],
             dispatches: 0,
+            scratch: vec![],
         };
         if timestamps > 0 && ctx.inner.info.timestamps {
             let n = timestamps + 1;
@@ -308,6 +311,24 @@ impl Recorder {
         self.keep.push(src.clone());
         self.keep.push(dst.clone());
         Ok(())
+    }
+
+    /// A temporary buffer of at least `bytes` for op-internal use, shared by every op of this recording that
+    /// asks for the same `slot`: dispatches run in recording order and the hazard tracking inserts barriers
+    /// between users, so one buffer per slot serves them all. A larger request allocates a new buffer (the
+    /// dispatches recorded on the old one keep it alive).
+    pub fn scratch(&mut self, slot: usize, bytes: u64) -> Result<Arc<Buffer>> {
+        if self.scratch.len() <= slot {
+            self.scratch.resize(slot + 1, None);
+        }
+        if let Some(b) = &self.scratch[slot] {
+            if b.size() >= bytes {
+                return Ok(b.clone());
+            }
+        }
+        let b = Arc::new(Buffer::new(&self.ctx, bytes, &format!("scratch-{slot}"))?);
+        self.scratch[slot] = Some(b.clone());
+        Ok(b)
     }
 
     /// Number of dispatches recorded so far.

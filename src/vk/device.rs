@@ -28,6 +28,13 @@ pub struct DeviceInfo {
     pub timestamps: bool,
 }
 
+impl DeviceInfo {
+    /// A CPU implementation (lavapipe): the ops pick the paths measured fastest there.
+    pub fn is_cpu(&self) -> bool {
+        self.kind == "CPU"
+    }
+}
+
 fn rank(t: vk::PhysicalDeviceType) -> u32 {
     match t {
         vk::PhysicalDeviceType::DISCRETE_GPU => 0,

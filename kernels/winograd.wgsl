@@ -1,0 +1,173 @@
+//! variant f32: alias ST = f32; const IS_F16: bool = false;
+//! variant f16: enable f16; alias ST = f16; const IS_F16: bool = true;
+// Winograd F(4x4, 3x3) for stride-1 3x3 convs (Lavin & Gray 2015): y = A^T [ (G g G^T) * (B^T d B) ] A per 4x4
+// output tile, d the 6x6 input window. The 36 products over channels form 36 independent GEMMs
+// (tiles x C) . (C x O), run by the tiled matmul between the `input` and `output` transforms here; on lavapipe
+// that is 4x fewer multiply-adds than the implicit GEMM, for 2.25x more (f32) intermediate traffic.
+// Activations x, y in ST; the transformed tensors V, U, M are f32 (the transforms scale values by up to ~100x,
+// which f16 storage would not round well). Matrices (points 0, +-1, +-2, inf):
+//   B^T = [4 0 -5 0 1 0; 0 -4 -4 1 1 0; 0 4 -4 -1 1 0; 0 -2 -1 2 1 0; 0 2 -1 -2 1 0; 0 4 0 -5 0 1]
+//   G = [1/4 0 0; -1/6 -1/6 -1/6; -1/6 1/6 -1/6; 1/24 1/12 1/6; 1/24 -1/12 1/6; 0 0 1]
+//   A^T = [1 1 1 1 1 0; 0 1 -1 2 -2 0; 0 1 1 4 4 0; 0 1 -1 8 -8 1]
+// No loops beyond the constant 6- and 4-trip ones (unrolled): nothing near lavapipe's loop budget.
+
+struct WinoParams {
+    n: u32, c: u32, h: u32, w: u32,
+    o: u32, oh: u32, ow: u32,
+    // tiles per image: th x tw (ceil(oh / 4), ceil(ow / 4))
+    th: u32, tw: u32,
+    pt: u32, pl: u32,
+    // this slab: global tiles t0 .. t0 + nt (tiles numbered over (n, ty, tx))
+    t0: u32, nt: u32,
+    has_bias: u32,
+}
+
+@group(0) @binding(0) var<storage, read> x: array<ST>;
+@group(0) @binding(1) var<storage, read_write> v: array<f32>;
+// output transform: m (36, nt, O) f32 -> y (N, O, OH, OW)
+@group(0) @binding(0) var<storage, read> m: array<f32>;
+@group(0) @binding(1) var<storage, read> bias: array<ST>;
+@group(0) @binding(2) var<storage, read_write> y: array<ST>;
+// weight transform: w (O, C, 3, 3) -> u (36, C, O) f32
+@group(0) @binding(0) var<storage, read> wsrc: array<ST>;
+@group(0) @binding(1) var<storage, read_write> u: array<f32>;
+var<immediate> p: WinoParams;
+
+const F16_MAX: f32 = 65504.0;
+
+// B^T d for one 6-vector (columns of the window, then rows).
+fn bt(d: array<f32, 6>) -> array<f32, 6> {
+    return array<f32, 6>(
+        4.0 * d[0] - 5.0 * d[2] + d[4],
+        -4.0 * d[1] - 4.0 * d[2] + d[3] + d[4],
+        4.0 * d[1] - 4.0 * d[2] - d[3] + d[4],
+        -2.0 * d[1] - d[2] + 2.0 * d[3] + d[4],
+        2.0 * d[1] - d[2] - 2.0 * d[3] + d[4],
+        4.0 * d[1] - 5.0 * d[3] + d[5]);
+}
+
+// A^T s for one 6-vector.
+fn at(s: array<f32, 6>) -> vec4<f32> {
+    return vec4<f32>(
+        s[0] + s[1] + s[2] + s[3] + s[4],
+        s[1] - s[2] + 2.0 * (s[3] - s[4]),
+        s[1] + s[2] + 4.0 * (s[3] + s[4]),
+        s[1] - s[2] + 8.0 * (s[3] - s[4]) + s[5]);
+}
+
+// G g for one 3-vector.
+fn gg(g: vec3<f32>) -> array<f32, 6> {
+    return array<f32, 6>(
+        0.25 * g.x,
+        -(g.x + g.y + g.z) / 6.0,
+        -(g.x - g.y + g.z) / 6.0,
+        g.x / 24.0 + g.y / 12.0 + g.z / 6.0,
+        g.x / 24.0 - g.y / 12.0 + g.z / 6.0,
+        g.z);
+}
+
+// x[n, c, iy, ix], 0 outside the image.
+fn xin(base: u32, iy: i32, ix: i32) -> f32 {
+    let ok = iy >= 0 && iy < i32(p.h) && ix >= 0 && ix < i32(p.w);
+    let o = base + u32(clamp(iy, 0, i32(p.h) - 1)) * p.w + u32(clamp(ix, 0, i32(p.w) - 1));
+    return select(0.0, f32(x[o]), ok);
+}
+
+// Window row r (input row iy) of 6 values from column ix0.
+fn xrow(base: u32, iy: i32, ix0: i32) -> array<f32, 6> {
+    return array<f32, 6>(xin(base, iy, ix0), xin(base, iy, ix0 + 1), xin(base, iy, ix0 + 2),
+                         xin(base, iy, ix0 + 3), xin(base, iy, ix0 + 4), xin(base, iy, ix0 + 5));
+}
+
+// x: (N, C, H, W) -> v: (36, nt, C); invocation = (slab tile, channel), channel fastest.
+@compute @workgroup_size(256)
+fn input(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let i = flat_index(wid, nwg, lid);
+    if (i >= p.nt * p.c) { return; }
+    let c = i % p.c;
+    let tl = i / p.c;
+    let t = p.t0 + tl;
+    let tpi = p.th * p.tw;
+    let n = t / tpi;
+    let ty = (t % tpi) / p.tw;
+    let tx = t % p.tw;
+    let base = (n * p.c + c) * p.h * p.w;
+    let iy0 = i32(4u * ty) - i32(p.pt);
+    let ix0 = i32(4u * tx) - i32(p.pl);
+    // rows of B^T d: first each input row along x (d B), then along y
+    let r0 = bt(xrow(base, iy0, ix0));
+    let r1 = bt(xrow(base, iy0 + 1, ix0));
+    let r2 = bt(xrow(base, iy0 + 2, ix0));
+    let r3 = bt(xrow(base, iy0 + 3, ix0));
+    let r4 = bt(xrow(base, iy0 + 4, ix0));
+    let r5 = bt(xrow(base, iy0 + 5, ix0));
+    let st = p.nt * p.c;
+    let o0 = tl * p.c + c;
+    for (var j = 0u; j < 6u; j++) {
+        let col = bt(array<f32, 6>(r0[j], r1[j], r2[j], r3[j], r4[j], r5[j]));
+        for (var i2 = 0u; i2 < 6u; i2++) {
+            v[(i2 * 6u + j) * st + o0] = col[i2];
+        }
+    }
+}
+
+fn out_val(val: f32) -> ST {
+    if (IS_F16) { return ST(clamp(val, -F16_MAX, F16_MAX)); }
+    return ST(val);
+}
+
+// m: (36, nt, O) -> y: (N, O, OH, OW) (+ bias); invocation = (slab tile, output channel), channel fastest.
+@compute @workgroup_size(256)
+fn output(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let i = flat_index(wid, nwg, lid);
+    if (i >= p.nt * p.o) { return; }
+    let o = i % p.o;
+    let tl = i / p.o;
+    let t = p.t0 + tl;
+    let tpi = p.th * p.tw;
+    let n = t / tpi;
+    let ty = (t % tpi) / p.tw;
+    let tx = t % p.tw;
+    let st = p.nt * p.o;
+    let o0 = tl * p.o + o;
+    // columns of A^T M: 6 columns j, each reducing the 6 rows i
+    var cols: array<vec4<f32>, 6>;
+    for (var j = 0u; j < 6u; j++) {
+        cols[j] = at(array<f32, 6>(m[(0u + j) * st + o0], m[(6u + j) * st + o0], m[(12u + j) * st + o0],
+                                   m[(18u + j) * st + o0], m[(24u + j) * st + o0], m[(30u + j) * st + o0]));
+    }
+    var b = 0.0;
+    if (p.has_bias == 1u) { b = f32(bias[o]); }
+    let ybase = (n * p.o + o) * p.oh * p.ow;
+    for (var r = 0u; r < 4u; r++) {
+        let row = at(array<f32, 6>(cols[0][r], cols[1][r], cols[2][r], cols[3][r], cols[4][r], cols[5][r]));
+        let yy = 4u * ty + r;
+        if (yy < p.oh) {
+            for (var s = 0u; s < 4u; s++) {
+                let xx = 4u * tx + s;
+                if (xx < p.ow) { y[ybase + yy * p.ow + xx] = out_val(row[s] + b); }
+            }
+        }
+    }
+}
+
+// w: (O, C, 3, 3) -> u: (36, C, O) = G g G^T per (o, c); flat grid over O C.
+@compute @workgroup_size(256)
+fn weight(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let i = flat_index(wid, nwg, lid);
+    if (i >= p.o * p.c) { return; }
+    let o = i / p.c;
+    let c = i % p.c;
+    let b = i * 9u;
+    // G g per kernel row, then G (.)^T along the rows
+    let k0 = gg(vec3<f32>(f32(wsrc[b]), f32(wsrc[b + 1u]), f32(wsrc[b + 2u])));
+    let k1 = gg(vec3<f32>(f32(wsrc[b + 3u]), f32(wsrc[b + 4u]), f32(wsrc[b + 5u])));
+    let k2 = gg(vec3<f32>(f32(wsrc[b + 6u]), f32(wsrc[b + 7u]), f32(wsrc[b + 8u])));
+    let st = p.c * p.o;
+    for (var j = 0u; j < 6u; j++) {
+        let col = gg(vec3<f32>(k0[j], k1[j], k2[j]));
+        for (var i2 = 0u; i2 < 6u; i2++) {
+            u[(i2 * 6u + j) * st + c * p.o + o] = col[i2];
+        }
+    }
+}
