@@ -23,6 +23,8 @@ struct NormParams {
 @group(0) @binding(2) var<storage, read> beta: array<ST>;
 @group(0) @binding(3) var<storage, read_write> y: array<ST>;
 
+@group(0) @binding(0) var<storage, read> x4: array<vec4<ST>>;
+@group(0) @binding(3) var<storage, read_write> y4: array<vec4<ST>>;
 var<immediate> p: NormParams;
 var<workgroup> red: array<f32, 256>;
 
@@ -96,5 +98,36 @@ fn layer_norm_sg(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups)
     let rstd = inverseSqrt(subgroupAdd(q) / f32(d) + p.eps);
     for (var i = lane; i < d; i += sg) {
         y[base + i] = ST(((f32(x[base + i]) - x0) - mean) * rstd * f32(gamma[i]) + f32(beta[i]));
+    }
+}
+
+// group_norm with vec4 loads and stores (`main` for inner % 4 == 0): a quarter of the per-lane load loops
+// (each lavapipe storage access is one per-lane loop whatever its width). Same statistics as `main`.
+@compute @workgroup_size(256)
+fn gn4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let seg = wid.y * nwg.x + wid.x;
+    let l = lid.x;
+    let base = seg * p.len;
+    let b4 = base / 4u;
+    let x0 = f32(x4[b4].x);
+    let n4 = p.len / 4u;
+    var s = 0.0;
+    for (var i = l; i < n4; i += 256u) { let d = vec4<f32>(x4[b4 + i]) - x0; s += d.x + d.y + d.z + d.w; }
+    let mean = reduce_sum(s, l) / f32(p.len);
+    var q = 0.0;
+    for (var i = l; i < n4; i += 256u) { let d = (vec4<f32>(x4[b4 + i]) - x0) - mean; q += dot(d, d); }
+    let var_ = reduce_sum(q, l) / f32(p.len);
+    let rstd = inverseSqrt(var_ + p.eps);
+    let cbase = (seg % p.segs_per_item) * p.ch_per_seg;
+    let in4 = p.inner / 4u;
+    for (var c = 0u; c < p.ch_per_seg; c++) {
+        let g = rstd * f32(gamma[cbase + c]);
+        let b = f32(beta[cbase + c]) - mean * g;
+        let cb = b4 + c * in4;
+        for (var j = l; j < in4; j += 256u) {
+            var v = (vec4<f32>(x4[cb + j]) - x0) * g + b;
+            if (p.silu == 1u) { v = v / (1.0 + exp(-v)); }
+            y4[cb + j] = vec4<ST>(v);
+        }
     }
 }

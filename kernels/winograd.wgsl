@@ -171,3 +171,131 @@ fn weight(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
         }
     }
 }
+
+// ---- vec4 forms (fewer per-lane storage accesses on lavapipe): 4 channels per invocation, rows loaded as
+// vec4s. `input4` needs C % 4 == 0, W % 4 == 0 and left padding 1; `output4` needs O % 4 == 0 and OW % 4 == 0.
+@group(0) @binding(0) var<storage, read> x4: array<vec4<ST>>;
+@group(0) @binding(1) var<storage, read_write> v4: array<vec4<f32>>;
+@group(0) @binding(0) var<storage, read> m4: array<vec4<f32>>;
+@group(0) @binding(2) var<storage, read_write> y4: array<vec4<ST>>;
+
+fn bt4(d: array<vec4<f32>, 6>) -> array<vec4<f32>, 6> {
+    return array<vec4<f32>, 6>(
+        4.0 * d[0] - 5.0 * d[2] + d[4],
+        -4.0 * d[1] - 4.0 * d[2] + d[3] + d[4],
+        4.0 * d[1] - 4.0 * d[2] - d[3] + d[4],
+        -2.0 * d[1] - d[2] + 2.0 * d[3] + d[4],
+        2.0 * d[1] - d[2] - 2.0 * d[3] + d[4],
+        4.0 * d[1] - 5.0 * d[3] + d[5]);
+}
+
+fn at4(s: array<vec4<f32>, 6>) -> array<vec4<f32>, 4> {
+    return array<vec4<f32>, 4>(
+        s[0] + s[1] + s[2] + s[3] + s[4],
+        s[1] - s[2] + 2.0 * (s[3] - s[4]),
+        s[1] + s[2] + 4.0 * (s[3] + s[4]),
+        s[1] - s[2] + 8.0 * (s[3] - s[4]) + s[5]);
+}
+
+// The vec4 of row iy (of the plane at element `base`) starting at column 4 q4, 0 outside the image.
+fn xq(base: u32, iy: i32, q4: i32) -> vec4<f32> {
+    let ok = iy >= 0 && iy < i32(p.h) && q4 >= 0 && 4 * q4 < i32(p.w);
+    let o = (base + u32(clamp(iy, 0, i32(p.h) - 1)) * p.w) / 4u + u32(clamp(q4, 0, i32(p.w / 4u) - 1));
+    return select(vec4<f32>(0.0), vec4<f32>(x4[o]), ok);
+}
+
+// Window row iy, columns 4 tx - 1 .. 4 tx + 4 (left padding 1) of one channel plane.
+fn xrow4(base: u32, iy: i32, tx: i32) -> array<f32, 6> {
+    let a = xq(base, iy, tx - 1);
+    let b = xq(base, iy, tx);
+    let c = xq(base, iy, tx + 1);
+    return array<f32, 6>(a.w, b.x, b.y, b.z, b.w, c.x);
+}
+
+// One window row of 4 channel planes as vec4s over the channels.
+fn xrow4c(base: u32, plane: u32, iy: i32, tx: i32) -> array<vec4<f32>, 6> {
+    let r0 = xrow4(base, iy, tx);
+    let r1 = xrow4(base + plane, iy, tx);
+    let r2 = xrow4(base + 2u * plane, iy, tx);
+    let r3 = xrow4(base + 3u * plane, iy, tx);
+    return array<vec4<f32>, 6>(vec4<f32>(r0[0], r1[0], r2[0], r3[0]), vec4<f32>(r0[1], r1[1], r2[1], r3[1]),
+                               vec4<f32>(r0[2], r1[2], r2[2], r3[2]), vec4<f32>(r0[3], r1[3], r2[3], r3[3]),
+                               vec4<f32>(r0[4], r1[4], r2[4], r3[4]), vec4<f32>(r0[5], r1[5], r2[5], r3[5]));
+}
+
+// `input` for 4 channels c0 .. c0 + 3 per invocation (channel quad fastest).
+@compute @workgroup_size(256)
+fn input4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let i = flat_index(wid, nwg, lid);
+    let cq = p.c / 4u;
+    if (i >= p.nt * cq) { return; }
+    let c0 = 4u * (i % cq);
+    let tl = i / cq;
+    let t = p.t0 + tl;
+    let tpi = p.th * p.tw;
+    let n = t / tpi;
+    let ty = (t % tpi) / p.tw;
+    let tx = i32(t % p.tw);
+    let plane = p.h * p.w;
+    let base = (n * p.c + c0) * plane;
+    let iy0 = i32(4u * ty) - i32(p.pt);
+    let r0 = bt4(xrow4c(base, plane, iy0, tx));
+    let r1 = bt4(xrow4c(base, plane, iy0 + 1, tx));
+    let r2 = bt4(xrow4c(base, plane, iy0 + 2, tx));
+    let r3 = bt4(xrow4c(base, plane, iy0 + 3, tx));
+    let r4 = bt4(xrow4c(base, plane, iy0 + 4, tx));
+    let r5 = bt4(xrow4c(base, plane, iy0 + 5, tx));
+    let st = p.nt * cq;
+    let o0 = tl * cq + c0 / 4u;
+    for (var j = 0u; j < 6u; j++) {
+        let col = bt4(array<vec4<f32>, 6>(r0[j], r1[j], r2[j], r3[j], r4[j], r5[j]));
+        for (var i2 = 0u; i2 < 6u; i2++) {
+            v4[(i2 * 6u + j) * st + o0] = col[i2];
+        }
+    }
+}
+
+// `output` for 4 output channels o0 .. o0 + 3 per invocation; each output row of a tile is one vec4 store.
+@compute @workgroup_size(256)
+fn output4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let i = flat_index(wid, nwg, lid);
+    let oq = p.o / 4u;
+    if (i >= p.nt * oq) { return; }
+    let o0 = 4u * (i % oq);
+    let tl = i / oq;
+    let t = p.t0 + tl;
+    let tpi = p.th * p.tw;
+    let n = t / tpi;
+    let ty = (t % tpi) / p.tw;
+    let tx = t % p.tw;
+    let st = p.nt * oq;
+    let mo = tl * oq + o0 / 4u;
+    // columns j of A^T M over the 4 channels
+    var cols: array<array<vec4<f32>, 4>, 6>;
+    for (var j = 0u; j < 6u; j++) {
+        cols[j] = at4(array<vec4<f32>, 6>(m4[(0u + j) * st + mo], m4[(6u + j) * st + mo], m4[(12u + j) * st + mo],
+                                          m4[(18u + j) * st + mo], m4[(24u + j) * st + mo], m4[(30u + j) * st + mo]));
+    }
+    var b = vec4<f32>(0.0);
+    if (p.has_bias == 1u) { b = vec4<f32>(f32(bias[o0]), f32(bias[o0 + 1u]), f32(bias[o0 + 2u]), f32(bias[o0 + 3u])); }
+    let plane = p.oh * p.ow;
+    for (var r = 0u; r < 4u; r++) {
+        // row r of the tile for the 4 channels: at4 over the 6 columns gives its 4 pixels
+        let px = at4(array<vec4<f32>, 6>(cols[0][r], cols[1][r], cols[2][r], cols[3][r], cols[4][r], cols[5][r])) ;
+        let yy = 4u * ty + r;
+        if (yy < p.oh) {
+            let e = (yy * p.ow + 4u * tx) / 4u;
+            let pb = (n * p.o + o0) * plane / 4u;
+            let ps = plane / 4u;
+            y4[pb + e] = vec4<ST>(out4(vec4<f32>(px[0].x, px[1].x, px[2].x, px[3].x) + b.x));
+            y4[pb + ps + e] = vec4<ST>(out4(vec4<f32>(px[0].y, px[1].y, px[2].y, px[3].y) + b.y));
+            y4[pb + 2u * ps + e] = vec4<ST>(out4(vec4<f32>(px[0].z, px[1].z, px[2].z, px[3].z) + b.z));
+            y4[pb + 3u * ps + e] = vec4<ST>(out4(vec4<f32>(px[0].w, px[1].w, px[2].w, px[3].w) + b.w));
+        }
+    }
+}
+
+fn out4(v: vec4<f32>) -> vec4<f32> {
+    if (IS_F16) { return clamp(v, vec4<f32>(-F16_MAX), vec4<f32>(F16_MAX)); }
+    return v;
+}

@@ -79,6 +79,9 @@ fn add_mul_broadcast_match_reference() {
         (&[7, 13], &[7, 13]),
         (&[7, 13], &[13]),
         (&[3, 1, 5], &[4, 1]),
+        // vec4 kernel with one operand broadcast over rows, or over the last dimension
+        (&[2, 3, 8], &[8]),
+        (&[4, 1], &[4, 8]),
         (&[1], &[1]),
     ];
     for dtype in [DType::F32, DType::F16] {

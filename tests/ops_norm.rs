@@ -122,23 +122,26 @@ fn group_norm_matches_reference() {
 #[test]
 fn group_norm_constant_group_takes_the_eps_path() {
     let Some(ctx) = ctx() else { return };
-    // A constant group has zero variance: the output must be exactly beta (not NaN from 0/0).
-    let shape = [1, 4, 5, 5];
-    let x = vec![3.25f32; 100];
-    let gamma = vec![2.0f32; 4];
-    let beta = vec![0.5f32, -1.0, 0.25, 7.0];
-    let (tx, tg, tb) = (
-        upload(&ctx, &shape, DType::F32, &x),
-        upload(&ctx, &[4], DType::F32, &gamma),
-        upload(&ctx, &[4], DType::F32, &beta),
-    );
-    let out = empty(&ctx, &shape, DType::F32);
-    run(&ctx, |rec| {
-        norm::group_norm(rec, &tx, 2, &tg, &tb, 1e-6, false, &out)
-    });
-    let got = out.to_f32(&ctx).unwrap();
-    for (i, v) in got.iter().enumerate() {
-        assert_eq!(*v, beta[i / 25], "element {i}");
+    // A constant group has zero variance: the output must be exactly beta (not NaN from 0/0). 5x5 planes run
+    // the scalar kernel, 4x4 planes the vec4 one (`gn4`).
+    for (hw, side) in [(25usize, 5usize), (16, 4)] {
+        let shape = [1, 4, side, side];
+        let x = vec![3.25f32; 4 * hw];
+        let gamma = vec![2.0f32; 4];
+        let beta = vec![0.5f32, -1.0, 0.25, 7.0];
+        let (tx, tg, tb) = (
+            upload(&ctx, &shape, DType::F32, &x),
+            upload(&ctx, &[4], DType::F32, &gamma),
+            upload(&ctx, &[4], DType::F32, &beta),
+        );
+        let out = empty(&ctx, &shape, DType::F32);
+        run(&ctx, |rec| {
+            norm::group_norm(rec, &tx, 2, &tg, &tb, 1e-6, false, &out)
+        });
+        let got = out.to_f32(&ctx).unwrap();
+        for (i, v) in got.iter().enumerate() {
+            assert_eq!(*v, beta[i / hw], "{side}x{side}: element {i}");
+        }
     }
     assert_no_validation_errors();
 }

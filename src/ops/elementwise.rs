@@ -12,16 +12,20 @@ use crate::tensor::Tensor;
 fn unary(rec: &mut Recorder, name: &str, op: u32, x: &Tensor, out: &Tensor) -> Result<()> {
     let d = same_dtype(name, &[x, out])?;
     expect_shape(name, "out", out, x.shape())?;
-    let p = UnaryParams {
-        n: x.numel() as u32,
-        op,
+    // 4 elements per invocation when the count allows (vec4 accesses, see elementwise.wgsl)
+    let v4 = x.numel() % 4 == 0;
+    let n = if v4 { x.numel() / 4 } else { x.numel() };
+    let p = UnaryParams { n: n as u32, op };
+    let k = if v4 {
+        pick(d, K::ElementwiseF32Unary4, K::ElementwiseF16Unary4)
+    } else {
+        pick(d, K::ElementwiseF32Unary, K::ElementwiseF16Unary)
     };
-    let k = pick(d, K::ElementwiseF32Unary, K::ElementwiseF16Unary);
     rec.dispatch(
         k,
         &[x.buffer(), out.buffer()],
         bytemuck::bytes_of(&p),
-        grid_1d(name, x.numel())?,
+        grid_1d(name, n)?,
         name,
     )
 }
@@ -56,6 +60,37 @@ fn bcast_strides(op: &str, s: &[usize], out: &[usize]) -> Result<[u32; 4]> {
     Ok(st)
 }
 
+/// Merges adjacent output dimensions that both operands traverse the same way (contiguously, or both
+/// broadcast), keeping 4 right-aligned dims: e.g. a (N, C, H, W) + (N, C, 1, 1) add becomes (1, 1, N C, H W),
+/// so the last dimension is long enough for the vec4 kernel.
+fn merge_dims(o: [usize; 4], sa: [u32; 4], sb: [u32; 4]) -> ([usize; 4], [u32; 4], [u32; 4]) {
+    let mut dims: Vec<(usize, u32, u32)> = vec![];
+    for k in 0..4 {
+        if o[k] == 1 {
+            continue;
+        }
+        if let Some(last) = dims.last_mut() {
+            let d = o[k] as u32;
+            if last.1 == sa[k] * d && last.2 == sb[k] * d {
+                *last = (last.0 * o[k], sa[k], sb[k]);
+                continue;
+            }
+        }
+        dims.push((o[k], sa[k], sb[k]));
+    }
+    if dims.len() > 4 || dims.is_empty() {
+        return (o, sa, sb);
+    }
+    let (mut no, mut na, mut nb) = ([1usize; 4], [0u32; 4], [0u32; 4]);
+    let off = 4 - dims.len();
+    for (i, (d, x, y)) in dims.into_iter().enumerate() {
+        no[off + i] = d;
+        na[off + i] = x;
+        nb[off + i] = y;
+    }
+    (no, na, nb)
+}
+
 /// Broadcast shape of two shapes (numpy rules).
 pub fn broadcast_shape(op: &str, a: &[usize], b: &[usize]) -> Result<Vec<usize>> {
     let n = a.len().max(b.len());
@@ -88,9 +123,14 @@ fn binary(
     o[4 - shape.len()..].copy_from_slice(&shape);
     let sa = bcast_strides(name, a.shape(), &shape)?;
     let sb = bcast_strides(name, b.shape(), &shape)?;
+    let (o, sa, sb) = merge_dims(o, sa, sb);
+    // vec4 kernel: whole vec4s along the last dimension, each operand contiguous (aligned) or broadcast there
+    let vec_ok = |s: &[u32; 4]| s[3] == 0 || (s[3] == 1 && s[..3].iter().all(|&x| x % 4 == 0));
+    let v4 = o[3] % 4 == 0 && vec_ok(&sa) && vec_ok(&sb);
+    let n = if v4 { out.numel() / 4 } else { out.numel() };
     let p = BinaryParams {
         op,
-        n: out.numel() as u32,
+        n: n as u32,
         d1: o[1] as u32,
         d2: o[2] as u32,
         d3: o[3] as u32,
@@ -103,12 +143,16 @@ fn binary(
         sb2: sb[2],
         sb3: sb[3],
     };
-    let k = pick(d, K::ElementwiseF32Binary, K::ElementwiseF16Binary);
+    let k = if v4 {
+        pick(d, K::ElementwiseF32Binary4, K::ElementwiseF16Binary4)
+    } else {
+        pick(d, K::ElementwiseF32Binary, K::ElementwiseF16Binary)
+    };
     rec.dispatch(
         k,
         &[a.buffer(), b.buffer(), out.buffer()],
         bytemuck::bytes_of(&p),
-        grid_1d(name, out.numel())?,
+        grid_1d(name, n)?,
         name,
     )
 }

@@ -34,7 +34,12 @@ fn norm(
         segs % gx == 0 || grid[1] == 1,
         "{op}: {segs} segments cannot be tiled over the grid"
     );
-    let k = pick(d, K::NormF32, K::NormF16);
+    // vec4 kernel when every channel plane is a whole number of vec4s (group norm with H W % 4 == 0)
+    let k = if p.inner > 1 && p.inner % 4 == 0 {
+        pick(d, K::NormF32Gn4, K::NormF16Gn4)
+    } else {
+        pick(d, K::NormF32, K::NormF16)
+    };
     rec.dispatch(
         k,
         &[x.buffer(), gamma.buffer(), beta.buffer(), out.buffer()],

@@ -41,7 +41,8 @@ impl Buffer {
             "buffer {name:?}: {size} bytes exceeds the device's maxStorageBufferRange ({range} bytes); \
              split the batch or use a smaller resolution"
         );
-        let size = size.next_multiple_of(4);
+        // whole 16-byte units: a kernel may read the vec4 that holds any element (elementwise.wgsl binary4)
+        let size = size.next_multiple_of(16);
         let d = &ctx.inner.device;
         let bci = vk::BufferCreateInfo::default().size(size).usage(
             vk::BufferUsageFlags::STORAGE_BUFFER
