@@ -58,6 +58,8 @@ fn x_quad(xb: u32, c: u32, off: vec4<u32>, ok: vec4<bool>) -> vec4<f32> {
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
         @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
     let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
+    // a subgroup past the last row (output channel) leaves at once (uniform per subgroup; no barriers follow)
+    if (row0 >= p.o) { return; }
     let np = p.oh * p.ow;
     let col0 = wid.x * 4u * sgs + lane;
     let cols = min(vec4<u32>(col0, col0 + sgs, col0 + 2u * sgs, col0 + 3u * sgs), vec4<u32>(np - 1u));

@@ -114,6 +114,8 @@ fn store_rows(yb: u32, row0: u32, col0: u32, np: u32) {
 fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
         @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
     let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
+    // a subgroup past the last row leaves at once (uniform per subgroup; no barriers follow)
+    if (row0 >= p.oh * p.ow) { return; }
     let np = p.oh * p.ow;
     let col0 = (wid.x * sgs + lane) * 4u;
     let col4 = min(col0, p.o - 4u) / 4u;
@@ -166,6 +168,8 @@ fn fma_q7(b0: vec4<f32>, b1: vec4<f32>, b2: vec4<f32>, b3: vec4<f32>) { for (var
 fn hwnc(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
         @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
     let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
+    // a subgroup past the last row leaves at once (uniform per subgroup; no barriers follow)
+    if (row0 >= p.oh * p.ow) { return; }
     let np = p.oh * p.ow;
     let col0 = (wid.x * sgs + lane) * 4u;
     let col4 = min(col0, p.o - 4u) / 4u;

@@ -126,6 +126,8 @@ fn b_row_scalar(bbase: u32, k: u32, cols: vec4<u32>) -> vec4<f32> {
 fn nn(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
       @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
     let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
+    // a subgroup past the last row leaves at once (uniform per subgroup; no barriers follow)
+    if (row0 >= p.m) { return; }
     let col0 = (wid.x * sgs + lane) * 4u;
     let nm = p.n - 1u;
     let cols = vec4<u32>(min(col0, nm), min(col0 + 1u, nm), min(col0 + 2u, nm), min(col0 + 3u, nm));
@@ -153,6 +155,8 @@ fn b_row_vec4(bbase4: u32, k: u32, col4: u32) -> vec4<f32> {
 fn nn4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
        @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
     let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
+    // a subgroup past the last row leaves at once (uniform per subgroup; no barriers follow)
+    if (row0 >= p.m) { return; }
     let col0 = (wid.x * sgs + lane) * 4u;
     let col4 = min(col0, p.n - 4u) / 4u;
     let bbase4 = wid.z * p.sb / 4u;
@@ -202,6 +206,8 @@ fn fma_nt(w0a: vec4<f32>, w0b: vec4<f32>, w1a: vec4<f32>, w1b: vec4<f32>,
 fn nt(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
       @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
     let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
+    // a subgroup past the last row leaves at once (uniform per subgroup; no barriers follow)
+    if (row0 >= p.m) { return; }
     let col0 = wid.x * 4u * sgs + lane;
     let bbase = wid.z * p.sb;
     let nm = p.n - 1u;
@@ -219,6 +225,8 @@ fn nt(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li
 fn nt4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
        @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
     let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
+    // a subgroup past the last row leaves at once (uniform per subgroup; no barriers follow)
+    if (row0 >= p.m) { return; }
     let col0 = wid.x * 4u * sgs + lane;
     let bbase = wid.z * p.sb;
     let nm = p.n - 1u;
@@ -237,6 +245,8 @@ fn nt4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) l
 fn nt8(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
        @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
     let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
+    // a subgroup past the last row leaves at once (uniform per subgroup; no barriers follow)
+    if (row0 >= p.m) { return; }
     let col0 = wid.x * 4u * sgs + lane;
     let nm = p.n - 1u;
     let wo = (min(vec4<u32>(col0, col0 + sgs, col0 + 2u * sgs, col0 + 3u * sgs), vec4<u32>(nm)) * p.k + wid.z * p.sb) / 8u;
@@ -279,6 +289,8 @@ fn load_a4(k0: u32, lane: u32) {
 fn nn4a(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
         @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
     let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
+    // a subgroup past the last row leaves at once (uniform per subgroup; no barriers follow)
+    if (row0 >= p.m) { return; }
     let col0 = (wid.x * sgs + lane) * 4u;
     let col4 = min(col0, p.n - 4u) / 4u;
     let bb = wid.z * p.sb / 4u;
@@ -307,6 +319,8 @@ fn tcol(w0: vec4<f32>, w1: vec4<f32>, w2: vec4<f32>, w3: vec4<f32>, i: u32) -> v
 fn nt8a(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
         @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
     let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
+    // a subgroup past the last row leaves at once (uniform per subgroup; no barriers follow)
+    if (row0 >= p.m) { return; }
     let col0 = wid.x * 4u * sgs + lane;
     let nm = p.n - 1u;
     let wo = (min(vec4<u32>(col0, col0 + sgs, col0 + 2u * sgs, col0 + 3u * sgs), vec4<u32>(nm)) * p.k + wid.z * p.sb) / 8u;

@@ -62,7 +62,9 @@ impl ControlNet {
         Ok(y)
     }
 
-    /// sample: (N, Cin, H, W), t: (N) f32, context: (N, L, Dc), cond: (N, Cc, 8H, 8W) -> residuals
+    /// sample: (N, Cin, H, W), t: (N) f32, context: (N, L, Dc), cond: (M, Cc, 8H, 8W) -> residuals. M = N, or M
+    /// divides N when the batch repeats the same M images (a guided batch [uncond; cond] shares its
+    /// conditioning images): the conditioning embedding then runs once per image.
     pub fn forward(
         &self,
         f: &mut Fwd,
@@ -74,8 +76,11 @@ impl ControlNet {
     ) -> Result<ControlOut> {
         let (s, c) = (sample.shape(), cond.shape());
         ensure!(
-            c.len() == 4 && c[0] == s[0] && c[1] == self.cfg.conditioning_channels,
-            "controlnet: controlnet_cond {c:?} must be ({}, {}, H, W)",
+            c.len() == 4
+                && c[0] >= 1
+                && s[0] % c[0] == 0
+                && c[1] == self.cfg.conditioning_channels,
+            "controlnet: controlnet_cond {c:?} must be ({}, {}, H, W) or cover a divisor of that batch",
             s[0],
             self.cfg.conditioning_channels
         );

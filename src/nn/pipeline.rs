@@ -105,9 +105,11 @@ impl Pipeline {
             "context",
         )?;
         let cond = match control {
+            // one copy of the conditioning images: both guidance halves share them (ControlNet::forward
+            // embeds them once and adds the embedding to each half)
             Some(c) => Some(Tensor::zeros(
                 ctx,
-                &[mb, c.cfg.conditioning_channels, 8 * h, 8 * w],
+                &[n, c.cfg.conditioning_channels, 8 * h, 8 * w],
                 model_dtype,
                 "cond",
             )?),
@@ -276,14 +278,13 @@ impl Pipeline {
         self.context.write_f32(&self.ctx, &c)?;
         match (&self.cond, cond_image) {
             (Some(t), Some(img)) => {
-                let reps = if guided { 2 } else { 1 };
                 ensure!(
-                    img.len() * reps == t.numel(),
+                    img.len() == t.numel(),
                     "pipeline: conditioning image has {} values, expected {}",
                     img.len(),
-                    t.numel() / reps
+                    t.numel()
                 );
-                t.write_f32(&self.ctx, &img.repeat(reps))?;
+                t.write_f32(&self.ctx, img)?;
             }
             (Some(_), None) => bail!("pipeline: the ControlNet needs a conditioning image"),
             (None, _) => {}

@@ -151,8 +151,22 @@ impl EncoderHalf {
         let temb = self.time(f, t)?;
         let mut x = self.conv_in.forward(f, sample)?;
         if let Some(a) = add {
+            // `a` may cover a divisor of the batch: an (n, ..) addend for an (r n, ..) batch that repeats the
+            // same n conditions r times (the guidance halves) is added to each repeat.
+            let (xs, as_) = (x.shape().to_vec(), a.shape().to_vec());
+            ensure!(
+                as_.len() == 4 && as_[1..] == xs[1..] && as_[0] >= 1 && xs[0] % as_[0] == 0,
+                "encoder: conditioning embedding {as_:?} does not fit the batch {xs:?}"
+            );
             let y = f.ws.alloc(x.shape())?;
-            ew::add(f.rec, &x, a, &y)?;
+            let per = a.numel();
+            let r = xs[0] / as_[0];
+            ew::add(
+                f.rec,
+                &x.reshape(&[r, per])?,
+                &a.reshape(&[1, per])?,
+                &y.reshape(&[r, per])?,
+            )?;
             f.ws.release(x);
             x = y;
         }

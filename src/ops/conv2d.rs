@@ -332,7 +332,9 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
         groups.iter().all(|&g| g <= 65535),
         "conv2d: x {xs:?} w {ws:?} is too large for one dispatch"
     );
-    rec.dispatch(id, &bufs, bytemuck::bytes_of(&p), groups, "conv2d")
+    // per-shape label: `--profile` then splits conv time by shape
+    let label = format!("conv2d {n}x{c}x{h}x{w} -> {o} k{kh}x{kw} s{}", a.stride);
+    rec.dispatch(id, &bufs, bytemuck::bytes_of(&p), groups, &label)
 }
 
 /// x: (N, C, H, W) * w: (O, C, KH, KW) (+ bias (O)) -> out: (N, O, OH, OW); pad = (top, bottom, left, right).
