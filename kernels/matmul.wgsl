@@ -38,6 +38,9 @@ struct MatmulParams {
 @group(0) @binding(1) var<storage, read> bq4: array<vec4<u32>>;
 @group(0) @binding(2) var<storage, read> bias: array<ST>;
 @group(0) @binding(3) var<storage, read_write> c: array<ST>;
+// vec4 views for `store_tile4` (N % 4 == 0): one store per row instead of four (each a per-lane loop on lavapipe)
+@group(0) @binding(2) var<storage, read> bias4: array<vec4<ST>>;
+@group(0) @binding(3) var<storage, read_write> c4v: array<vec4<ST>>;
 var<immediate> p: MatmulParams;
 
 // Two f16 (low half first) from their packed bits, exactly (denormals included unless the device flushes them;
@@ -114,6 +117,29 @@ fn store_tile(cbase: u32, row0: u32, col0: u32, cs: u32) {
     }
 }
 
+fn out_val4(x: vec4<f32>) -> vec4<ST> {
+    if (IS_F16 && any(abs(x) > vec4<f32>(F16_MAX))) {
+        note_overflow();
+        return vec4<ST>(clamp(x, vec4<f32>(-F16_MAX), vec4<f32>(F16_MAX)));
+    }
+    return vec4<ST>(x);
+}
+
+// store_tile for 4 consecutive columns col0 .. col0 + 3 per lane (col0 % 4 == 0, N % 4 == 0): vec4 stores, the
+// column bias loaded once. Bias buffers are allocated in 16-byte units, so bias4[m / 4] is in bounds.
+fn store_tile4(cbase: u32, row0: u32, col0: u32) {
+    if (col0 >= p.n) { return; }
+    var bv = vec4<f32>(0.0);
+    if (p.bias_mode == 1u) { bv = vec4<f32>(bias4[col0 / 4u]); }
+    for (var r = 0u; r < TM; r++) {
+        let m = row0 + r;
+        if (m >= p.m) { return; }
+        var v = acc[r] + bv;
+        if (p.bias_mode == 2u) { v += vec4<f32>(f32(bias4[m / 4u][m % 4u])); }
+        c4v[(cbase + m * p.n + col0) / 4u] = out_val4(v);
+    }
+}
+
 // B row k (clamped), 4 consecutive columns starting at col (clamped to N - 1 each).
 fn b_row_scalar(bbase: u32, k: u32, cols: vec4<u32>) -> vec4<f32> {
     let o = bbase + min(k, p.k - 1u) * p.n;
@@ -172,7 +198,7 @@ fn nn4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) l
         fma_k6(b_row_vec4(bbase4, k0 + 6u, col4));
         fma_k7(b_row_vec4(bbase4, k0 + 7u, col4));
     }
-    store_tile(wid.z * p.m * p.n, row0, col0, 1u);
+    store_tile4(wid.z * p.m * p.n, row0, col0);
 }
 
 // W[n, k0 .. k0 + 4] (clamped; the A side is 0 past K). Scalar loads, any K.
@@ -306,7 +332,7 @@ fn nn4a(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         fma_q6(b_row_vec4(bb, k0 + 24u, col4), b_row_vec4(bb, k0 + 25u, col4), b_row_vec4(bb, k0 + 26u, col4), b_row_vec4(bb, k0 + 27u, col4));
         fma_q7(b_row_vec4(bb, k0 + 28u, col4), b_row_vec4(bb, k0 + 29u, col4), b_row_vec4(bb, k0 + 30u, col4), b_row_vec4(bb, k0 + 31u, col4));
     }
-    store_tile(wid.z * p.m * p.n, row0, col0, 1u);
+    store_tile4(wid.z * p.m * p.n, row0, col0);
 }
 
 // k values h * 4 .. h * 4 + 3 of the 8 in w (one column each) as 4 k-step vectors over the 4 columns.
@@ -347,4 +373,39 @@ fn nt8a(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         fma_q7(tcol(w0[1], w1[1], w2[1], w3[1], 0u), tcol(w0[1], w1[1], w2[1], w3[1], 1u), tcol(w0[1], w1[1], w2[1], w3[1], 2u), tcol(w0[1], w1[1], w2[1], w3[1], 3u));
     }
     store_tile(wid.z * p.m * p.n, row0, col0, sgs);
+}
+
+// `nt8a` with lane l owning the 4 consecutive columns col0 + 4 l .. + 3 (N % 4 == 0), stored as vec4s.
+@compute @workgroup_size(WG)
+fn nt8a4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
+        @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
+    let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
+    // a subgroup past the last row leaves at once (uniform per subgroup; no barriers follow)
+    if (row0 >= p.m) { return; }
+    let col0 = (wid.x * sgs + lane) * 4u;
+    let nm = p.n - 1u;
+    let wo = (min(vec4<u32>(col0, col0 + 1u, col0 + 2u, col0 + 3u), vec4<u32>(nm)) * p.k + wid.z * p.sb) / 8u;
+    let k8m = p.k / 8u - 1u;
+    setup_rows(wid.z * p.sa, row0);
+    for (var k0 = 0u; k0 < p.k; k0 += 32u) {
+        load_a4(k0, lane & 7u);
+        let k8 = k0 / 8u;
+        var o = k8;
+        var w0 = ld8(wo.x + o); var w1 = ld8(wo.y + o); var w2 = ld8(wo.z + o); var w3 = ld8(wo.w + o);
+        fma_q0(tcol(w0[0], w1[0], w2[0], w3[0], 0u), tcol(w0[0], w1[0], w2[0], w3[0], 1u), tcol(w0[0], w1[0], w2[0], w3[0], 2u), tcol(w0[0], w1[0], w2[0], w3[0], 3u));
+        fma_q1(tcol(w0[1], w1[1], w2[1], w3[1], 0u), tcol(w0[1], w1[1], w2[1], w3[1], 1u), tcol(w0[1], w1[1], w2[1], w3[1], 2u), tcol(w0[1], w1[1], w2[1], w3[1], 3u));
+        o = min(k8 + 1u, k8m);
+        w0 = ld8(wo.x + o); w1 = ld8(wo.y + o); w2 = ld8(wo.z + o); w3 = ld8(wo.w + o);
+        fma_q2(tcol(w0[0], w1[0], w2[0], w3[0], 0u), tcol(w0[0], w1[0], w2[0], w3[0], 1u), tcol(w0[0], w1[0], w2[0], w3[0], 2u), tcol(w0[0], w1[0], w2[0], w3[0], 3u));
+        fma_q3(tcol(w0[1], w1[1], w2[1], w3[1], 0u), tcol(w0[1], w1[1], w2[1], w3[1], 1u), tcol(w0[1], w1[1], w2[1], w3[1], 2u), tcol(w0[1], w1[1], w2[1], w3[1], 3u));
+        o = min(k8 + 2u, k8m);
+        w0 = ld8(wo.x + o); w1 = ld8(wo.y + o); w2 = ld8(wo.z + o); w3 = ld8(wo.w + o);
+        fma_q4(tcol(w0[0], w1[0], w2[0], w3[0], 0u), tcol(w0[0], w1[0], w2[0], w3[0], 1u), tcol(w0[0], w1[0], w2[0], w3[0], 2u), tcol(w0[0], w1[0], w2[0], w3[0], 3u));
+        fma_q5(tcol(w0[1], w1[1], w2[1], w3[1], 0u), tcol(w0[1], w1[1], w2[1], w3[1], 1u), tcol(w0[1], w1[1], w2[1], w3[1], 2u), tcol(w0[1], w1[1], w2[1], w3[1], 3u));
+        o = min(k8 + 3u, k8m);
+        w0 = ld8(wo.x + o); w1 = ld8(wo.y + o); w2 = ld8(wo.z + o); w3 = ld8(wo.w + o);
+        fma_q6(tcol(w0[0], w1[0], w2[0], w3[0], 0u), tcol(w0[0], w1[0], w2[0], w3[0], 1u), tcol(w0[0], w1[0], w2[0], w3[0], 2u), tcol(w0[0], w1[0], w2[0], w3[0], 3u));
+        fma_q7(tcol(w0[1], w1[1], w2[1], w3[1], 0u), tcol(w0[1], w1[1], w2[1], w3[1], 1u), tcol(w0[1], w1[1], w2[1], w3[1], 2u), tcol(w0[1], w1[1], w2[1], w3[1], 3u));
+    }
+    store_tile4(wid.z * p.m * p.n, row0, col0);
 }

@@ -64,6 +64,8 @@ enum Width {
     W8,
     /// W4 (nn) / W8 (nt) plus vec4 loads of A (K % 4 == 0): 32-k chunks
     Wide,
+    /// Wide with N % 4 == 0: nt lanes own 4 consecutive columns, stored as vec4s
+    Wide4,
 }
 
 fn ids(d: DType, checked: bool, tiled: bool, trans: bool, w: Width) -> K {
@@ -79,7 +81,7 @@ fn ids(d: DType, checked: bool, tiled: bool, trans: bool, w: Width) -> K {
             (true, true, true) => K::MatmulDirectF16chkNt,
         };
     }
-    // [nn, nn4, nn4a, nt, nt4, nt8, nt8a] per variant
+    // [nn, nn4, nn4a, nt, nt4, nt8, nt8a, nt8a4] per variant
     let v = match (f16, checked) {
         (false, _) => [
             K::MatmulF32Nn,
@@ -89,6 +91,7 @@ fn ids(d: DType, checked: bool, tiled: bool, trans: bool, w: Width) -> K {
             K::MatmulF32Nt4,
             K::MatmulF32Nt8,
             K::MatmulF32Nt8a,
+            K::MatmulF32Nt8a4,
         ],
         (true, false) => [
             K::MatmulF16Nn,
@@ -98,6 +101,7 @@ fn ids(d: DType, checked: bool, tiled: bool, trans: bool, w: Width) -> K {
             K::MatmulF16Nt4,
             K::MatmulF16Nt8,
             K::MatmulF16Nt8a,
+            K::MatmulF16Nt8a4,
         ],
         (true, true) => [
             K::MatmulF16chkNn,
@@ -107,6 +111,7 @@ fn ids(d: DType, checked: bool, tiled: bool, trans: bool, w: Width) -> K {
             K::MatmulF16chkNt4,
             K::MatmulF16chkNt8,
             K::MatmulF16chkNt8a,
+            K::MatmulF16chkNt8a4,
         ],
     };
     match (trans, w) {
@@ -117,6 +122,8 @@ fn ids(d: DType, checked: bool, tiled: bool, trans: bool, w: Width) -> K {
         (true, W4) => v[4],
         (true, W8) => v[5],
         (true, Wide) => v[6],
+        (true, Wide4) => v[7],
+        (false, Wide4) => v[2],
     }
 }
 
@@ -151,7 +158,9 @@ pub(crate) fn gemm(
     let row = if g.trans_b { g.k } else { g.n };
     let a_vec4 = g.k % 4 == 0 && g.sa % 4 == 0;
     let width = if g.trans_b && row % 8 == 0 && g.sb % 8 == 0 {
-        if a_vec4 {
+        if a_vec4 && g.n % 4 == 0 {
+            Width::Wide4
+        } else if a_vec4 {
             Width::Wide
         } else {
             Width::W8
@@ -201,7 +210,9 @@ pub(crate) fn gemm(
     if let Some(f) = flag {
         b.push(f);
     }
-    rec.dispatch(id, &b, bytemuck::bytes_of(&p), groups, op)
+    // per-shape label: `--profile` then splits GEMM time by shape
+    let label = format!("{op} {}x{}x{}x{}", g.batch, g.m, g.n, g.k);
+    rec.dispatch(id, &b, bytemuck::bytes_of(&p), groups, &label)
 }
 
 /// Arguments of [`matmul_ex`].
