@@ -203,6 +203,6 @@ pub fn attention_with(
         &[q.buffer(), k.buffer(), v.buffer(), out.buffer()],
         bytemuck::bytes_of(&p),
         fold_groups("attention", groups)?,
-        "attention",
+        &format!("attention {b}x{heads}x{lq}x{lk}x{d}"),
     )
 }

@@ -47,10 +47,11 @@ pub enum ConvPath {
 /// CPU devices (lavapipe), where it was measured (GPUs keep the implicit GEMM; the f32 transformed weights are
 /// 4x the 3x3 weights), and only where the transforms pay: wide convs (C, O >= 256: the 320-channel 28x50 op
 /// case takes 30 ms instead of 74), or >= 180 output tiles of 4x4 (b2dr-tiny VAE decode 2.58 s -> 2.06 s; on
-/// the small UNet convs it gained nothing measurable). lavapipe 22.3, 2026-11-23, see BENCHMARKS.md.
+/// the small UNet convs it gained nothing measurable), down to C = 3 (the ControlNet's 3 -> 16 conv at
+/// 224 x 400: 28 ms -> ~13 ms). lavapipe 22.3, 2026-11-23, see BENCHMARKS.md.
 pub fn winograd_pays(dev: &DeviceInfo, n: usize, c: usize, o: usize, oh: usize, ow: usize) -> bool {
     let tiles = n * oh.div_ceil(4) * ow.div_ceil(4);
-    dev.is_cpu() && c >= 8 && o >= 8 && (tiles >= 180 || c.min(o) >= 256)
+    dev.is_cpu() && c >= 3 && o >= 8 && (tiles >= 180 || c.min(o) >= 256)
 }
 
 /// Shape of the Winograd-transformed weight of a (O, C, 3, 3) weight: (36, C, O).
