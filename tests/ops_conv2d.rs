@@ -423,3 +423,65 @@ fn bad_inputs_are_errors() {
     drop(rec);
     assert_no_validation_errors();
 }
+
+/// Several convs in one recording share its scratch buffers (per-call weight repacks, (H, W, N, C) transposes,
+/// Winograd intermediates and weight transforms): each must still see its own data.
+#[test]
+fn convs_sharing_scratch_in_one_recording_match() {
+    let Some(ctx) = ctx() else { return };
+    // (c, o, h, w, path)
+    let shapes = [
+        (8usize, 8usize, 9usize, 11usize, ConvPath::FastHwnc),
+        (12, 16, 7, 13, ConvPath::FastHwnc),
+        (16, 12, 12, 12, ConvPath::Winograd),
+        (8, 20, 10, 9, ConvPath::Winograd),
+        (12, 8, 5, 6, ConvPath::Fast),
+    ];
+    let mut data = vec![];
+    for (i, &(c, o, h, w, _)) in shapes.iter().enumerate() {
+        let x = uniform(c * h * w, 1.0, 40 + i as u64);
+        let wt = uniform(o * c * 9, 1.0, 60 + i as u64);
+        let tx = upload(&ctx, &[1, c, h, w], DType::F32, &x);
+        let tw = upload(&ctx, &[o, c, 3, 3], DType::F32, &wt);
+        let out = empty(&ctx, &[1, o, h, w], DType::F32);
+        data.push((x, wt, tx, tw, out));
+    }
+    run(&ctx, |rec| {
+        for (&(_, _, _, _, path), (_, _, tx, tw, out)) in shapes.iter().zip(&data) {
+            cv::conv2d_ex(
+                rec,
+                &Conv2dArgs {
+                    x: tx,
+                    w: tw,
+                    bias: None,
+                    out,
+                    stride: 1,
+                    pad: [1; 4],
+                    path,
+                    packed_w: None,
+                    wino_w: None,
+                },
+            )?;
+        }
+        Ok(())
+    });
+    let g = ConvGeom {
+        kh: 3,
+        kw: 3,
+        stride: 1,
+        pad: [1; 4],
+    };
+    for (&(c, o, h, w, path), (x, wt, _, _, out)) in shapes.iter().zip(&data) {
+        let want = rc::conv2d(
+            &stored(x, DType::F32),
+            &stored(wt, DType::F32),
+            None,
+            (1, c, h, w),
+            o,
+            g,
+        );
+        let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
+        assert!(e <= 1e-6, "{c}->{o} {h}x{w} {path:?}: nmse {e:e}");
+    }
+    assert_no_validation_errors();
+}

@@ -2,14 +2,14 @@
 //! (top, bottom, left, right), fused bias; f32 or f16 storage with f32 accumulation.
 //!
 //! Paths: 1x1 stride-1 unpadded convs run as a GEMM (`matmul::gemm`, weights shared over the batch). On CPU
-//! devices, 3x3 stride-1 convs where it pays ([`winograd_pays`]) run Winograd F(4x4, 3x3) ([`super::winograd`]).
-//! Other
-//! convs with O % 4 == 0 run an implicit GEMM on weights repacked to (KH, KW, C, O) (`kernels/conv2d_packed.wgsl`;
-//! with C % 4 == 0 the input is also transposed to (H, W, N, C) first, entry `hwnc`, the fastest on lavapipe:
-//! both transposes are small next to the conv and live in temporaries kept by the recording). Other O run the
-//! implicit GEMM on PyTorch-layout weights (`kernels/conv2d.wgsl`). All fast paths need subgroups of 8..64
-//! lanes. The direct kernel (`kernels/conv2d_direct.wgsl`) is the fallback and the tests' oracle for all of
-//! them. f16 outputs saturate at +-65504 (see [`super::matmul`]).
+//! devices, 3x3 stride-1 convs where it pays ([`winograd_pays`]) run Winograd F(4x4, 3x3)
+//! ([`super::winograd`]). Other convs with O % 4 == 0 run an implicit GEMM on weights repacked to
+//! (KH, KW, C, O) (`kernels/conv2d_packed.wgsl`; with `FastHwnc` (or wide f16 inputs) the input is also
+//! transposed to (H, W, N, C) first, entry `hwnc`). Per-call repacks, transposes and Winograd intermediates
+//! live in the recording's shared scratch buffers (`Recorder::scratch`), not in one allocation per call.
+//! Other O run the implicit GEMM on PyTorch-layout weights (`kernels/conv2d.wgsl`). All fast paths need
+//! subgroups of 8..64 lanes. The direct kernel (`kernels/conv2d_direct.wgsl`) is the fallback and the tests'
+//! oracle for all of them. f16 outputs saturate at +-65504 (see [`super::matmul`]).
 use anyhow::{ensure, Result};
 
 use super::matmul::{gemm, tile_shape, tiled_supported, Gemm, MatmulPath};
@@ -264,7 +264,9 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
                 pw
             }
             None => {
-                tmp = Tensor::empty(rec.context(), &[kh, kw, c, o], d, "conv2d-packed-w")?;
+                // repacked per call into the recording's shared scratch (slot 4)
+                let b = rec.scratch(4, (kh * kw * c * o * d.size()) as u64)?;
+                tmp = Tensor::on_buffer(b, &[kh, kw, c, o], d)?;
                 pack_weight(rec, a.w, &tmp)?;
                 &tmp
             }
@@ -278,7 +280,9 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
             || (a.path == ConvPath::Auto && d == DType::F16 && c >= 256);
         if c % 4 == 0 && hwnc {
             // input transposed to (H, W, N, C) so channels load as vectors (conv2d_packed.wgsl `hwnc`)
-            xt = Tensor::empty(rec.context(), &[h, w, n, c], d, "conv2d-x-hwnc")?;
+            // per-call transpose into the recording's shared scratch (slot 3)
+            let b = rec.scratch(3, (h * w * n * c * d.size()) as u64)?;
+            xt = Tensor::on_buffer(b, &[h, w, n, c], d)?;
             let pp = PackParams {
                 o: (n * c) as u32,
                 c: 1,
