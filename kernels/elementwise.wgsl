@@ -125,6 +125,19 @@ fn geglu(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: ve
     out1[i] = ST(v * gelu_erf(g));
 }
 
+// `geglu` on vec4s (d % 4 == 0): invocation i -> row i / (d / 4), chunk i % (d / 4)
+@compute @workgroup_size(256)
+fn geglu4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let i = flat_index(wid, nwg, lid);
+    let d4 = gp.d / 4u;
+    if (i >= gp.rows * d4) { return; }
+    let r = i / d4;
+    let c = i % d4;
+    let v = vec4<f32>(av4[r * 2u * d4 + c]);
+    let g = vec4<f32>(av4[r * 2u * d4 + d4 + c]);
+    o1v4[i] = vec4<ST>(v * vec4<f32>(gelu_erf(g.x), gelu_erf(g.y), gelu_erf(g.z), gelu_erf(g.w)));
+}
+
 // a: (N, c1, hw), b: (N, c2, hw) -> out: (N, c1 + c2, hw)
 @compute @workgroup_size(256)
 fn concat(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {

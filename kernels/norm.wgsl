@@ -22,6 +22,11 @@ struct NormParams {
 @group(0) @binding(1) var<storage, read> gamma: array<ST>;
 @group(0) @binding(2) var<storage, read> beta: array<ST>;
 @group(0) @binding(3) var<storage, read_write> y: array<ST>;
+// vec4 views for `layer_norm_sg4` (D % 4 == 0)
+@group(0) @binding(0) var<storage, read> xv4: array<vec4<ST>>;
+@group(0) @binding(1) var<storage, read> gv4: array<vec4<ST>>;
+@group(0) @binding(2) var<storage, read> bv4: array<vec4<ST>>;
+@group(0) @binding(3) var<storage, read_write> yv4: array<vec4<ST>>;
 
 @group(0) @binding(0) var<storage, read> x4: array<vec4<ST>>;
 @group(0) @binding(3) var<storage, read_write> y4: array<vec4<ST>>;
@@ -129,5 +134,26 @@ fn gn4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
             if (p.silu == 1u) { v = v / (1.0 + exp(-v)); }
             y4[cb + j] = vec4<ST>(v);
         }
+    }
+}
+
+// `layer_norm_sg` on vec4s (D % 4 == 0): lanes stride over the row's vec4s. Loop budget: 3 * ceil(D / 4 sg).
+@compute @workgroup_size(64)
+fn layer_norm_sg4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>,
+                  @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32,
+                  @builtin(local_invocation_index) li: u32) {
+    let row = (wid.y * nwg.x + wid.x) * (64u / sg) + li / sg;
+    if (row >= p.ch_per_seg) { return; }
+    let d4 = p.len / 4u;
+    let base = row * d4;
+    let x0 = f32(xv4[base].x);
+    var s = 0.0;
+    for (var i = lane; i < d4; i += sg) { let t = vec4<f32>(xv4[base + i]) - x0; s += t.x + t.y + t.z + t.w; }
+    let mean = subgroupAdd(s) / f32(p.len);
+    var q = 0.0;
+    for (var i = lane; i < d4; i += sg) { let t = (vec4<f32>(xv4[base + i]) - x0) - mean; q += dot(t, t); }
+    let rstd = inverseSqrt(subgroupAdd(q) / f32(p.len) + p.eps);
+    for (var i = lane; i < d4; i += sg) {
+        yv4[base + i] = vec4<ST>(((vec4<f32>(xv4[base + i]) - x0) - mean) * rstd * vec4<f32>(gv4[i]) + vec4<f32>(bv4[i]));
     }
 }

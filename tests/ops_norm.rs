@@ -195,6 +195,8 @@ fn layer_norm_matches_reference() {
             (7, 13, 1.0),
             (1, 1, 1.0),
             (5, 97, 1e3),
+            // vec4 kernel (D % 4 == 0) on large inputs
+            (4, 32, 1e3),
         ] {
             let x = uniform(rows * d, scale, 4);
             let (g, b) = (uniform(d, 1.0, 5), uniform(d, 1.0, 6));

@@ -208,12 +208,23 @@ pub fn geglu(rec: &mut Recorder, x: &Tensor, out: &Tensor) -> Result<()> {
         rows: (x.numel() / last) as u32,
         d: (last / 2) as u32,
     };
-    let k = pick(d, K::ElementwiseF32Geglu, K::ElementwiseF16Geglu);
+    // vec4 kernel when the half width is a whole number of vec4s
+    let (k, n) = if last % 8 == 0 {
+        (
+            pick(d, K::ElementwiseF32Geglu4, K::ElementwiseF16Geglu4),
+            out.numel() / 4,
+        )
+    } else {
+        (
+            pick(d, K::ElementwiseF32Geglu, K::ElementwiseF16Geglu),
+            out.numel(),
+        )
+    };
     rec.dispatch(
         k,
         &[x.buffer(), out.buffer()],
         bytemuck::bytes_of(&p),
-        grid_1d("geglu", out.numel())?,
+        grid_1d("geglu", n)?,
         "geglu",
     )
 }

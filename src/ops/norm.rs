@@ -122,6 +122,12 @@ pub fn layer_norm(
         let groups = rows.div_ceil(64 / sg);
         let gx = groups.min(65535);
         let grid = [gx as u32, groups.div_ceil(gx) as u32, 1];
+        // vec4 accesses when the row is a whole number of vec4s
+        let k = if d % 4 == 0 {
+            pick(dt, K::NormF32LayerNormSg4, K::NormF16LayerNormSg4)
+        } else {
+            k
+        };
         return rec.dispatch(
             k,
             &[x.buffer(), gamma.buffer(), beta.buffer(), out.buffer()],
