@@ -113,9 +113,11 @@ fn online_step(j0: u32, s0in: vec4<f32>, s1in: vec4<f32>, m: f32, l: f32) -> Onl
     let s1 = select(vec4<f32>(NEG_BIG), s1in, vec4<u32>(4u, 5u, 6u, 7u) < nval);
     let t = max(s0, s1);
     let mn = max(m, max(max(t.x, t.y), max(t.z, t.w)));
-    let alpha = exp(m - mn);
-    let p0 = exp(s0 - mn);
-    let p1 = exp(s1 - mn);
+    // logits are in log2 units (the launcher folds log2(e) into the scale), so exp2 gives the softmax weights
+    // without exp's extra multiply
+    let alpha = exp2(m - mn);
+    let p0 = exp2(s0 - mn);
+    let p1 = exp2(s1 - mn);
     return Online(mn, l * alpha + dot(p0 + p1, vec4<f32>(1.0)), alpha, p0, p1);
 }
 

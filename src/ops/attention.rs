@@ -196,7 +196,8 @@ pub fn attention_with(
         qblocks: qblocks as u32,
         slices: slices as u32,
         groups: groups as u32,
-        scale: scale.unwrap_or(1.0 / (d as f32).sqrt()),
+        // log2(e) folded in: the kernel's softmax uses exp2 (attention.wgsl `online_step`)
+        scale: scale.unwrap_or(1.0 / (d as f32).sqrt()) * std::f32::consts::LOG2_E,
     };
     rec.dispatch(
         kn.id,
