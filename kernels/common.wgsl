@@ -21,3 +21,15 @@ fn gelu_erf(x: f32) -> f32 {
 fn silu(x: f32) -> f32 {
     return x / (1.0 + exp(-x));
 }
+
+// Two f16 (low half first) from their packed bits, exactly (denormals included unless the device flushes them;
+// Inf/NaN kept). Arithmetic instead of bitcast<vec2<f16>>(u32), which gave wrong values here (naga 30 SPIR-V
+// on lavapipe 22.3; not investigated further).
+fn f16x2(u: u32) -> vec2<f32> {
+    let h = vec2<u32>(u & 0xffffu, u >> 16u);
+    let e = h & vec2<u32>(0x7c00u);
+    let mag = bitcast<vec2<f32>>((h & vec2<u32>(0x7fffu)) << vec2<u32>(13u)) * 5.192296858534828e33;
+    let special = bitcast<vec2<f32>>(vec2<u32>(0x7f800000u) | ((h & vec2<u32>(0x3ffu)) << vec2<u32>(13u)));
+    let v = select(mag, special, e == vec2<u32>(0x7c00u));
+    return select(v, -v, (h & vec2<u32>(0x8000u)) != vec2<u32>(0u));
+}

@@ -39,15 +39,6 @@ var<private> xok: array<bool, TM>;
 var<private> iy0: array<i32, TM>;
 var<private> ix0: array<i32, TM>;
 
-// Two f16 from packed bits (see matmul.wgsl).
-fn f16x2(u: u32) -> vec2<f32> {
-    let h = vec2<u32>(u & 0xffffu, u >> 16u);
-    let e = h & vec2<u32>(0x7c00u);
-    let mag = bitcast<vec2<f32>>((h & vec2<u32>(0x7fffu)) << vec2<u32>(13u)) * 5.192296858534828e33;
-    let special = bitcast<vec2<f32>>(vec2<u32>(0x7f800000u) | ((h & vec2<u32>(0x3ffu)) << vec2<u32>(13u)));
-    let v = select(mag, special, e == vec2<u32>(0x7c00u));
-    return select(v, -v, (h & vec2<u32>(0x8000u)) != vec2<u32>(0u));
-}
 
 // acc[r] += x[p_r, k_j] * bv for j = 0..7, x broadcast from lane j (constant lane).
 fn fma_k0(bv: vec4<f32>) { for (var r = 0u; r < TM; r++) { acc[r] = fma(vec4<f32>(subgroupBroadcast(av[r], 0u)), bv, acc[r]); } }

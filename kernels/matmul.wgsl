@@ -43,17 +43,6 @@ struct MatmulParams {
 @group(0) @binding(3) var<storage, read_write> c4v: array<vec4<ST>>;
 var<immediate> p: MatmulParams;
 
-// Two f16 (low half first) from their packed bits, exactly (denormals included unless the device flushes them;
-// Inf/NaN kept). Arithmetic instead of bitcast<vec2<f16>>(u32), which gave wrong values here (naga 30 SPIR-V
-// on lavapipe 22.3; not investigated further).
-fn f16x2(u: u32) -> vec2<f32> {
-    let h = vec2<u32>(u & 0xffffu, u >> 16u);
-    let e = h & vec2<u32>(0x7c00u);
-    let mag = bitcast<vec2<f32>>((h & vec2<u32>(0x7fffu)) << vec2<u32>(13u)) * 5.192296858534828e33;
-    let special = bitcast<vec2<f32>>(vec2<u32>(0x7f800000u) | ((h & vec2<u32>(0x3ffu)) << vec2<u32>(13u)));
-    let v = select(mag, special, e == vec2<u32>(0x7c00u));
-    return select(v, -v, (h & vec2<u32>(0x8000u)) != vec2<u32>(0u));
-}
 
 const TM: u32 = 16u;
 const WG: u32 = 64u;
@@ -350,8 +339,14 @@ fn nt8a(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     let col0 = wid.x * 4u * sgs + lane;
     let nm = p.n - 1u;
     let wo = (min(vec4<u32>(col0, col0 + sgs, col0 + 2u * sgs, col0 + 3u * sgs), vec4<u32>(nm)) * p.k + wid.z * p.sb) / 8u;
+    nt8a_k(wo, row0, lane, wid.z * p.sa);
+    store_tile(wid.z * p.m * p.n, row0, col0, sgs);
+}
+
+// The k loop of `nt8a` / `nt8a4`: W rows wo (in 8-element units, batch offset included), rows from row0.
+fn nt8a_k(wo: vec4<u32>, row0: u32, lane: u32, abase: u32) {
     let k8m = p.k / 8u - 1u;
-    setup_rows(wid.z * p.sa, row0);
+    setup_rows(abase, row0);
     for (var k0 = 0u; k0 < p.k; k0 += 32u) {
         load_a4(k0, lane & 7u);
         let k8 = k0 / 8u;
@@ -372,7 +367,6 @@ fn nt8a(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
         fma_q6(tcol(w0[0], w1[0], w2[0], w3[0], 0u), tcol(w0[0], w1[0], w2[0], w3[0], 1u), tcol(w0[0], w1[0], w2[0], w3[0], 2u), tcol(w0[0], w1[0], w2[0], w3[0], 3u));
         fma_q7(tcol(w0[1], w1[1], w2[1], w3[1], 0u), tcol(w0[1], w1[1], w2[1], w3[1], 1u), tcol(w0[1], w1[1], w2[1], w3[1], 2u), tcol(w0[1], w1[1], w2[1], w3[1], 3u));
     }
-    store_tile(wid.z * p.m * p.n, row0, col0, sgs);
 }
 
 // `nt8a` with lane l owning the 4 consecutive columns col0 + 4 l .. + 3 (N % 4 == 0), stored as vec4s.
@@ -385,27 +379,6 @@ fn nt8a4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index)
     let col0 = (wid.x * sgs + lane) * 4u;
     let nm = p.n - 1u;
     let wo = (min(vec4<u32>(col0, col0 + 1u, col0 + 2u, col0 + 3u), vec4<u32>(nm)) * p.k + wid.z * p.sb) / 8u;
-    let k8m = p.k / 8u - 1u;
-    setup_rows(wid.z * p.sa, row0);
-    for (var k0 = 0u; k0 < p.k; k0 += 32u) {
-        load_a4(k0, lane & 7u);
-        let k8 = k0 / 8u;
-        var o = k8;
-        var w0 = ld8(wo.x + o); var w1 = ld8(wo.y + o); var w2 = ld8(wo.z + o); var w3 = ld8(wo.w + o);
-        fma_q0(tcol(w0[0], w1[0], w2[0], w3[0], 0u), tcol(w0[0], w1[0], w2[0], w3[0], 1u), tcol(w0[0], w1[0], w2[0], w3[0], 2u), tcol(w0[0], w1[0], w2[0], w3[0], 3u));
-        fma_q1(tcol(w0[1], w1[1], w2[1], w3[1], 0u), tcol(w0[1], w1[1], w2[1], w3[1], 1u), tcol(w0[1], w1[1], w2[1], w3[1], 2u), tcol(w0[1], w1[1], w2[1], w3[1], 3u));
-        o = min(k8 + 1u, k8m);
-        w0 = ld8(wo.x + o); w1 = ld8(wo.y + o); w2 = ld8(wo.z + o); w3 = ld8(wo.w + o);
-        fma_q2(tcol(w0[0], w1[0], w2[0], w3[0], 0u), tcol(w0[0], w1[0], w2[0], w3[0], 1u), tcol(w0[0], w1[0], w2[0], w3[0], 2u), tcol(w0[0], w1[0], w2[0], w3[0], 3u));
-        fma_q3(tcol(w0[1], w1[1], w2[1], w3[1], 0u), tcol(w0[1], w1[1], w2[1], w3[1], 1u), tcol(w0[1], w1[1], w2[1], w3[1], 2u), tcol(w0[1], w1[1], w2[1], w3[1], 3u));
-        o = min(k8 + 2u, k8m);
-        w0 = ld8(wo.x + o); w1 = ld8(wo.y + o); w2 = ld8(wo.z + o); w3 = ld8(wo.w + o);
-        fma_q4(tcol(w0[0], w1[0], w2[0], w3[0], 0u), tcol(w0[0], w1[0], w2[0], w3[0], 1u), tcol(w0[0], w1[0], w2[0], w3[0], 2u), tcol(w0[0], w1[0], w2[0], w3[0], 3u));
-        fma_q5(tcol(w0[1], w1[1], w2[1], w3[1], 0u), tcol(w0[1], w1[1], w2[1], w3[1], 1u), tcol(w0[1], w1[1], w2[1], w3[1], 2u), tcol(w0[1], w1[1], w2[1], w3[1], 3u));
-        o = min(k8 + 3u, k8m);
-        w0 = ld8(wo.x + o); w1 = ld8(wo.y + o); w2 = ld8(wo.z + o); w3 = ld8(wo.w + o);
-        fma_q6(tcol(w0[0], w1[0], w2[0], w3[0], 0u), tcol(w0[0], w1[0], w2[0], w3[0], 1u), tcol(w0[0], w1[0], w2[0], w3[0], 2u), tcol(w0[0], w1[0], w2[0], w3[0], 3u));
-        fma_q7(tcol(w0[1], w1[1], w2[1], w3[1], 0u), tcol(w0[1], w1[1], w2[1], w3[1], 1u), tcol(w0[1], w1[1], w2[1], w3[1], 2u), tcol(w0[1], w1[1], w2[1], w3[1], 3u));
-    }
+    nt8a_k(wo, row0, lane, wid.z * p.sa);
     store_tile4(wid.z * p.m * p.n, row0, col0);
 }

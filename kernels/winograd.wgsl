@@ -35,6 +35,13 @@ var<immediate> p: WinoParams;
 
 const F16_MAX: f32 = 65504.0;
 
+// (image n, tile row ty, tile column tx) of slab tile tl (tiles numbered over (n, ty, tx)).
+fn tile(tl: u32) -> vec3<u32> {
+    let t = p.t0 + tl;
+    let tpi = p.th * p.tw;
+    return vec3<u32>(t / tpi, (t % tpi) / p.tw, t % p.tw);
+}
+
 // B^T d for one 6-vector (columns of the window, then rows).
 fn bt(d: array<f32, 6>) -> array<f32, 6> {
     return array<f32, 6>(
@@ -86,11 +93,10 @@ fn input(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: ve
     if (i >= p.nt * p.c) { return; }
     let c = i % p.c;
     let tl = i / p.c;
-    let t = p.t0 + tl;
-    let tpi = p.th * p.tw;
-    let n = t / tpi;
-    let ty = (t % tpi) / p.tw;
-    let tx = t % p.tw;
+    let tc = tile(tl);
+    let n = tc.x;
+    let ty = tc.y;
+    let tx = tc.z;
     let base = (n * p.c + c) * p.h * p.w;
     let iy0 = i32(4u * ty) - i32(p.pt);
     let ix0 = i32(4u * tx) - i32(p.pl);
@@ -123,11 +129,10 @@ fn output(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
     if (i >= p.nt * p.o) { return; }
     let o = i % p.o;
     let tl = i / p.o;
-    let t = p.t0 + tl;
-    let tpi = p.th * p.tw;
-    let n = t / tpi;
-    let ty = (t % tpi) / p.tw;
-    let tx = t % p.tw;
+    let tc = tile(tl);
+    let n = tc.x;
+    let ty = tc.y;
+    let tx = tc.z;
     let st = p.nt * p.o;
     let o0 = tl * p.o + o;
     // columns of A^T M: 6 columns j, each reducing the 6 rows i
@@ -231,11 +236,10 @@ fn input4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
     if (i >= p.nt * cq) { return; }
     let c0 = 4u * (i % cq);
     let tl = i / cq;
-    let t = p.t0 + tl;
-    let tpi = p.th * p.tw;
-    let n = t / tpi;
-    let ty = (t % tpi) / p.tw;
-    let tx = i32(t % p.tw);
+    let tc = tile(tl);
+    let n = tc.x;
+    let ty = tc.y;
+    let tx = i32(tc.z);
     let plane = p.h * p.w;
     let base = (n * p.c + c0) * plane;
     let iy0 = i32(4u * ty) - i32(p.pt);
@@ -263,11 +267,10 @@ fn output4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
     if (i >= p.nt * oq) { return; }
     let o0 = 4u * (i % oq);
     let tl = i / oq;
-    let t = p.t0 + tl;
-    let tpi = p.th * p.tw;
-    let n = t / tpi;
-    let ty = (t % tpi) / p.tw;
-    let tx = t % p.tw;
+    let tc = tile(tl);
+    let n = tc.x;
+    let ty = tc.y;
+    let tx = tc.z;
     let st = p.nt * oq;
     let mo = tl * oq + o0 / 4u;
     // columns j of A^T M over the 4 channels

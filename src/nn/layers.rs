@@ -10,8 +10,9 @@ pub struct Conv {
     pub w: Tensor,
     /// The weight repacked once at load to (KH, KW, C, O) for the implicit-GEMM kernel (when it applies).
     packed: Option<Tensor>,
-    /// 3x3 stride-1 weights Winograd-transformed once at load ((36, C, O) f32), on CPU devices where the
-    /// Winograd path runs, when that copy stays under 16 MiB (larger ones are transformed per call).
+    /// 3x3 stride-1 weights Winograd-transformed once at load ((36, C, O) f32), on CPU devices (where `Auto`
+    /// may pick the Winograd path; whether it does depends on the input size, unknown at load), when that copy
+    /// stays under 16 MiB (larger ones are transformed per call when used).
     wino: Option<Tensor>,
     pub b: Option<Tensor>,
     pub stride: usize,
@@ -44,7 +45,7 @@ impl Conv {
             }
         }
         let mut wino = None;
-        let ush = conv2d::winograd_weight_shape(&s);
+        let ush = crate::ops::winograd::weight_shape(&s);
         if dw.ctx.info().is_cpu()
             && s[2] == 3
             && s[3] == 3

@@ -14,6 +14,7 @@ use anyhow::{ensure, Result};
 
 use super::matmul::{gemm, tile_shape, tiled_supported, Gemm, MatmulPath};
 use super::{expect_shape, same_dtype, Recorder};
+use super::{SCRATCH_PACKED_W, SCRATCH_WINO_W, SCRATCH_X_HWNC};
 use crate::kernels::params::{Conv2dParams, PackParams};
 use crate::kernels::KernelId as K;
 use crate::tensor::{DType, Tensor};
@@ -48,15 +49,11 @@ pub enum ConvPath {
 /// 4x the 3x3 weights), and only where the transforms pay: wide convs (C, O >= 256: the 320-channel 28x50 op
 /// case takes 30 ms instead of 74), or >= 180 output tiles of 4x4 (b2dr-tiny VAE decode 2.58 s -> 2.06 s; on
 /// the small UNet convs it gained nothing measurable), down to C = 3 (the ControlNet's 3 -> 16 conv at
-/// 224 x 400: 28 ms -> ~13 ms). lavapipe 22.3, 2026-11-23, see BENCHMARKS.md.
+/// 224 x 400: its 27.6 ms implicit-GEMM profile entry went, the Winograd transform totals rose ~10 ms).
+/// lavapipe 22.3, 2026-11-23, see BENCHMARKS.md.
 pub fn winograd_pays(dev: &DeviceInfo, n: usize, c: usize, o: usize, oh: usize, ow: usize) -> bool {
     let tiles = n * oh.div_ceil(4) * ow.div_ceil(4);
     dev.is_cpu() && c >= 3 && o >= 8 && (tiles >= 180 || c.min(o) >= 256)
-}
-
-/// Shape of the Winograd-transformed weight of a (O, C, 3, 3) weight: (36, C, O).
-pub fn winograd_weight_shape(w: &[usize]) -> [usize; 3] {
-    super::winograd::weight_shape(w)
 }
 
 /// lavapipe stops every loop of an invocation after 65535 back-edges in total: stay well below.
@@ -205,10 +202,9 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
         let u = match a.wino_w {
             Some(u) => u,
             None => {
-                // transformed per call into the recording's shared scratch (slot 2; 0 and 1 are the
-                // Winograd intermediates)
+                // transformed per call into the recording's shared scratch
                 let sh = super::winograd::weight_shape(ws);
-                let b = rec.scratch(2, (sh.iter().product::<usize>() * 4) as u64)?;
+                let b = rec.scratch(SCRATCH_WINO_W, (sh.iter().product::<usize>() * 4) as u64)?;
                 tmp = Tensor::on_buffer(b, &sh, DType::F32)?;
                 super::winograd::transform_weight(rec, a.w, &tmp)?;
                 &tmp
@@ -264,8 +260,8 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
                 pw
             }
             None => {
-                // repacked per call into the recording's shared scratch (slot 4)
-                let b = rec.scratch(4, (kh * kw * c * o * d.size()) as u64)?;
+                // repacked per call into the recording's shared scratch
+                let b = rec.scratch(SCRATCH_PACKED_W, (kh * kw * c * o * d.size()) as u64)?;
                 tmp = Tensor::on_buffer(b, &[kh, kw, c, o], d)?;
                 pack_weight(rec, a.w, &tmp)?;
                 &tmp
@@ -280,8 +276,8 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
             || (a.path == ConvPath::Auto && d == DType::F16 && c >= 256);
         if c % 4 == 0 && hwnc {
             // input transposed to (H, W, N, C) so channels load as vectors (conv2d_packed.wgsl `hwnc`)
-            // per-call transpose into the recording's shared scratch (slot 3)
-            let b = rec.scratch(3, (h * w * n * c * d.size()) as u64)?;
+            // per-call transpose into the recording's shared scratch
+            let b = rec.scratch(SCRATCH_X_HWNC, (h * w * n * c * d.size()) as u64)?;
             xt = Tensor::on_buffer(b, &[h, w, n, c], d)?;
             let pp = PackParams {
                 o: (n * c) as u32,

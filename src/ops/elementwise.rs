@@ -78,7 +78,8 @@ fn merge_dims(o: [usize; 4], sa: [u32; 4], sb: [u32; 4]) -> ([usize; 4], [u32; 4
         }
         dims.push((o[k], sa[k], sb[k]));
     }
-    if dims.len() > 4 || dims.is_empty() {
+    if dims.is_empty() {
+        // every dimension is 1
         return (o, sa, sb);
     }
     let (mut no, mut na, mut nb) = ([1usize; 4], [0u32; 4], [0u32; 4]);

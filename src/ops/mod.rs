@@ -19,6 +19,13 @@ pub mod winograd;
 
 use anyhow::{ensure, Result};
 
+// `Recorder::scratch` slots of the ops' per-call temporaries (one buffer per slot and recording).
+pub(crate) const SCRATCH_WINO_V: usize = 0;
+pub(crate) const SCRATCH_WINO_M: usize = 1;
+pub(crate) const SCRATCH_WINO_W: usize = 2;
+pub(crate) const SCRATCH_X_HWNC: usize = 3;
+pub(crate) const SCRATCH_PACKED_W: usize = 4;
+
 use crate::kernels::KernelId;
 use crate::tensor::{DType, Tensor};
 pub use crate::vk::Recorder;

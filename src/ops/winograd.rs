@@ -5,7 +5,7 @@
 use anyhow::{ensure, Result};
 
 use super::matmul::{gemm, Gemm, MatmulPath};
-use super::{expect_shape, Recorder};
+use super::{expect_shape, Recorder, SCRATCH_WINO_M, SCRATCH_WINO_V};
 use crate::kernels::params::WinoParams;
 use crate::kernels::KernelId as K;
 use crate::tensor::{DType, Tensor};
@@ -79,8 +79,8 @@ pub(crate) fn conv3x3(
     let per_tile = 36 * c.max(o) * 4;
     let slab = (SLAB_BYTES / per_tile).clamp(1, tiles);
     let (inp, outp, _) = ids(x.dtype());
-    let vb = rec.scratch(0, (36 * slab * c * 4) as u64)?;
-    let mb = rec.scratch(1, (36 * slab * o * 4) as u64)?;
+    let vb = rec.scratch(SCRATCH_WINO_V, (36 * slab * c * 4) as u64)?;
+    let mb = rec.scratch(SCRATCH_WINO_M, (36 * slab * o * 4) as u64)?;
     let bias_t = bias.unwrap_or(x);
     let mut t0 = 0;
     while t0 < tiles {
