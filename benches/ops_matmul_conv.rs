@@ -51,6 +51,7 @@ fn matmul_case(ctx: &Context, dt: DType, m: usize, n: usize, k: usize, trans: bo
             transpose_b: trans,
             path: MatmulPath::Auto,
             overflow: None,
+            residual: None,
         },
     )
     .expect("matmul");
@@ -93,6 +94,7 @@ fn conv_case(
             path,
             packed_w: None,
             wino_w: None,
+            residual: None,
         },
     )
     .expect("conv2d");

@@ -13,7 +13,10 @@ struct Conv2dParams {
     kh: u32, kw: u32, stride: u32,
     // top and left padding (bottom/right only shape OH, OW)
     pt: u32, pl: u32,
+    // 0 none, 1 bias (O), 2 bias (N, O) (conv2d_packed only)
     has_bias: u32,
+    // 1: add res (N, O, OH, OW) in the epilogue (conv2d_packed only; the launcher adds separately elsewhere)
+    has_res: u32,
 }
 
 @group(0) @binding(0) var<storage, read> x: array<ST>;

@@ -13,7 +13,10 @@ struct Conv2dParams {
     o: u32, oh: u32, ow: u32,
     kh: u32, kw: u32, stride: u32,
     pt: u32, pl: u32,
+    // 0 none, 1 bias (O), 2 bias (N, O) (conv2d_packed only)
     has_bias: u32,
+    // 1: add res (N, O, OH, OW) in the epilogue (conv2d_packed only; the launcher adds separately elsewhere)
+    has_res: u32,
 }
 struct PackParams { o: u32, c: u32, kk: u32 }
 
@@ -24,6 +27,8 @@ struct PackParams { o: u32, c: u32, kk: u32 }
 @group(0) @binding(1) var<storage, read> wq2: array<vec2<u32>>;
 @group(0) @binding(2) var<storage, read> bias: array<ST>;
 @group(0) @binding(3) var<storage, read_write> y: array<ST>;
+// residual added in the epilogue (p.has_res == 1; the launcher binds y here otherwise); may be y itself
+@group(0) @binding(4) var<storage, read> res: array<ST>;
 @group(0) @binding(1) var<storage, read_write> packed: array<ST>;
 var<immediate> p: Conv2dParams;
 var<immediate> pp: PackParams;
@@ -82,8 +87,9 @@ fn tap_rows(ky: u32, kx: u32, mul: u32, add: u32) {
     }
 }
 
-// y[n, col0 + j, row0 + r] = acc[r][j] + bias (f16: saturated), guarded.
-fn store_rows(yb: u32, row0: u32, col0: u32, np: u32) {
+// y[n, col0 + j, row0 + r] = acc[r][j] + bias (+ res) (f16: saturated), guarded.
+fn store_rows(n: u32, row0: u32, col0: u32, np: u32) {
+    let yb = n * p.o * np;
     for (var r = 0u; r < TM; r++) {
         let q = row0 + r;
         if (q >= np) { return; }
@@ -91,9 +97,12 @@ fn store_rows(yb: u32, row0: u32, col0: u32, np: u32) {
             let oc = col0 + j;
             if (oc < p.o) {
                 var v = acc[r][j];
-                if (p.has_bias != 0u) { v += f32(bias[oc]); }
+                if (p.has_bias == 1u) { v += f32(bias[oc]); }
+                if (p.has_bias == 2u) { v += f32(bias[n * p.o + oc]); }
+                let yi = yb + oc * np + q;
+                if (p.has_res == 1u) { v += f32(res[yi]); }
                 if (IS_F16) { v = clamp(v, -65504.0, 65504.0); }
-                y[yb + oc * np + q] = ST(v);
+                y[yi] = ST(v);
             }
         }
     }
@@ -138,7 +147,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             }
         }
     }
-    store_rows(wid.z * p.o * np, row0, col0, np);
+    store_rows(wid.z, row0, col0, np);
 }
 
 // 4 k steps (channels c0 + 4 q .. + 3): input from component c of lane q's vec4.
@@ -189,5 +198,5 @@ fn hwnc(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
             }
         }
     }
-    store_rows(wid.z * p.o * np, row0, col0, np);
+    store_rows(wid.z, row0, col0, np);
 }

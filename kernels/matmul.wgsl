@@ -1,6 +1,6 @@
 //! variant f32: alias ST = f32; const IS_F16: bool = false; fn note_overflow() {} fn ld4(i: u32) -> vec4<f32> { return vec4<f32>(b4[i]); } fn ld8(i: u32) -> mat2x4<f32> { return mat2x4<f32>(vec4<f32>(b4[2u * i]), vec4<f32>(b4[2u * i + 1u])); } fn lda4(i: u32) -> vec4<f32> { return vec4<f32>(a4[i]); }
 //! variant f16: enable f16; alias ST = f16; const IS_F16: bool = true; fn note_overflow() {} fn ld4(i: u32) -> vec4<f32> { let q = bq2[i]; return vec4<f32>(f16x2(q.x), f16x2(q.y)); } fn ld8(i: u32) -> mat2x4<f32> { let q = bq4[i]; return mat2x4<f32>(vec4<f32>(f16x2(q.x), f16x2(q.y)), vec4<f32>(f16x2(q.z), f16x2(q.w))); } fn lda4(i: u32) -> vec4<f32> { let q = aq2[i]; return vec4<f32>(f16x2(q.x), f16x2(q.y)); }
-//! variant f16chk: enable f16; alias ST = f16; const IS_F16: bool = true; @group(0) @binding(4) var<storage, read_write> flag: array<u32>; fn note_overflow() { flag[0] = 0x3f800000u; } fn ld4(i: u32) -> vec4<f32> { let q = bq2[i]; return vec4<f32>(f16x2(q.x), f16x2(q.y)); } fn ld8(i: u32) -> mat2x4<f32> { let q = bq4[i]; return mat2x4<f32>(vec4<f32>(f16x2(q.x), f16x2(q.y)), vec4<f32>(f16x2(q.z), f16x2(q.w))); } fn lda4(i: u32) -> vec4<f32> { let q = aq2[i]; return vec4<f32>(f16x2(q.x), f16x2(q.y)); }
+//! variant f16chk: enable f16; alias ST = f16; const IS_F16: bool = true; @group(0) @binding(5) var<storage, read_write> flag: array<u32>; fn note_overflow() { flag[0] = 0x3f800000u; } fn ld4(i: u32) -> vec4<f32> { let q = bq2[i]; return vec4<f32>(f16x2(q.x), f16x2(q.y)); } fn ld8(i: u32) -> mat2x4<f32> { let q = bq4[i]; return mat2x4<f32>(vec4<f32>(f16x2(q.x), f16x2(q.y)), vec4<f32>(f16x2(q.z), f16x2(q.w))); } fn lda4(i: u32) -> vec4<f32> { let q = aq2[i]; return vec4<f32>(f16x2(q.x), f16x2(q.y)); }
 // Batched matmul C = A B (+ bias), register-tiled for llvmpipe (lavapipe), storage ST, arithmetic f32.
 //
 // Mapping: the invocations of one subgroup (SG lanes; 8 on lavapipe = one llvmpipe SIMD vector) share TM
@@ -24,6 +24,8 @@ struct MatmulParams {
     bias_mode: u32,
     // batch count (grid z)
     batch: u32,
+    // 1: add res (same shape and layout as C) in the epilogue (a fused residual connection)
+    res: u32,
 }
 
 @group(0) @binding(0) var<storage, read> a: array<ST>;
@@ -41,6 +43,10 @@ struct MatmulParams {
 // vec4 views for `store_tile4` (N % 4 == 0): one store per row instead of four (each a per-lane loop on lavapipe)
 @group(0) @binding(2) var<storage, read> bias4: array<vec4<ST>>;
 @group(0) @binding(3) var<storage, read_write> c4v: array<vec4<ST>>;
+// residual added to the output (p.res == 1; the launcher binds C here otherwise); res may be C itself (in place:
+// each element is read and written by the same invocation)
+@group(0) @binding(4) var<storage, read> res: array<ST>;
+@group(0) @binding(4) var<storage, read> res4: array<vec4<ST>>;
 var<immediate> p: MatmulParams;
 
 
@@ -100,6 +106,7 @@ fn store_tile(cbase: u32, row0: u32, col0: u32, cs: u32) {
                 var v = acc[r][j];
                 if (p.bias_mode == 1u) { v += f32(bias[n]); }
                 if (p.bias_mode == 2u) { v += f32(bias[m]); }
+                if (p.res == 1u) { v += f32(res[cbase + m * p.n + n]); }
                 c[cbase + m * p.n + n] = out_val(v);
             }
         }
@@ -125,7 +132,9 @@ fn store_tile4(cbase: u32, row0: u32, col0: u32) {
         if (m >= p.m) { return; }
         var v = acc[r] + bv;
         if (p.bias_mode == 2u) { v += vec4<f32>(f32(bias4[m / 4u][m % 4u])); }
-        c4v[(cbase + m * p.n + col0) / 4u] = out_val4(v);
+        let o4 = (cbase + m * p.n + col0) / 4u;
+        if (p.res == 1u) { v += vec4<f32>(res4[o4]); }
+        c4v[o4] = out_val4(v);
     }
 }
 

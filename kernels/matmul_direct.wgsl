@@ -1,17 +1,18 @@
 //! variant f32: alias ST = f32; const IS_F16: bool = false; fn note_overflow() {}
 //! variant f16: enable f16; alias ST = f16; const IS_F16: bool = true; fn note_overflow() {}
-//! variant f16chk: enable f16; alias ST = f16; const IS_F16: bool = true; @group(0) @binding(4) var<storage, read_write> flag: array<u32>; fn note_overflow() { flag[0] = 0x3f800000u; }
+//! variant f16chk: enable f16; alias ST = f16; const IS_F16: bool = true; @group(0) @binding(5) var<storage, read_write> flag: array<u32>; fn note_overflow() { flag[0] = 0x3f800000u; }
 // Direct batched matmul: one output per invocation, plain k loop. The fallback for devices without the
 // lane-shuffle operations the tiled kernel (matmul.wgsl) needs, and the oracle the tests compare it with.
 // Loop budget (lavapipe: 65535 back-edges per invocation): the k loop is unrolled by 4 (K = 23040 -> 5760).
 // Same parameters, bindings and f16 overflow policy as matmul.wgsl.
 
-struct MatmulParams { m: u32, n: u32, k: u32, sa: u32, sb: u32, bias_mode: u32, batch: u32 }
+struct MatmulParams { m: u32, n: u32, k: u32, sa: u32, sb: u32, bias_mode: u32, batch: u32, res: u32 }
 
 @group(0) @binding(0) var<storage, read> a: array<ST>;
 @group(0) @binding(1) var<storage, read> b: array<ST>;
 @group(0) @binding(2) var<storage, read> bias: array<ST>;
 @group(0) @binding(3) var<storage, read_write> c: array<ST>;
+@group(0) @binding(4) var<storage, read> res: array<ST>;
 var<immediate> p: MatmulParams;
 
 const F16_MAX: f32 = 65504.0;
@@ -28,6 +29,7 @@ fn finish(i: u32, m: u32, n: u32, s: f32) {
     var v = s;
     if (p.bias_mode == 1u) { v += f32(bias[n]); }
     if (p.bias_mode == 2u) { v += f32(bias[m]); }
+    if (p.res == 1u) { v += f32(res[i]); }
     c[i] = out_val(v);
 }
 

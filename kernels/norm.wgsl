@@ -8,6 +8,7 @@
 // element (x - x0 is exact for nearby values, Sterbenz), then a second pass for the variance of the shifted
 // values: near-constant segments (100 +- 1e-3) keep full precision and a constant one gives var 0 -> beta.
 // Loop budget: ceil(len / 256) iterations per pass, 3 passes (SD VAE worst case 358400 / 256 * 3 = 4200).
+// (`gn4` below, used whenever len % 4 == 0, has one statistics pass instead of two.)
 
 struct NormParams {
     len: u32,          // segment length
@@ -106,8 +107,41 @@ fn layer_norm_sg(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups)
     }
 }
 
-// group_norm with vec4 loads and stores (`main` for inner % 4 == 0): a quarter of the per-lane load loops
-// (each lavapipe storage access is one per-lane loop whatever its width). Same statistics as `main`.
+// group_norm with vec4 statistics (segment length % 4 == 0): one read pass for the statistics instead of two,
+// Welford per lane on the shifted values d = x - x0 (x0 the segment's first element, as in `main`; each of a
+// lane's vec4 components is its own stream, all with the lane's count k), merged across components and then
+// across the work group with Chan et al.'s pairwise formula. On lavapipe every storage access is a per-lane
+// loop, so the passes over x set the cost: 2 reads + 1 write per element instead of 3 + 1. Welford keeps the
+// precision of the two-pass form: M2 accumulates squared deviations from the running mean, never a difference
+// of large sums, and the shift keeps near-constant segments (100 +- 1e-3) exact. The normalise pass is vec4
+// when the channel plane is (H W % 4 == 0), else scalar per channel (gamma/beta stay uniform either way).
+// Loop budget: ceil(len / 1024) + ch_per_seg * ceil(inner / 256) iterations (+ 8 reduction rounds).
+var<workgroup> red4: array<vec4<f32>, 256>;
+// scalar views of x and y for `gn4`'s per-channel pass when H W % 4 != 0: naga refuses two views of one binding
+// in one entry point, so the launcher binds x and y a second time here
+@group(0) @binding(4) var<storage, read> xs: array<ST>;
+@group(0) @binding(5) var<storage, read_write> ys: array<ST>;
+
+// (count, mean, M2) of two disjoint sets -> of their union (Chan, Golub, LeVeque 1979).
+fn chan(a: vec3<f32>, b: vec3<f32>) -> vec3<f32> {
+    let n = a.x + b.x;
+    let f = b.x / max(n, 1.0);
+    let d = b.y - a.y;
+    return vec3<f32>(n, a.y + d * f, a.z + b.z + d * d * a.x * f);
+}
+
+fn reduce_welford(v: vec3<f32>, l: u32) -> vec3<f32> {
+    red4[l] = vec4<f32>(v, 0.0);
+    workgroupBarrier();
+    for (var s = 128u; s > 0u; s = s >> 1u) {
+        if (l < s) { red4[l] = vec4<f32>(chan(red4[l].xyz, red4[l + s].xyz), 0.0); }
+        workgroupBarrier();
+    }
+    let r = red4[0].xyz;
+    workgroupBarrier();
+    return r;
+}
+
 @compute @workgroup_size(256)
 fn gn4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
     let seg = wid.y * nwg.x + wid.x;
@@ -116,23 +150,47 @@ fn gn4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     let b4 = base / 4u;
     let x0 = f32(x4[b4].x);
     let n4 = p.len / 4u;
-    var s = 0.0;
-    for (var i = l; i < n4; i += 256u) { let d = vec4<f32>(x4[b4 + i]) - x0; s += d.x + d.y + d.z + d.w; }
-    let mean = reduce_sum(s, l) / f32(p.len);
-    var q = 0.0;
-    for (var i = l; i < n4; i += 256u) { let d = (vec4<f32>(x4[b4 + i]) - x0) - mean; q += dot(d, d); }
-    let var_ = reduce_sum(q, l) / f32(p.len);
-    let rstd = inverseSqrt(var_ + p.eps);
+    // per-lane Welford over this lane's vec4s, each component a stream of k values
+    var k = 0.0;
+    var m = vec4<f32>(0.0);
+    var q = vec4<f32>(0.0);
+    for (var i = l; i < n4; i += 256u) {
+        let d = vec4<f32>(x4[b4 + i]) - x0;
+        k += 1.0;
+        let dm = d - m;
+        m += dm / k;
+        q += dm * (d - m);
+    }
+    // merge the 4 equal-count component streams
+    let mm = (m.x + m.y + m.z + m.w) * 0.25;
+    let dc = m - mm;
+    let lane = vec3<f32>(4.0 * k, mm, q.x + q.y + q.z + q.w + k * dot(dc, dc));
+    let st = reduce_welford(lane, l);
+    let mean = st.y; // mean of the shifted values
+    let rstd = inverseSqrt(st.z / f32(p.len) + p.eps);
     let cbase = (seg % p.segs_per_item) * p.ch_per_seg;
-    let in4 = p.inner / 4u;
-    for (var c = 0u; c < p.ch_per_seg; c++) {
-        let g = rstd * f32(gamma[cbase + c]);
-        let b = f32(beta[cbase + c]) - mean * g;
-        let cb = b4 + c * in4;
-        for (var j = l; j < in4; j += 256u) {
-            var v = (vec4<f32>(x4[cb + j]) - x0) * g + b;
-            if (p.silu == 1u) { v = v / (1.0 + exp(-v)); }
-            y4[cb + j] = vec4<ST>(v);
+    if (p.inner % 4u == 0u) {
+        let in4 = p.inner / 4u;
+        for (var c = 0u; c < p.ch_per_seg; c++) {
+            let g = rstd * f32(gamma[cbase + c]);
+            let b = f32(beta[cbase + c]) - mean * g;
+            let cb = b4 + c * in4;
+            for (var j = l; j < in4; j += 256u) {
+                var v = (vec4<f32>(x4[cb + j]) - x0) * g + b;
+                if (p.silu == 1u) { v = v / (1.0 + exp(-v)); }
+                y4[cb + j] = vec4<ST>(v);
+            }
+        }
+    } else {
+        for (var c = 0u; c < p.ch_per_seg; c++) {
+            let g = rstd * f32(gamma[cbase + c]);
+            let b = f32(beta[cbase + c]) - mean * g;
+            let cb = base + c * p.inner;
+            for (var j = l; j < p.inner; j += 256u) {
+                var v = (f32(xs[cb + j]) - x0) * g + b;
+                if (p.silu == 1u) { v = silu(v); }
+                ys[cb + j] = ST(v);
+            }
         }
     }
 }

@@ -19,7 +19,10 @@ struct WinoParams {
     pt: u32, pl: u32,
     // this slab: global tiles t0 .. t0 + nt (tiles numbered over (n, ty, tx))
     t0: u32, nt: u32,
+    // 0 none, 1 bias (O), 2 bias (N, O)
     has_bias: u32,
+    // 1: add res (N, O, OH, OW) (a fused residual; the launcher binds y at binding 3 otherwise)
+    has_res: u32,
 }
 
 @group(0) @binding(0) var<storage, read> x: array<ST>;
@@ -28,6 +31,7 @@ struct WinoParams {
 @group(0) @binding(0) var<storage, read> m: array<f32>;
 @group(0) @binding(1) var<storage, read> bias: array<ST>;
 @group(0) @binding(2) var<storage, read_write> y: array<ST>;
+@group(0) @binding(3) var<storage, read> res: array<ST>;
 // weight transform: w (O, C, 3, 3) -> u (36, C, O) f32
 @group(0) @binding(0) var<storage, read> wsrc: array<ST>;
 @group(0) @binding(1) var<storage, read_write> u: array<f32>;
@@ -143,6 +147,7 @@ fn output(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
     }
     var b = 0.0;
     if (p.has_bias == 1u) { b = f32(bias[o]); }
+    if (p.has_bias == 2u) { b = f32(bias[n * p.o + o]); }
     let ybase = (n * p.o + o) * p.oh * p.ow;
     for (var r = 0u; r < 4u; r++) {
         let row = at(array<f32, 6>(cols[0][r], cols[1][r], cols[2][r], cols[3][r], cols[4][r], cols[5][r]));
@@ -150,7 +155,12 @@ fn output(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
         if (yy < p.oh) {
             for (var s = 0u; s < 4u; s++) {
                 let xx = 4u * tx + s;
-                if (xx < p.ow) { y[ybase + yy * p.ow + xx] = out_val(row[s] + b); }
+                let yi = ybase + yy * p.ow + xx;
+                if (xx < p.ow) {
+                    var val = row[s] + b;
+                    if (p.has_res == 1u) { val += f32(res[yi]); }
+                    y[yi] = out_val(val);
+                }
             }
         }
     }
@@ -183,6 +193,7 @@ fn weight(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
 @group(0) @binding(1) var<storage, read_write> v4: array<vec4<f32>>;
 @group(0) @binding(0) var<storage, read> m4: array<vec4<f32>>;
 @group(0) @binding(2) var<storage, read_write> y4: array<vec4<ST>>;
+@group(0) @binding(3) var<storage, read> res4: array<vec4<ST>>;
 
 fn bt4(d: array<vec4<f32>, 6>) -> array<vec4<f32>, 6> {
     return array<vec4<f32>, 6>(
@@ -280,7 +291,10 @@ fn output4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
                                           m4[(18u + j) * st + mo], m4[(24u + j) * st + mo], m4[(30u + j) * st + mo]));
     }
     var b = vec4<f32>(0.0);
-    if (p.has_bias == 1u) { b = vec4<f32>(f32(bias[o0]), f32(bias[o0 + 1u]), f32(bias[o0 + 2u]), f32(bias[o0 + 3u])); }
+    if (p.has_bias != 0u) {
+        let bo = select(o0, n * p.o + o0, p.has_bias == 2u);
+        b = vec4<f32>(f32(bias[bo]), f32(bias[bo + 1u]), f32(bias[bo + 2u]), f32(bias[bo + 3u]));
+    }
     let plane = p.oh * p.ow;
     for (var r = 0u; r < 4u; r++) {
         // row r of the tile for the 4 channels: at4 over the 6 columns gives its 4 pixels
@@ -290,10 +304,20 @@ fn output4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
             let e = (yy * p.ow + 4u * tx) / 4u;
             let pb = (n * p.o + o0) * plane / 4u;
             let ps = plane / 4u;
-            y4[pb + e] = vec4<ST>(out4(vec4<f32>(px[0].x, px[1].x, px[2].x, px[3].x) + b.x));
-            y4[pb + ps + e] = vec4<ST>(out4(vec4<f32>(px[0].y, px[1].y, px[2].y, px[3].y) + b.y));
-            y4[pb + 2u * ps + e] = vec4<ST>(out4(vec4<f32>(px[0].z, px[1].z, px[2].z, px[3].z) + b.z));
-            y4[pb + 3u * ps + e] = vec4<ST>(out4(vec4<f32>(px[0].w, px[1].w, px[2].w, px[3].w) + b.w));
+            var v0 = vec4<f32>(px[0].x, px[1].x, px[2].x, px[3].x) + b.x;
+            var v1 = vec4<f32>(px[0].y, px[1].y, px[2].y, px[3].y) + b.y;
+            var v2 = vec4<f32>(px[0].z, px[1].z, px[2].z, px[3].z) + b.z;
+            var v3 = vec4<f32>(px[0].w, px[1].w, px[2].w, px[3].w) + b.w;
+            if (p.has_res == 1u) {
+                v0 += vec4<f32>(res4[pb + e]);
+                v1 += vec4<f32>(res4[pb + ps + e]);
+                v2 += vec4<f32>(res4[pb + 2u * ps + e]);
+                v3 += vec4<f32>(res4[pb + 3u * ps + e]);
+            }
+            y4[pb + e] = vec4<ST>(out4(v0));
+            y4[pb + ps + e] = vec4<ST>(out4(v1));
+            y4[pb + 2u * ps + e] = vec4<ST>(out4(v2));
+            y4[pb + 3u * ps + e] = vec4<ST>(out4(v3));
         }
     }
 }

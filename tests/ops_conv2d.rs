@@ -115,6 +115,7 @@ fn run_case(ctx: &b2dr::vk::Context, c: &Case, dtype: DType, path: ConvPath, see
                 path,
                 packed_w: None,
                 wino_w: None,
+                residual: None,
             },
         )
     });
@@ -239,6 +240,7 @@ fn winograd_edges_match_reference() {
                 path: ConvPath::Winograd,
                 packed_w: None,
                 wino_w: Some(&u),
+                residual: None,
             },
         )
     });
@@ -275,6 +277,7 @@ fn winograd_edges_match_reference() {
             path: ConvPath::Winograd,
             packed_w: None,
             wino_w: None,
+            residual: None,
         },
     );
     let msg = format!("{:#}", r.expect_err("stride 2 must be refused"));
@@ -310,6 +313,7 @@ fn prepacked_weights_match() {
                     path: ConvPath::Fast,
                     packed_w: Some(&packed),
                     wino_w: None,
+                    residual: None,
                 },
             )
         });
@@ -460,6 +464,7 @@ fn convs_sharing_scratch_in_one_recording_match() {
                     path,
                     packed_w: None,
                     wino_w: None,
+                    residual: None,
                 },
             )?;
         }
@@ -482,6 +487,113 @@ fn convs_sharing_scratch_in_one_recording_match() {
         );
         let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
         assert!(e <= 1e-6, "{c}->{o} {h}x{w} {path:?}: nmse {e:e}");
+    }
+    assert_no_validation_errors();
+}
+
+#[test]
+fn fused_bias_per_image_and_residual_match_reference() {
+    let Some(ctx) = ctx() else { return };
+    // out = conv(x) + bias[n, o] + residual[n, o, y, x] (a ResNet block's conv1 with its time embedding and
+    // conv2 with its skip), on every path: Winograd with scalar and vec4 transforms, the packed implicit GEMM
+    // (fused), the O % 4 != 0 implicit GEMM and the direct kernel (separate adds), the 1x1 GEMM. Also with the
+    // residual being `out` itself (in place) and with a per-channel bias.
+    let cases: &[(&str, [usize; 4], usize, usize, ConvPath)] = &[
+        ("winograd_scalar_28x50", [2, 8, 28, 50], 12, 3, ConvPath::Winograd),
+        ("winograd_vec4_12x16", [2, 8, 12, 16], 12, 3, ConvPath::Winograd),
+        ("packed_7x13", [2, 16, 7, 13], 8, 3, ConvPath::Fast),
+        ("implicit_o6_7x13", [2, 5, 7, 13], 6, 3, ConvPath::Fast),
+        ("direct_7x13", [2, 5, 7, 13], 8, 3, ConvPath::Direct),
+        ("gemm_1x1_9x10", [2, 12, 9, 10], 8, 1, ConvPath::Fast),
+    ];
+    for (i, &(name, [n, c, h, w], o, k, path)) in cases.iter().enumerate() {
+        for dtype in [DType::F32, DType::F16] {
+            for (per_image, in_place) in [(true, false), (false, true)] {
+                let seed = 900 + 10 * i as u64;
+                let x = uniform(n * c * h * w, 1.0, seed);
+                let wt = uniform(o * c * k * k, 1.0, seed + 1);
+                let nb = if per_image { n * o } else { o };
+                let b = uniform(nb, 1.0, seed + 2);
+                let r = uniform(n * o * h * w, 1.0, seed + 3);
+                let tx = upload(&ctx, &[n, c, h, w], dtype, &x);
+                let tw = upload(&ctx, &[o, c, k, k], dtype, &wt);
+                let bshape: Vec<usize> = if per_image { vec![n, o] } else { vec![o] };
+                let tb = upload(&ctx, &bshape, dtype, &b);
+                let tr = upload(&ctx, &[n, o, h, w], dtype, &r);
+                let out = if in_place {
+                    tr.clone()
+                } else {
+                    empty(&ctx, &[n, o, h, w], dtype)
+                };
+                let pad = [k / 2; 4];
+                run(&ctx, |rec| {
+                    cv::conv2d_ex(
+                        rec,
+                        &Conv2dArgs {
+                            x: &tx,
+                            w: &tw,
+                            bias: Some(&tb),
+                            out: &out,
+                            stride: 1,
+                            pad,
+                            path,
+                            packed_w: None,
+                            wino_w: None,
+                            residual: Some(&tr),
+                        },
+                    )
+                });
+                let g = ConvGeom {
+                    kh: k,
+                    kw: k,
+                    stride: 1,
+                    pad,
+                };
+                let conv = rc::conv2d(&stored(&x, dtype), &stored(&wt, dtype), None, (n, c, h, w), o, g);
+                let (bs, rs) = (stored(&b, dtype), stored(&r, dtype));
+                let hw = h * w;
+                let want: Vec<f64> = conv
+                    .iter()
+                    .enumerate()
+                    .map(|(j, v)| {
+                        let (img, ch) = (j / (o * hw), (j / hw) % o);
+                        v + if per_image { bs[img * o + ch] } else { bs[ch] } + rs[j]
+                    })
+                    .collect();
+                let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
+                let tol = if dtype == DType::F32 { 1e-6 } else { 5e-4 };
+                assert!(
+                    e <= tol,
+                    "{name} {dtype:?} per_image {per_image} in_place {in_place}: nmse {e:e}"
+                );
+            }
+        }
+    }
+    // a mis-shaped residual or bias is an error naming it
+    let x = empty(&ctx, &[1, 4, 6, 6], DType::F32);
+    let w = empty(&ctx, &[4, 4, 3, 3], DType::F32);
+    let out = empty(&ctx, &[1, 4, 6, 6], DType::F32);
+    let bad_r = empty(&ctx, &[1, 4, 6, 5], DType::F32);
+    let bad_b = empty(&ctx, &[2, 4], DType::F32);
+    for (bias, res, what) in [(None, Some(&bad_r), "residual"), (Some(&bad_b), None, "bias")] {
+        let mut rec = ctx.recorder().unwrap();
+        let e = cv::conv2d_ex(
+            &mut rec,
+            &Conv2dArgs {
+                x: &x,
+                w: &w,
+                bias,
+                out: &out,
+                stride: 1,
+                pad: [1; 4],
+                path: ConvPath::Auto,
+                packed_w: None,
+                wino_w: None,
+                residual: res,
+            },
+        )
+        .unwrap_err();
+        assert!(format!("{e:#}").contains(what), "{what}: {e:#}");
     }
     assert_no_validation_errors();
 }

@@ -122,6 +122,7 @@ fn run_case(ctx: &b2dr::vk::Context, c: &Case, dtype: DType, path: MatmulPath, s
                 transpose_b: c.trans_b,
                 path,
                 overflow: None,
+                residual: None,
             },
         )
     });
@@ -251,6 +252,7 @@ fn f16_overflow_saturates_and_is_flagged() {
                             transpose_b: true,
                             path,
                             overflow: checked.then_some(&flag),
+                            residual: None,
                         },
                     )
                 });
@@ -348,6 +350,7 @@ fn bad_inputs_are_errors() {
                 transpose_b: false,
                 path: MatmulPath::Auto,
                 overflow: Some(&t(&[1], DType::F32)),
+                residual: None,
             },
         ),
         "overflow flag",
@@ -357,5 +360,98 @@ fn bad_inputs_are_errors() {
         "empty tensors are refused at creation"
     );
     drop(rec);
+    assert_no_validation_errors();
+}
+
+#[test]
+fn fused_residual_matches_reference() {
+    let Some(ctx) = ctx() else { return };
+    // out = a b^T (+ bias) + residual through every tiled B width (nt8a4: K % 8, N % 4; nt8a: N % 4 != 0;
+    // nt4 / nt: K % 4, K odd), the nn kernels, the direct kernel, batched, and in place (residual = out).
+    let cases: &[(&str, usize, usize, usize, usize, bool)] = &[
+        ("nt8a4_2x70x32x40", 2, 70, 32, 40, true),
+        ("nt8a_70x30x40", 1, 70, 30, 40, true),
+        ("nt4_33x20x12", 1, 33, 20, 12, true),
+        ("nt_17x9x7", 1, 17, 9, 7, true),
+        ("nn4a_2x40x24x32", 2, 40, 24, 32, false),
+        ("nn_13x7x5", 1, 13, 7, 5, false),
+    ];
+    for (i, &(name, batch, m, n, k, trans_b)) in cases.iter().enumerate() {
+        for path in [MatmulPath::Tiled, MatmulPath::Direct] {
+            for dtype in [DType::F32, DType::F16] {
+                for in_place in [false, true] {
+                    let seed = 500 + 10 * i as u64;
+                    let a = uniform(batch * m * k, 1.0, seed);
+                    let b = uniform(n * k, 1.0, seed + 1);
+                    let bias = uniform(n, 1.0, seed + 2);
+                    let r = uniform(batch * m * n, 1.0, seed + 3);
+                    let ta = upload(&ctx, &[batch, m, k], dtype, &a);
+                    let bshape = if trans_b { [n, k] } else { [k, n] };
+                    let tb = upload(&ctx, &bshape, dtype, &b);
+                    let tbias = upload(&ctx, &[n], dtype, &bias);
+                    let tr = upload(&ctx, &[batch, m, n], dtype, &r);
+                    let out = if in_place {
+                        tr.clone()
+                    } else {
+                        empty(&ctx, &[batch, m, n], dtype)
+                    };
+                    run(&ctx, |rec| {
+                        mm::matmul_ex(
+                            rec,
+                            &MatmulArgs {
+                                a: &ta,
+                                b: &tb,
+                                bias: Some(&tbias),
+                                out: &out,
+                                transpose_b: trans_b,
+                                path,
+                                overflow: None,
+                                residual: Some(&tr),
+                            },
+                        )
+                    });
+                    // b is shared over the batch: the reference takes it per batch
+                    let b64 = stored(&b, dtype);
+                    let bb: Vec<f64> = (0..batch).flat_map(|_| b64.iter().copied()).collect();
+                    let bs = stored(&bias, dtype);
+                    let mm_ = rmm::matmul(&stored(&a, dtype), &bb, Some(&bs), batch, m, n, k, trans_b);
+                    let rs = stored(&r, dtype);
+                    let want: Vec<f64> = mm_.iter().zip(&rs).map(|(x, y)| x + y).collect();
+                    let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
+                    let tol = if dtype == DType::F32 { 1e-7 } else { 5e-4 };
+                    assert!(
+                        e <= tol,
+                        "{name} {path:?} {dtype:?} in_place {in_place}: nmse {e:e}"
+                    );
+                }
+            }
+        }
+    }
+    // linear_residual flattens leading dims like linear; a mis-shaped residual is an error naming it
+    let x = upload(&ctx, &[2, 3, 8], DType::F32, &uniform(48, 1.0, 1));
+    let w = upload(&ctx, &[4, 8], DType::F32, &uniform(32, 1.0, 2));
+    let r = upload(&ctx, &[2, 3, 4], DType::F32, &uniform(24, 1.0, 3));
+    let out = empty(&ctx, &[2, 3, 4], DType::F32);
+    run(&ctx, |rec| mm::linear_residual(rec, &x, &w, None, Some(&r), &out));
+    let want: Vec<f64> = rmm::matmul(
+        &stored(&uniform(48, 1.0, 1), DType::F32),
+        &stored(&uniform(32, 1.0, 2), DType::F32),
+        None,
+        1,
+        6,
+        4,
+        8,
+        true,
+    )
+    .iter()
+    .zip(stored(&uniform(24, 1.0, 3), DType::F32))
+    .map(|(a, b)| a + b)
+    .collect();
+    let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
+    assert!(e <= 1e-7, "linear_residual: nmse {e:e}");
+    let bad = empty(&ctx, &[6, 4], DType::F32);
+    let mut rec = ctx.recorder().unwrap();
+    let err = mm::linear_residual(&mut rec, &x, &w, None, Some(&bad), &out).unwrap_err();
+    assert!(format!("{err:#}").contains("residual"), "{err:#}");
     assert_no_validation_errors();
 }

@@ -55,8 +55,8 @@ fn run_cases(
     if !json {
         eprintln!("device: {} ({})", ctx.info().name, ctx.info().kind);
         println!(
-            "{:<40} {:>10} {:>10} {:>9} {:>6}",
-            "case", "ms", "GFLOP/s", "GB/s", "iters"
+            "{:<40} {:>10} {:>10} {:>10} {:>9} {:>6}",
+            "case", "ms", "min ms", "GFLOP/s", "GB/s", "iters"
         );
     }
     let mut out = BTreeMap::new();
@@ -68,15 +68,24 @@ fn run_cases(
         if json {
             out.insert(
                 r.name.clone(),
-                serde_json::json!({"ms": r.ms, "gflops": r.gflops, "gbs": r.gbs, "iters": r.iters}),
+                serde_json::json!({"ms": r.ms, "min_ms": r.min_ms, "gflops": r.gflops, "gbs": r.gbs, "iters": r.iters}),
             );
         } else {
             println!(
-                "{:<40} {:>10.3} {:>10.2} {:>9.2} {:>6}",
-                r.name, r.ms, r.gflops, r.gbs, r.iters
+                "{:<40} {:>10.3} {:>10.3} {:>10.2} {:>9.2} {:>6}",
+                r.name, r.ms, r.min_ms, r.gflops, r.gbs, r.iters
             );
-            for (label, ms) in r.profile.iter().take(15) {
-                println!("    {label:<36} {ms:>10.3} ms");
+            let top = std::env::var("B2DR_PROFILE_TOP")
+                .ok()
+                .and_then(|v| v.parse().ok())
+                .unwrap_or(15);
+            for (label, ms, n) in r.profile.iter().take(top) {
+                println!("    {label:<36} {ms:>10.3} ms {n:>5}x");
+            }
+            if !r.profile.is_empty() {
+                let total: f64 = r.profile.iter().map(|p| p.1).sum();
+                let n: usize = r.profile.iter().map(|p| p.2).sum();
+                println!("    {:<36} {total:>10.3} ms {n:>5}x", "(all dispatches)");
             }
         }
     }

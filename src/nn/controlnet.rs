@@ -62,6 +62,27 @@ impl ControlNet {
         Ok(y)
     }
 
+    /// cond: (M, Cc, 8H, 8W) -> the conditioning embedding (M, C0, H, W). It depends on the conditioning
+    /// images only, so a sampling loop computes it once and hands it to every step's [`Self::forward_embedded`].
+    pub fn embed(&self, f: &mut Fwd, cond: &Tensor) -> Result<Tensor> {
+        let c = cond.shape();
+        ensure!(
+            c.len() == 4 && c[0] >= 1 && c[1] == self.cfg.conditioning_channels,
+            "controlnet: controlnet_cond {c:?} must be (M, {}, H, W)",
+            self.cfg.conditioning_channels
+        );
+        let e0 = self.cond_in.forward(f, cond)?;
+        let mut e = Self::silu(f, e0)?;
+        for b in &self.cond_blocks {
+            let y = b.forward(f, &e)?;
+            f.ws.release(e);
+            e = Self::silu(f, y)?;
+        }
+        let emb = self.cond_out.forward(f, &e)?;
+        f.ws.release(e);
+        Ok(emb)
+    }
+
     /// sample: (N, Cin, H, W), t: (N) f32, context: (N, L, Dc), cond: (M, Cc, 8H, 8W) -> residuals. M = N, or M
     /// divides N when the batch repeats the same M images (a guided batch [uncond; cond] shares its
     /// conditioning images): the conditioning embedding then runs once per image.
@@ -84,26 +105,36 @@ impl ControlNet {
             s[0],
             self.cfg.conditioning_channels
         );
-        let e0 = self.cond_in.forward(f, cond)?;
-        let mut e = Self::silu(f, e0)?;
-        for b in &self.cond_blocks {
-            let y = b.forward(f, &e)?;
-            f.ws.release(e);
-            e = Self::silu(f, y)?;
-        }
-        let emb = self.cond_out.forward(f, &e)?;
-        f.ws.release(e);
+        let emb = self.embed(f, cond)?;
+        let out = self.forward_embedded(f, sample, t, context, &emb, scale);
+        f.ws.release(emb);
+        out
+    }
+
+    /// [`Self::forward`] from a conditioning embedding computed by [`Self::embed`] ((M, C0, H, W), M dividing N).
+    pub fn forward_embedded(
+        &self,
+        f: &mut Fwd,
+        sample: &Tensor,
+        t: &Tensor,
+        context: &Tensor,
+        emb: &Tensor,
+        scale: f32,
+    ) -> Result<ControlOut> {
+        let (s, e) = (sample.shape(), emb.shape());
         ensure!(
-            emb.shape()[2..] == s[2..],
-            "controlnet: conditioning image {c:?} embeds to {:?}, which does not match the latent {s:?} (it must be 8x the latent size)",
-            emb.shape()
+            e.len() == 4 && e[0] >= 1 && s.len() == 4 && s[0] % e[0] == 0,
+            "controlnet: conditioning embedding {e:?} must cover a divisor of the batch of the sample {s:?}"
+        );
+        ensure!(
+            e[2..] == s[2..],
+            "controlnet: the conditioning image embeds to {e:?}, which does not match the latent {s:?} (it must be 8x the latent size)"
         );
         let Encoded {
             x,
             skips,
             silu_temb,
-        } = self.enc.forward(f, sample, t, context, Some(&emb))?;
-        f.ws.release(emb);
+        } = self.enc.forward(f, sample, t, context, Some(emb))?;
         f.ws.release(silu_temb);
         let mut down = vec![];
         for (z, sk) in self.down_zero.iter().zip(&skips) {

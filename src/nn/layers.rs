@@ -86,6 +86,19 @@ impl Conv {
 
     /// x: (N, C, H, W) -> (N, O, OH, OW)
     pub fn forward(&self, f: &mut Fwd, x: &Tensor) -> Result<Tensor> {
+        self.forward_ex(f, x, self.b.as_ref(), None)
+    }
+
+    /// [`Self::forward`] with the bias replaced by `bias` ((O) or (N, O), e.g. the layer's bias plus a time
+    /// embedding, or None) and `residual` ((N, O, OH, OW)) added, both in the conv's epilogue where its kernel
+    /// allows (see `conv2d::Conv2dArgs`).
+    pub fn forward_ex(
+        &self,
+        f: &mut Fwd,
+        x: &Tensor,
+        bias: Option<&Tensor>,
+        residual: Option<&Tensor>,
+    ) -> Result<Tensor> {
         let (s, ws) = (x.shape(), self.w.shape());
         let oh = (s[2] + self.pad[0] + self.pad[1] - ws[2]) / self.stride + 1;
         let ow = (s[3] + self.pad[2] + self.pad[3] - ws[3]) / self.stride + 1;
@@ -93,13 +106,14 @@ impl Conv {
         let args = conv2d::Conv2dArgs {
             x,
             w: &self.w,
-            bias: self.b.as_ref(),
+            bias,
             out: &out,
             stride: self.stride,
             pad: self.pad,
             path: conv2d::ConvPath::Auto,
             packed_w: self.packed.as_ref(),
             wino_w: self.wino.as_ref(),
+            residual,
         };
         conv2d::conv2d_ex(f.rec, &args).with_context(|| format!("conv {}", self.name))?;
         Ok(out)
@@ -126,10 +140,15 @@ impl Linear {
 
     /// x: (.., in) -> (.., out)
     pub fn forward(&self, f: &mut Fwd, x: &Tensor) -> Result<Tensor> {
+        self.forward_res(f, x, None)
+    }
+
+    /// x: (.., in) -> (.., out) + residual (shaped as the output), the add fused into the GEMM.
+    pub fn forward_res(&self, f: &mut Fwd, x: &Tensor, residual: Option<&Tensor>) -> Result<Tensor> {
         let mut s = x.shape().to_vec();
         *s.last_mut().expect("non-empty") = self.w.shape()[0];
         let out = f.ws.alloc(&s)?;
-        matmul::linear(f.rec, x, &self.w, self.b.as_ref(), &out)
+        matmul::linear_residual(f.rec, x, &self.w, self.b.as_ref(), residual, &out)
             .with_context(|| format!("linear {}", self.name))?;
         Ok(out)
     }

@@ -1,9 +1,11 @@
 //! The guided sampling pipeline: UNet (+ ControlNet) + sampler (+ VAE decode), planned once per shape.
 //!
-//! Planning records three kinds of command buffers once: the model pass (the latent duplicated into the
-//! [uncond; cond] batch, cast to the model dtype, ControlNet, UNet, cast back to f32), one small recording per
-//! sampler step (the plan's linear combinations, coefficients baked in), and the VAE decode. Running writes
-//! the timestep of each step into a device tensor and replays them; nothing is recorded or allocated per step.
+//! Planning records four kinds of command buffers once: the ControlNet's conditioning embedding (it depends on
+//! the conditioning images only, so it runs once per run, not once per step), the model pass (the latent
+//! duplicated into the [uncond; cond] batch, cast to the model dtype, ControlNet from that embedding, UNet, cast
+//! back to f32), one small recording per sampler step (the plan's linear combinations, coefficients baked in),
+//! and the VAE decode. Running writes the timestep of each step into a device tensor and replays them; nothing
+//! is recorded or allocated per step.
 //! Sampler buffers and the VAE are f32; the UNet/ControlNet run in the model dtype (f32 or f16).
 use std::collections::BTreeMap;
 
@@ -50,6 +52,8 @@ pub struct Pipeline {
     t: Tensor,
     context: Tensor,
     cond: Option<Tensor>,
+    /// The conditioning embedding pass (with a ControlNet), run once per run before the steps.
+    embed: Option<Recording>,
     model: Recording,
     steps: Vec<Recording>,
     decode: Option<(Recording, Tensor)>,
@@ -116,6 +120,23 @@ impl Pipeline {
             None => None,
         };
 
+        // The conditioning embedding, once per run. Its output stays allocated (never released to the
+        // workspace), so the model pass below cannot reuse its memory.
+        let (embed, emb) = match (control, &cond) {
+            (Some(c), Some(cimg)) => {
+                let mut rec = ctx.recorder()?;
+                let emb = c.embed(
+                    &mut Fwd {
+                        rec: &mut rec,
+                        ws: &mut ws,
+                    },
+                    cimg,
+                )?;
+                (Some(rec.finish()?), Some(emb))
+            }
+            _ => (None, None),
+        };
+
         // The model pass.
         let mut rec = ctx.recorder()?;
         let x32 = Tensor::empty(ctx, &[mb, 4, h, w], DType::F32, "x32")?;
@@ -139,10 +160,15 @@ impl Pipeline {
                 rec: &mut rec,
                 ws: &mut ws,
             };
-            let res = match (control, &cond) {
-                (Some(c), Some(cimg)) => {
-                    Some(c.forward(&mut f, &x, &t, &context, cimg, shape.conditioning_scale)?)
-                }
+            let res = match (control, &emb) {
+                (Some(c), Some(e)) => Some(c.forward_embedded(
+                    &mut f,
+                    &x,
+                    &t,
+                    &context,
+                    e,
+                    shape.conditioning_scale,
+                )?),
                 _ => None,
             };
             let r = res.as_ref().map(|o| Residuals {
@@ -231,6 +257,7 @@ impl Pipeline {
             t,
             context,
             cond,
+            embed,
             model,
             steps,
             decode,
@@ -288,6 +315,9 @@ impl Pipeline {
             }
             (Some(_), None) => bail!("pipeline: the ControlNet needs a conditioning image"),
             (None, _) => {}
+        }
+        if let Some(e) = &self.embed {
+            e.submit_wait().context("conditioning embedding")?;
         }
         // Reset the sampler state: every run starts from x_T with empty rings.
         for (b, t) in &self.bufs {

@@ -1,5 +1,9 @@
 //! diffusers ResnetBlock2D: GN, SiLU, conv3x3, + Linear(SiLU(temb)), GN, SiLU, conv3x3, + skip (1x1 conv when
 //! the channel count changes). output_scale_factor 1.
+//!
+//! Both adds are fused into convs (one pass over the activations each instead of a conv and an add): the time
+//! embedding projection, whose bias has conv1's folded in at load, is conv1's per-image bias (N, O); the skip
+//! is the residual of conv2, or conv2's output is the residual of the 1x1 shortcut conv.
 use anyhow::Result;
 
 use super::device::{DeviceWeights, Fwd};
@@ -30,14 +34,35 @@ impl Resnet {
         } else {
             None
         };
+        let conv1 = Conv::same3(dw, &format!("{name}.conv1"), 1)?;
+        let time_emb_proj = if temb {
+            let mut p = Linear::load(dw, &format!("{name}.time_emb_proj"))?;
+            // conv1's bias folded into the projection's: conv1 then takes the projection's output as its bias
+            p.b = match (&p.b, &conv1.b) {
+                (Some(bp), Some(bc)) => {
+                    anyhow::ensure!(
+                        bp.shape() == bc.shape(),
+                        "{name}: time_emb_proj.bias {:?} and conv1.bias {:?} differ in shape",
+                        bp.shape(),
+                        bc.shape()
+                    );
+                    let sum = Tensor::empty(&dw.ctx, bp.shape(), bp.dtype(), &format!("{name}.temb_bias"))?;
+                    let mut rec = dw.ctx.recorder()?;
+                    ew::add(&mut rec, bp, bc, &sum)?;
+                    rec.finish()?.submit_wait()?;
+                    Some(sum)
+                }
+                (None, bc) => bc.clone(),
+                (bp, None) => bp.clone(),
+            };
+            Some(p)
+        } else {
+            None
+        };
         Ok(Self {
             norm1: GroupNorm::load(dw, &format!("{name}.norm1"), groups, eps)?,
-            conv1: Conv::same3(dw, &format!("{name}.conv1"), 1)?,
-            time_emb_proj: if temb {
-                Some(Linear::load(dw, &format!("{name}.time_emb_proj"))?)
-            } else {
-                None
-            },
+            conv1,
+            time_emb_proj,
             norm2: GroupNorm::load(dw, &format!("{name}.norm2"), groups, eps)?,
             conv2: Conv::same3(dw, &format!("{name}.conv2"), 1)?,
             shortcut,
@@ -47,31 +72,30 @@ impl Resnet {
     /// x: (N, C, H, W), silu_temb: (N, T) = SiLU(temb) or None -> (N, O, H, W)
     pub fn forward(&self, f: &mut Fwd, x: &Tensor, silu_temb: Option<&Tensor>) -> Result<Tensor> {
         let h = self.norm1.forward(f, x, true)?;
-        let mut h1 = self.conv1.forward(f, &h)?;
+        let h1 = match (&self.time_emb_proj, silu_temb) {
+            (Some(p), Some(t)) => {
+                let tp = p.forward(f, t)?; // (N, O), conv1's bias included
+                let y = self.conv1.forward_ex(f, &h, Some(&tp), None)?;
+                f.ws.release(tp);
+                y
+            }
+            _ => self.conv1.forward(f, &h)?,
+        };
         f.ws.release(h);
-        if let (Some(p), Some(t)) = (&self.time_emb_proj, silu_temb) {
-            let tp = p.forward(f, t)?; // (N, O)
-            let s = h1.shape().to_vec();
-            let t4 = tp.reshape(&[s[0], s[1], 1, 1])?;
-            let sum = f.ws.alloc(&s)?;
-            ew::add(f.rec, &h1, &t4, &sum)?;
-            f.ws.release(tp);
-            f.ws.release(std::mem::replace(&mut h1, sum));
-        }
         let h2 = self.norm2.forward(f, &h1, true)?;
         f.ws.release(h1);
-        let h3 = self.conv2.forward(f, &h2)?;
-        f.ws.release(h2);
-        let out = f.ws.alloc(h3.shape())?;
-        match &self.shortcut {
+        let out = match &self.shortcut {
             Some(sc) => {
-                let s = sc.forward(f, x)?;
-                ew::add(f.rec, &s, &h3, &out)?;
-                f.ws.release(s);
+                let h3 = self.conv2.forward(f, &h2)?;
+                let y = sc.forward_ex(f, x, sc.b.as_ref(), Some(&h3))?;
+                f.ws.release(h3);
+                y
             }
-            None => ew::add(f.rec, x, &h3, &out)?,
-        }
-        f.ws.release(h3);
+            None => self
+                .conv2
+                .forward_ex(f, &h2, self.conv2.b.as_ref(), Some(x))?,
+        };
+        f.ws.release(h2);
         Ok(out)
     }
 }

@@ -27,8 +27,15 @@ impl Attn {
         })
     }
 
-    /// x: (B, L, D), ctx: (B, Lk, Dc) or None (self-attention) -> (B, L, D)
-    fn forward(&self, f: &mut Fwd, x: &Tensor, ctx: Option<&Tensor>) -> Result<Tensor> {
+    /// x: (B, L, D), ctx: (B, Lk, Dc) or None (self-attention) -> (B, L, D) (+ residual, added in the output
+    /// projection's GEMM)
+    fn forward(
+        &self,
+        f: &mut Fwd,
+        x: &Tensor,
+        ctx: Option<&Tensor>,
+        residual: Option<&Tensor>,
+    ) -> Result<Tensor> {
         let c = ctx.unwrap_or(x);
         let q = self.q.forward(f, x)?;
         let k = self.k.forward(f, c)?;
@@ -44,19 +51,10 @@ impl Attn {
         for t in [q, k, v] {
             f.ws.release(t);
         }
-        let r = self.out.forward(f, &o)?;
+        let r = self.out.forward_res(f, &o, residual)?;
         f.ws.release(o);
         Ok(r)
     }
-}
-
-/// a + b into a new tensor; releases both.
-fn add_release(f: &mut Fwd, a: Tensor, b: Tensor) -> Result<Tensor> {
-    let out = f.ws.alloc(a.shape())?;
-    ew::add(f.rec, &a, &b, &out)?;
-    f.ws.release(a);
-    f.ws.release(b);
-    Ok(out)
 }
 
 /// (N, C, H, W) -> tokens (N, HW, C)
@@ -127,14 +125,15 @@ impl Transformer2D {
         let mut t = to_tokens(f, &p)?;
         f.ws.release(p);
         for b in &self.blocks {
+            // each residual add is fused into the GEMM that produces the branch
             let n1 = b.norm1.forward(f, &t)?;
-            let a1 = b.attn1.forward(f, &n1, None)?;
+            let a1 = b.attn1.forward(f, &n1, None, Some(&t))?;
             f.ws.release(n1);
-            t = add_release(f, a1, t)?;
+            f.ws.release(std::mem::replace(&mut t, a1));
             let n2 = b.norm2.forward(f, &t)?;
-            let a2 = b.attn2.forward(f, &n2, Some(context))?;
+            let a2 = b.attn2.forward(f, &n2, Some(context), Some(&t))?;
             f.ws.release(n2);
-            t = add_release(f, a2, t)?;
+            f.ws.release(std::mem::replace(&mut t, a2));
             let n3 = b.norm3.forward(f, &t)?;
             let g = b.ff_in.forward(f, &n3)?;
             f.ws.release(n3);
@@ -143,17 +142,16 @@ impl Transformer2D {
             let gg = f.ws.alloc(&gs)?;
             ew::geglu(f.rec, &g, &gg)?;
             f.ws.release(g);
-            let ff = b.ff_out.forward(f, &gg)?;
+            let ff = b.ff_out.forward_res(f, &gg, Some(&t))?;
             f.ws.release(gg);
-            t = add_release(f, ff, t)?;
+            f.ws.release(std::mem::replace(&mut t, ff));
         }
         let y = from_tokens(f, &t, h, w)?;
         f.ws.release(t);
-        let o = self.proj_out.forward(f, &y)?;
+        let out = self
+            .proj_out
+            .forward_ex(f, &y, self.proj_out.b.as_ref(), Some(x))?;
         f.ws.release(y);
-        let out = f.ws.alloc(x.shape())?;
-        ew::add(f.rec, &o, x, &out)?;
-        f.ws.release(o);
         Ok(out)
     }
 }
@@ -178,7 +176,7 @@ impl VaeAttention {
         let n = self.norm.forward(f, x, false)?;
         let t = to_tokens(f, &n)?;
         f.ws.release(n);
-        let a = self.attn.forward(f, &t, None)?;
+        let a = self.attn.forward(f, &t, None, None)?;
         f.ws.release(t);
         let y = from_tokens(f, &a, h, w)?;
         f.ws.release(a);

@@ -26,12 +26,15 @@ pub struct BenchCase {
 pub struct BenchResult {
     pub name: String,
     pub ms: f64,
+    /// Fastest replay (on a noisy machine the more stable figure for A/B comparisons).
+    pub min_ms: f64,
     pub gflops: f64,
     pub gbs: f64,
     pub iters: usize,
-    /// Per-op GPU time of the last replay, summed by label, largest first (contexts created with `profile`).
+    /// Per-op GPU time of the last replay, summed by label, with the dispatch count, largest first (contexts
+    /// created with `profile`).
     #[serde(skip_serializing_if = "Vec::is_empty")]
-    pub profile: Vec<(String, f64)>,
+    pub profile: Vec<(String, f64, usize)>,
 }
 
 pub(crate) fn random_tensor(
@@ -134,6 +137,7 @@ fn conv_case(dtype: DType, path: conv2d::ConvPath) -> BenchCase {
                         path,
                         packed_w: Some(&packed),
                         wino_w: Some(&wino),
+                        residual: None,
                     },
                 )
             })
@@ -198,15 +202,18 @@ pub fn run_case(
     }
     times.sort_by(|a, b| a.total_cmp(b));
     let s = times[times.len() / 2];
-    let mut by: std::collections::BTreeMap<String, f64> = Default::default();
+    let mut by: std::collections::BTreeMap<String, (f64, usize)> = Default::default();
     for t in rec.timings()? {
-        *by.entry(t.label).or_default() += t.ms;
+        let e = by.entry(t.label).or_default();
+        e.0 += t.ms;
+        e.1 += 1;
     }
-    let mut profile: Vec<(String, f64)> = by.into_iter().collect();
+    let mut profile: Vec<(String, f64, usize)> = by.into_iter().map(|(l, (ms, n))| (l, ms, n)).collect();
     profile.sort_by(|a, b| b.1.total_cmp(&a.1));
     Ok(BenchResult {
         name: case.name.clone(),
         ms: s * 1e3,
+        min_ms: times[0] * 1e3,
         gflops: case.flops / s * 1e-9,
         gbs: case.bytes / s * 1e-9,
         iters: times.len(),

@@ -14,7 +14,7 @@ use anyhow::{ensure, Result};
 
 use super::matmul::{gemm, tile_shape, tiled_supported, Gemm, MatmulPath};
 use super::{expect_shape, same_dtype, Recorder};
-use super::{SCRATCH_PACKED_W, SCRATCH_WINO_W, SCRATCH_X_HWNC};
+use super::{SCRATCH_CONV_OUT, SCRATCH_PACKED_W, SCRATCH_WINO_W, SCRATCH_X_HWNC};
 use crate::kernels::params::{Conv2dParams, PackParams};
 use crate::kernels::KernelId as K;
 use crate::tensor::{DType, Tensor};
@@ -66,7 +66,7 @@ pub struct Conv2dArgs<'a> {
     pub x: &'a Tensor,
     /// (O, C, KH, KW)
     pub w: &'a Tensor,
-    /// (O)
+    /// (O), or (N, O): a bias per image and channel (a ResNet block's time embedding folded into its conv)
     pub bias: Option<&'a Tensor>,
     /// (N, O, OH, OW), see [`conv2d_out_shape`]
     pub out: &'a Tensor,
@@ -80,6 +80,9 @@ pub struct Conv2dArgs<'a> {
     /// 3x3 `w` already transformed by [`super::winograd::transform_weight`] ((36, C, O), f32); without it the
     /// Winograd path transforms into a temporary on every call.
     pub wino_w: Option<&'a Tensor>,
+    /// (N, O, OH, OW), added to the output (a residual connection; it may be `out` itself). Fused into the
+    /// epilogue of the Winograd, packed implicit-GEMM and 1x1 GEMM paths, a separate add elsewhere.
+    pub residual: Option<&'a Tensor>,
 }
 
 /// Output shape of x: (N, C, H, W) convolved with w: (O, C, KH, KW), with checks naming the shapes.
@@ -155,18 +158,32 @@ pub fn pack_weight(rec: &mut Recorder, w: &Tensor, packed: &Tensor) -> Result<()
     )
 }
 
-/// out = conv2d(x, w) (+ bias), see [`Conv2dArgs`].
+/// out = conv2d(x, w) (+ bias) (+ residual), see [`Conv2dArgs`].
 pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
     let mut ts = vec![a.x, a.w, a.out];
-    if let Some(b) = a.bias {
-        ts.push(b);
-    }
+    ts.extend(a.bias);
+    ts.extend(a.residual);
     let d = same_dtype("conv2d", &ts)?;
     let (xs, ws) = (a.x.shape(), a.w.shape());
     let os = conv2d_out_shape(xs, ws, a.stride, a.pad)?;
     expect_shape("conv2d", "out", a.out, &os)?;
-    if let Some(b) = a.bias {
-        expect_shape("conv2d", "bias", b, &[ws[0]])?;
+    let bias_nc = match a.bias {
+        Some(b) if b.shape() == [xs[0], ws[0]] => true,
+        Some(b) => {
+            ensure!(
+                b.shape() == [ws[0]],
+                "conv2d: bias {:?} must be ({}) or ({}, {}) (x {xs:?}, w {ws:?})",
+                b.shape(),
+                ws[0],
+                xs[0],
+                ws[0]
+            );
+            false
+        }
+        None => false,
+    };
+    if let Some(r) = a.residual {
+        expect_shape("conv2d", "residual", r, &os)?;
     }
     let [n, c, h, w] = [xs[0], xs[1], xs[2], xs[3]];
     let (o, kh, kw) = (ws[0], ws[2], ws[3]);
@@ -210,9 +227,9 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
                 &tmp
             }
         };
-        return super::winograd::conv3x3(rec, a.x, u, a.bias, a.out, a.pad);
+        return super::winograd::conv3x3(rec, a.x, u, a.bias, a.residual, a.out, a.pad);
     }
-    if fast && kh == 1 && kw == 1 && a.stride == 1 && a.pad == [0; 4] {
+    if fast && kh == 1 && kw == 1 && a.stride == 1 && a.pad == [0; 4] && !bias_nc {
         // (O, C) x (C, H W) per image -> (O, H W) per image
         let g = Gemm {
             m: o,
@@ -223,10 +240,18 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
             sb: c * np,
             trans_b: false,
             bias_mode: if a.bias.is_some() { 2 } else { 0 },
+            res: a.residual.is_some(),
             dtype: d,
             path: MatmulPath::Tiled,
         };
-        let bufs = [a.w.buffer(), a.x.buffer(), bias.buffer(), a.out.buffer()];
+        let res = a.residual.unwrap_or(a.out);
+        let bufs = [
+            a.w.buffer(),
+            a.x.buffer(),
+            bias.buffer(),
+            a.out.buffer(),
+            res.buffer(),
+        ];
         return gemm(rec, "conv2d(1x1 as gemm)", &g, bufs, None);
     }
     let p = Conv2dParams {
@@ -243,11 +268,39 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
         pt: a.pad[0] as u32,
         pl: a.pad[2] as u32,
         has_bias: a.bias.is_some() as u32,
+        has_res: 0,
     };
-    let mut bufs = [a.x.buffer(), a.w.buffer(), bias.buffer(), a.out.buffer()];
+    let mut p = p;
+    let mut bufs = vec![a.x.buffer(), a.w.buffer(), bias.buffer(), a.out.buffer()];
+    // the packed implicit GEMM adds an (N, O) bias and the residual in its epilogue; the other kernels get
+    // the per-channel bias only, the rest is added after them
+    let packed_path = fast && o % 4 == 0;
+    let mut after_bias = None;
+    if bias_nc {
+        if packed_path {
+            p.has_bias = 2;
+        } else {
+            p.has_bias = 0;
+            after_bias = a.bias;
+        }
+    }
+    let mut after_res = None;
+    let conv_out;
+    if packed_path {
+        p.has_res = a.residual.is_some() as u32;
+        bufs.push(a.residual.unwrap_or(a.out).buffer());
+    } else if let Some(r) = a.residual {
+        after_res = Some(r);
+        if std::sync::Arc::ptr_eq(r.buffer(), a.out.buffer()) {
+            // in place: the conv must not overwrite the residual before the add reads it
+            let b = rec.scratch(SCRATCH_CONV_OUT, (a.out.numel() * d.size()) as u64)?;
+            conv_out = Tensor::on_buffer(b, &os, d)?;
+            bufs[3] = conv_out.buffer();
+        }
+    }
     let tmp;
     let xt;
-    let (id, groups, edges) = if fast && o % 4 == 0 {
+    let (id, groups, edges) = if packed_path {
         ensure!(
             tiled_supported(rec),
             "conv2d: the implicit-GEMM kernel needs subgroups of 8 to 64 lanes, which {:?} lacks",
@@ -335,7 +388,17 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
     );
     // per-shape label: `--profile` then splits conv time by shape
     let label = format!("conv2d {n}x{c}x{h}x{w} -> {o} k{kh}x{kw} s{}", a.stride);
-    rec.dispatch(id, &bufs, bytemuck::bytes_of(&p), groups, &label)
+    rec.dispatch(id, &bufs, bytemuck::bytes_of(&p), groups, &label)?;
+    // the conv's output tensor (`out`, or the scratch when the residual is `out`)
+    let y = Tensor::on_buffer(bufs[3].clone(), &os, d)?;
+    if let Some(b) = after_bias {
+        let b4 = b.reshape(&[n, o, 1, 1])?;
+        super::elementwise::add(rec, &y, &b4, &y)?;
+    }
+    if let Some(r) = after_res {
+        super::elementwise::add(rec, &y, r, a.out)?;
+    }
+    Ok(())
 }
 
 /// x: (N, C, H, W) * w: (O, C, KH, KW) (+ bias (O)) -> out: (N, O, OH, OW); pad = (top, bottom, left, right).
@@ -360,6 +423,7 @@ pub fn conv2d(
             path: ConvPath::Auto,
             packed_w: None,
             wino_w: None,
+            residual: None,
         },
     )
 }

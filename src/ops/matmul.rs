@@ -52,6 +52,8 @@ pub(crate) struct Gemm {
     pub trans_b: bool,
     /// 0 none, 1 per column (n), 2 per row (m).
     pub bias_mode: u32,
+    /// Add the residual buffer (laid out as C) in the epilogue.
+    pub res: bool,
     pub dtype: DType,
     pub path: MatmulPath,
 }
@@ -134,12 +136,13 @@ pub fn tiled_supported(rec: &Recorder) -> bool {
     ctx.supports(K::MatmulF32Nn) && (8..=TILED_WG).contains(&sg) && TILED_WG % sg == 0
 }
 
-/// Records one GEMM. Buffers: a, b, bias (any buffer when bias_mode == 0), c, optional overflow flag.
+/// Records one GEMM. Buffers: a, b, bias (any buffer when bias_mode == 0), c, residual (any buffer unless
+/// `g.res`; may be c itself), optional overflow flag.
 pub(crate) fn gemm(
     rec: &mut Recorder,
     op: &str,
     g: &Gemm,
-    bufs: [&std::sync::Arc<Buffer>; 4],
+    bufs: [&std::sync::Arc<Buffer>; 5],
     flag: Option<&std::sync::Arc<Buffer>>,
 ) -> Result<()> {
     let tiled = match g.path {
@@ -187,6 +190,7 @@ pub(crate) fn gemm(
         sb: g.sb as u32,
         bias_mode: g.bias_mode,
         batch: g.batch as u32,
+        res: g.res as u32,
     };
     let groups = if tiled {
         let (rows, cols) = tile_shape(rec);
@@ -230,6 +234,9 @@ pub struct MatmulArgs<'a> {
     pub path: MatmulPath,
     /// f16 only: f32 tensor of shape [1], set to 1.0 if any output saturated at +-65504.
     pub overflow: Option<&'a Tensor>,
+    /// Shaped as `out`, added to the result in the GEMM's epilogue (a fused residual connection). It may be
+    /// `out` itself.
+    pub residual: Option<&'a Tensor>,
 }
 
 /// out = a b (+ bias), see [`MatmulArgs`] for shapes. Batched operands broadcast against unbatched ones.
@@ -240,9 +247,8 @@ pub fn matmul_ex(rec: &mut Recorder, x: &MatmulArgs) -> Result<()> {
         "matmul"
     };
     let mut ts = vec![x.a, x.b, x.out];
-    if let Some(bias) = x.bias {
-        ts.push(bias);
-    }
+    ts.extend(x.bias);
+    ts.extend(x.residual);
     let d = same_dtype(op, &ts)?;
     let (sa, sb) = (x.a.shape(), x.b.shape());
     let split = |s: &[usize], what: &str| -> Result<(usize, usize, usize, bool)> {
@@ -273,6 +279,9 @@ pub fn matmul_ex(rec: &mut Recorder, x: &MatmulArgs) -> Result<()> {
     if let Some(bias) = x.bias {
         expect_shape(op, "bias", bias, &[n])?;
     }
+    if let Some(r) = x.residual {
+        expect_shape(op, "residual", r, &want)?;
+    }
     if let Some(f) = x.overflow {
         ensure!(
             f.dtype() == DType::F32 && f.shape() == [1],
@@ -290,15 +299,23 @@ pub fn matmul_ex(rec: &mut Recorder, x: &MatmulArgs) -> Result<()> {
         sb: if b3 { k * n } else { 0 },
         trans_b: x.transpose_b,
         bias_mode: if x.bias.is_some() { 1 } else { 0 },
+        res: x.residual.is_some(),
         dtype: d,
         path: x.path,
     };
     let bias = x.bias.unwrap_or(x.a);
+    let res = x.residual.unwrap_or(x.out);
     gemm(
         rec,
         op,
         &g,
-        [x.a.buffer(), x.b.buffer(), bias.buffer(), x.out.buffer()],
+        [
+            x.a.buffer(),
+            x.b.buffer(),
+            bias.buffer(),
+            x.out.buffer(),
+            res.buffer(),
+        ],
         x.overflow.map(|f| f.buffer()),
     )
 }
@@ -321,6 +338,7 @@ pub fn matmul(
             transpose_b: false,
             path: MatmulPath::Auto,
             overflow: None,
+            residual: None,
         },
     )
 }
@@ -332,6 +350,19 @@ pub fn linear(
     x: &Tensor,
     w: &Tensor,
     bias: Option<&Tensor>,
+    out: &Tensor,
+) -> Result<()> {
+    linear_residual(rec, x, w, bias, None, out)
+}
+
+/// [`linear`] + residual (shaped as out; may be out itself), added in the GEMM's epilogue: one pass instead
+/// of a linear and an add.
+pub fn linear_residual(
+    rec: &mut Recorder,
+    x: &Tensor,
+    w: &Tensor,
+    bias: Option<&Tensor>,
+    residual: Option<&Tensor>,
     out: &Tensor,
 ) -> Result<()> {
     let (xs, ws) = (x.shape(), w.shape());
@@ -353,6 +384,13 @@ pub fn linear(
             transpose_b: true,
             path: MatmulPath::Auto,
             overflow: None,
+            residual: residual
+                .map(|r| {
+                    expect_shape("linear", "residual", r, &os)?;
+                    r.reshape(&[rows, ws[0]])
+                })
+                .transpose()?
+                .as_ref(),
         },
     )
 }

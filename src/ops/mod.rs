@@ -25,6 +25,8 @@ pub(crate) const SCRATCH_WINO_M: usize = 1;
 pub(crate) const SCRATCH_WINO_W: usize = 2;
 pub(crate) const SCRATCH_X_HWNC: usize = 3;
 pub(crate) const SCRATCH_PACKED_W: usize = 4;
+/// conv2d output before a separate residual add when the residual is the output itself
+pub(crate) const SCRATCH_CONV_OUT: usize = 5;
 
 use crate::kernels::KernelId;
 use crate::tensor::{DType, Tensor};

@@ -34,19 +34,19 @@ fn norm(
         segs % gx == 0 || grid[1] == 1,
         "{op}: {segs} segments cannot be tiled over the grid"
     );
-    // vec4 kernel when every channel plane is a whole number of vec4s (group norm with H W % 4 == 0)
-    let k = if p.inner > 1 && p.inner % 4 == 0 {
-        pick(d, K::NormF32Gn4, K::NormF16Gn4)
+    // vec4 statistics (one Welford pass) for group norms whose segments are whole vec4s; the normalise pass is
+    // vec4 too when H W % 4 == 0
+    let b = [x.buffer(), gamma.buffer(), beta.buffer(), out.buffer()];
+    if p.inner > 1 && p.len % 4 == 0 {
+        // `gn4` also binds x and out a second time (scalar views, bindings 4 and 5): naga refuses two views of
+        // one binding in one entry point
+        let k = pick(d, K::NormF32Gn4, K::NormF16Gn4);
+        let b6 = [b[0], b[1], b[2], b[3], b[0], b[3]];
+        rec.dispatch(k, &b6, bytemuck::bytes_of(&p), grid, op)
     } else {
-        pick(d, K::NormF32, K::NormF16)
-    };
-    rec.dispatch(
-        k,
-        &[x.buffer(), gamma.buffer(), beta.buffer(), out.buffer()],
-        bytemuck::bytes_of(&p),
-        grid,
-        op,
-    )
+        let k = pick(d, K::NormF32, K::NormF16);
+        rec.dispatch(k, &b, bytemuck::bytes_of(&p), grid, op)
+    }
 }
 
 #[allow(clippy::too_many_arguments)] // mirrors torch's group_norm signature plus the fused SiLU and out

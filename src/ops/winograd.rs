@@ -13,18 +13,23 @@ use crate::tensor::{DType, Tensor};
 /// Bytes of each intermediate (V or M) per slab at most.
 const SLAB_BYTES: usize = 16 << 20;
 
-fn ids(d: DType) -> (K, K, K) {
+/// (input, input4, output, output4, weight) kernels.
+fn ids(d: DType) -> [K; 5] {
     match d {
-        DType::F32 => (
+        DType::F32 => [
             K::WinogradF32Input,
+            K::WinogradF32Input4,
             K::WinogradF32Output,
+            K::WinogradF32Output4,
             K::WinogradF32Weight,
-        ),
-        DType::F16 => (
+        ],
+        DType::F16 => [
             K::WinogradF16Input,
+            K::WinogradF16Input4,
             K::WinogradF16Output,
+            K::WinogradF16Output4,
             K::WinogradF16Weight,
-        ),
+        ],
     }
 }
 
@@ -52,7 +57,7 @@ pub fn transform_weight(rec: &mut Recorder, w: &Tensor, u: &Tensor) -> Result<()
     };
     let g = super::grid_1d("conv2d winograd weight", ws[0] * ws[1])?;
     rec.dispatch(
-        ids(w.dtype()).2,
+        ids(w.dtype())[4],
         &[w.buffer(), u.buffer()],
         bytemuck::bytes_of(&p),
         g,
@@ -60,13 +65,14 @@ pub fn transform_weight(rec: &mut Recorder, w: &Tensor, u: &Tensor) -> Result<()
     )
 }
 
-/// out = conv3x3(x, w) (+ bias), stride 1, padding (top, bottom, left, right) each <= 2, with u the
-/// transformed weight ([`transform_weight`]). Shapes were checked by the caller (`conv2d_ex`).
+/// out = conv3x3(x, w) (+ bias (O) or (N, O)) (+ residual), stride 1, padding (top, bottom, left, right) each
+/// <= 2, with u the transformed weight ([`transform_weight`]). Shapes were checked by the caller (`conv2d_ex`).
 pub(crate) fn conv3x3(
     rec: &mut Recorder,
     x: &Tensor,
     u: &Tensor,
     bias: Option<&Tensor>,
+    residual: Option<&Tensor>,
     out: &Tensor,
     pad: [usize; 4],
 ) -> Result<()> {
@@ -78,10 +84,23 @@ pub(crate) fn conv3x3(
     let tiles = n * th * tw;
     let per_tile = 36 * c.max(o) * 4;
     let slab = (SLAB_BYTES / per_tile).clamp(1, tiles);
-    let (inp, outp, _) = ids(x.dtype());
+    let [inp1, inp4, outp1, outp4, _] = ids(x.dtype());
+    // vec4 transforms (4 channels per invocation, rows as vec4s: a quarter of the per-lane access loops on
+    // lavapipe) where the layout allows: input C % 4 == 0, W % 4 == 0, left padding 1; output O % 4 == 0,
+    // OW % 4 == 0
+    let in4 = c % 4 == 0 && w % 4 == 0 && pad[2] == 1;
+    let out4 = o % 4 == 0 && ow % 4 == 0;
+    let (inp, in_items) = if in4 { (inp4, c / 4) } else { (inp1, c) };
+    let (outp, out_items) = if out4 { (outp4, o / 4) } else { (outp1, o) };
     let vb = rec.scratch(SCRATCH_WINO_V, (36 * slab * c * 4) as u64)?;
     let mb = rec.scratch(SCRATCH_WINO_M, (36 * slab * o * 4) as u64)?;
     let bias_t = bias.unwrap_or(x);
+    let has_bias = match bias {
+        Some(b) if b.shape().len() == 2 => 2,
+        Some(_) => 1,
+        None => 0,
+    };
+    let res_t = residual.unwrap_or(out);
     let mut t0 = 0;
     while t0 < tiles {
         let nt = slab.min(tiles - t0);
@@ -99,9 +118,10 @@ pub(crate) fn conv3x3(
             pl: pad[2] as u32,
             t0: t0 as u32,
             nt: nt as u32,
-            has_bias: bias.is_some() as u32,
+            has_bias,
+            has_res: residual.is_some() as u32,
         };
-        let g = super::grid_1d("conv2d winograd", nt * c)?;
+        let g = super::grid_1d("conv2d winograd", nt * in_items)?;
         rec.dispatch(
             inp,
             &[x.buffer(), &vb],
@@ -119,6 +139,7 @@ pub(crate) fn conv3x3(
             sb: c * o,
             trans_b: false,
             bias_mode: 0,
+            res: false,
             dtype: DType::F32,
             path: MatmulPath::Tiled,
         };
@@ -126,11 +147,11 @@ pub(crate) fn conv3x3(
             rec,
             "conv2d winograd gemm",
             &gm,
-            [&vb, u.buffer(), &vb, &mb],
+            [&vb, u.buffer(), &vb, &mb, &mb],
             None,
         )?;
-        let g = super::grid_1d("conv2d winograd", nt * o)?;
-        let bufs = [&mb, bias_t.buffer(), out.buffer()];
+        let g = super::grid_1d("conv2d winograd", nt * out_items)?;
+        let bufs = [&mb, bias_t.buffer(), out.buffer(), res_t.buffer()];
         rec.dispatch(
             outp,
             &bufs,
