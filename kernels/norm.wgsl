@@ -17,6 +17,7 @@ struct NormParams {
     inner: u32,        // H*W for group norm, 1 for layer norm
     eps: f32,
     silu: u32,         // 1: apply SiLU after the affine transform
+    tokens: u32,       // group norm: 1 writes y as (N, H W, C) tokens (a transformer's input layout)
 }
 
 @group(0) @binding(0) var<storage, read> x: array<ST>;
@@ -74,10 +75,14 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
             let g = rstd * f32(gamma[cbase + c]);
             let b = f32(beta[cbase + c]) - mean * g;
             let cb = base + c * p.inner;
+            // token layout: element (n, c_all, j) goes to (n, j, c_all)
+            let ctot = p.segs_per_item * p.ch_per_seg;
+            let tb = (seg / p.segs_per_item) * p.inner * ctot + cbase + c;
             for (var j = l; j < p.inner; j += 256u) {
                 var v = (f32(x[cb + j]) - x0) * g + b;
                 if (p.silu == 1u) { v = silu(v); }
-                y[cb + j] = ST(v);
+                let yi = select(cb + j, tb + j * ctot, p.tokens == 1u);
+                y[yi] = ST(v);
             }
         }
     }
@@ -110,40 +115,51 @@ fn layer_norm_sg(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups)
 // group_norm with vec4 statistics (segment length % 4 == 0): one read pass for the statistics instead of two,
 // Welford per lane on the shifted values d = x - x0 (x0 the segment's first element, as in `main`; each of a
 // lane's vec4 components is its own stream, all with the lane's count k), merged across components and then
-// across the work group with Chan et al.'s pairwise formula. On lavapipe every storage access is a per-lane
+// across the work group (`reduce_welford`). On lavapipe every storage access is a per-lane
 // loop, so the passes over x set the cost: 2 reads + 1 write per element instead of 3 + 1. Welford keeps the
 // precision of the two-pass form: M2 accumulates squared deviations from the running mean, never a difference
 // of large sums, and the shift keeps near-constant segments (100 +- 1e-3) exact. The normalise pass is vec4
 // when the channel plane is (H W % 4 == 0), else scalar per channel (gamma/beta stay uniform either way).
-// Loop budget: ceil(len / 1024) + ch_per_seg * ceil(inner / 256) iterations (+ 8 reduction rounds).
+// Loop budget: ceil(len / 1024) + ch_per_seg * ceil(inner / 256) iterations (+ 256 / (sg sg) in the reduction).
 var<workgroup> red4: array<vec4<f32>, 256>;
 // scalar views of x and y for `gn4`'s per-channel pass when H W % 4 != 0: naga refuses two views of one binding
 // in one entry point, so the launcher binds x and y a second time here
 @group(0) @binding(4) var<storage, read> xs: array<ST>;
 @group(0) @binding(5) var<storage, read_write> ys: array<ST>;
 
-// (count, mean, M2) of two disjoint sets -> of their union (Chan, Golub, LeVeque 1979).
-fn chan(a: vec3<f32>, b: vec3<f32>) -> vec3<f32> {
-    let n = a.x + b.x;
-    let f = b.x / max(n, 1.0);
-    let d = b.y - a.y;
-    return vec3<f32>(n, a.y + d * f, a.z + b.z + d * d * a.x * f);
+// (count, mean, M2) of the union of the sets of a subgroup's lanes, the same in every lane: the exact
+// decomposition M2 = sum_i (M2_i + n_i (mean_i - mean)^2) with mean = sum_i n_i mean_i / n, through subgroupAdd
+// (on llvmpipe a subgroup is one SIMD vector: a horizontal add, no memory traffic). All terms are >= 0.
+fn merge_sg(v: vec3<f32>) -> vec3<f32> {
+    let n = subgroupAdd(v.x);
+    let mean = subgroupAdd(v.x * v.y) / max(n, 1.0);
+    let d = v.y - mean;
+    return vec3<f32>(n, mean, subgroupAdd(v.z + v.x * d * d));
 }
 
-fn reduce_welford(v: vec3<f32>, l: u32) -> vec3<f32> {
-    red4[l] = vec4<f32>(v, 0.0);
+// Work-group merge of per-lane (count, mean, M2): within each subgroup by `merge_sg`, then every subgroup reads
+// the WG / sg partials back from shared memory (a strided share per lane) and merges them the same way. One
+// barrier, a few shared accesses per lane (a barrier tree would need 8 rounds of per-lane shared loads and
+// stores, which on lavapipe cost as much as a pass over a small group's data).
+fn reduce_welford(v: vec3<f32>, l: u32, lane: u32, sg: u32) -> vec3<f32> {
+    let s = merge_sg(v);
+    if (lane == 0u) { red4[l / sg] = vec4<f32>(s, 0.0); }
     workgroupBarrier();
-    for (var s = 128u; s > 0u; s = s >> 1u) {
-        if (l < s) { red4[l] = vec4<f32>(chan(red4[l].xyz, red4[l + s].xyz), 0.0); }
-        workgroupBarrier();
+    var a = vec3<f32>(0.0);
+    for (var i = lane; i < 256u / sg; i += sg) {
+        // pairwise merge of this lane's share (Chan et al.)
+        let b = red4[i].xyz;
+        let n = a.x + b.x;
+        let f = b.x / max(n, 1.0);
+        let d = b.y - a.y;
+        a = vec3<f32>(n, a.y + d * f, a.z + b.z + d * d * a.x * f);
     }
-    let r = red4[0].xyz;
-    workgroupBarrier();
-    return r;
+    return merge_sg(a);
 }
 
 @compute @workgroup_size(256)
-fn gn4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+fn gn4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>,
+       @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32) {
     let seg = wid.y * nwg.x + wid.x;
     let l = lid.x;
     let base = seg * p.len;
@@ -164,21 +180,32 @@ fn gn4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     // merge the 4 equal-count component streams
     let mm = (m.x + m.y + m.z + m.w) * 0.25;
     let dc = m - mm;
-    let lane = vec3<f32>(4.0 * k, mm, q.x + q.y + q.z + q.w + k * dot(dc, dc));
-    let st = reduce_welford(lane, l);
+    let lane_st = vec3<f32>(4.0 * k, mm, q.x + q.y + q.z + q.w + k * dot(dc, dc));
+    let st = reduce_welford(lane_st, l, lane, sg);
     let mean = st.y; // mean of the shifted values
     let rstd = inverseSqrt(st.z / f32(p.len) + p.eps);
     let cbase = (seg % p.segs_per_item) * p.ch_per_seg;
+    let ctot = p.segs_per_item * p.ch_per_seg;
     if (p.inner % 4u == 0u) {
         let in4 = p.inner / 4u;
         for (var c = 0u; c < p.ch_per_seg; c++) {
             let g = rstd * f32(gamma[cbase + c]);
             let b = f32(beta[cbase + c]) - mean * g;
             let cb = b4 + c * in4;
+            let tb = (seg / p.segs_per_item) * p.inner * ctot + cbase + c;
             for (var j = l; j < in4; j += 256u) {
                 var v = (vec4<f32>(x4[cb + j]) - x0) * g + b;
                 if (p.silu == 1u) { v = v / (1.0 + exp(-v)); }
-                y4[cb + j] = vec4<ST>(v);
+                if (p.tokens == 1u) {
+                    // token layout: the 4 positions of this vec4 are C apart
+                    let t = tb + 4u * j * ctot;
+                    ys[t] = ST(v.x);
+                    ys[t + ctot] = ST(v.y);
+                    ys[t + 2u * ctot] = ST(v.z);
+                    ys[t + 3u * ctot] = ST(v.w);
+                } else {
+                    y4[cb + j] = vec4<ST>(v);
+                }
             }
         }
     } else {
@@ -186,10 +213,11 @@ fn gn4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
             let g = rstd * f32(gamma[cbase + c]);
             let b = f32(beta[cbase + c]) - mean * g;
             let cb = base + c * p.inner;
+            let tb = (seg / p.segs_per_item) * p.inner * ctot + cbase + c;
             for (var j = l; j < p.inner; j += 256u) {
                 var v = (f32(xs[cb + j]) - x0) * g + b;
                 if (p.silu == 1u) { v = silu(v); }
-                ys[cb + j] = ST(v);
+                ys[select(cb + j, tb + j * ctot, p.tokens == 1u)] = ST(v);
             }
         }
     }

@@ -499,8 +499,20 @@ fn fused_bias_per_image_and_residual_match_reference() {
     // (fused), the O % 4 != 0 implicit GEMM and the direct kernel (separate adds), the 1x1 GEMM. Also with the
     // residual being `out` itself (in place) and with a per-channel bias.
     let cases: &[(&str, [usize; 4], usize, usize, ConvPath)] = &[
-        ("winograd_scalar_28x50", [2, 8, 28, 50], 12, 3, ConvPath::Winograd),
-        ("winograd_vec4_12x16", [2, 8, 12, 16], 12, 3, ConvPath::Winograd),
+        (
+            "winograd_scalar_28x50",
+            [2, 8, 28, 50],
+            12,
+            3,
+            ConvPath::Winograd,
+        ),
+        (
+            "winograd_vec4_12x16",
+            [2, 8, 12, 16],
+            12,
+            3,
+            ConvPath::Winograd,
+        ),
         ("packed_7x13", [2, 16, 7, 13], 8, 3, ConvPath::Fast),
         ("implicit_o6_7x13", [2, 5, 7, 13], 6, 3, ConvPath::Fast),
         ("direct_7x13", [2, 5, 7, 13], 8, 3, ConvPath::Direct),
@@ -549,7 +561,14 @@ fn fused_bias_per_image_and_residual_match_reference() {
                     stride: 1,
                     pad,
                 };
-                let conv = rc::conv2d(&stored(&x, dtype), &stored(&wt, dtype), None, (n, c, h, w), o, g);
+                let conv = rc::conv2d(
+                    &stored(&x, dtype),
+                    &stored(&wt, dtype),
+                    None,
+                    (n, c, h, w),
+                    o,
+                    g,
+                );
                 let (bs, rs) = (stored(&b, dtype), stored(&r, dtype));
                 let hw = h * w;
                 let want: Vec<f64> = conv
@@ -575,7 +594,10 @@ fn fused_bias_per_image_and_residual_match_reference() {
     let out = empty(&ctx, &[1, 4, 6, 6], DType::F32);
     let bad_r = empty(&ctx, &[1, 4, 6, 5], DType::F32);
     let bad_b = empty(&ctx, &[2, 4], DType::F32);
-    for (bias, res, what) in [(None, Some(&bad_r), "residual"), (Some(&bad_b), None, "bias")] {
+    for (bias, res, what) in [
+        (None, Some(&bad_r), "residual"),
+        (Some(&bad_b), None, "bias"),
+    ] {
         let mut rec = ctx.recorder().unwrap();
         let e = cv::conv2d_ex(
             &mut rec,

@@ -414,7 +414,8 @@ fn fused_residual_matches_reference() {
                     let b64 = stored(&b, dtype);
                     let bb: Vec<f64> = (0..batch).flat_map(|_| b64.iter().copied()).collect();
                     let bs = stored(&bias, dtype);
-                    let mm_ = rmm::matmul(&stored(&a, dtype), &bb, Some(&bs), batch, m, n, k, trans_b);
+                    let mm_ =
+                        rmm::matmul(&stored(&a, dtype), &bb, Some(&bs), batch, m, n, k, trans_b);
                     let rs = stored(&r, dtype);
                     let want: Vec<f64> = mm_.iter().zip(&rs).map(|(x, y)| x + y).collect();
                     let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
@@ -432,7 +433,9 @@ fn fused_residual_matches_reference() {
     let w = upload(&ctx, &[4, 8], DType::F32, &uniform(32, 1.0, 2));
     let r = upload(&ctx, &[2, 3, 4], DType::F32, &uniform(24, 1.0, 3));
     let out = empty(&ctx, &[2, 3, 4], DType::F32);
-    run(&ctx, |rec| mm::linear_residual(rec, &x, &w, None, Some(&r), &out));
+    run(&ctx, |rec| {
+        mm::linear_residual(rec, &x, &w, None, Some(&r), &out)
+    });
     let want: Vec<f64> = rmm::matmul(
         &stored(&uniform(48, 1.0, 1), DType::F32),
         &stored(&uniform(32, 1.0, 2), DType::F32),
@@ -453,5 +456,62 @@ fn fused_residual_matches_reference() {
     let mut rec = ctx.recorder().unwrap();
     let err = mm::linear_residual(&mut rec, &x, &w, None, Some(&bad), &out).unwrap_err();
     assert!(format!("{err:#}").contains("residual"), "{err:#}");
+    assert_no_validation_errors();
+}
+
+#[test]
+fn linear_to_channels_matches_reference() {
+    let Some(ctx) = ctx() else { return };
+    // tokens (N, L, C) . w (O, C)^T laid out as (N, O, L) (+ bias[o]) (+ residual): L a multiple of 4 (vec4
+    // stores) and not, K % 8 == 0 and not.
+    for (n, l, c, o) in [
+        (2usize, 72usize, 32usize, 12usize),
+        (2, 35, 16, 8),
+        (1, 13, 6, 5),
+    ] {
+        for dtype in [DType::F32, DType::F16] {
+            let t = uniform(n * l * c, 1.0, 21);
+            let w = uniform(o * c, 1.0, 22);
+            let b = uniform(o, 1.0, 23);
+            let r = uniform(n * o * l, 1.0, 24);
+            let (tt, tw, tb, tr) = (
+                upload(&ctx, &[n, l, c], dtype, &t),
+                upload(&ctx, &[o, c], dtype, &w),
+                upload(&ctx, &[o], dtype, &b),
+                upload(&ctx, &[n, o, l], dtype, &r),
+            );
+            let out = empty(&ctx, &[n, o, l], dtype);
+            run(&ctx, |rec| {
+                mm::linear_to_channels(rec, &tt, &tw, Some(&tb), Some(&tr), &out)
+            });
+            let (t64, w64, b64, r64) = (
+                stored(&t, dtype),
+                stored(&w, dtype),
+                stored(&b, dtype),
+                stored(&r, dtype),
+            );
+            let mut want = vec![0.0; n * o * l];
+            for i in 0..n {
+                for oc in 0..o {
+                    for p in 0..l {
+                        let dot: f64 = (0..c)
+                            .map(|k| w64[oc * c + k] * t64[(i * l + p) * c + k])
+                            .sum();
+                        let j = (i * o + oc) * l + p;
+                        want[j] = dot + b64[oc] + r64[j];
+                    }
+                }
+            }
+            let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
+            let tol = if dtype == DType::F32 { 1e-7 } else { 5e-4 };
+            assert!(e <= tol, "({n}, {l}, {c}) -> {o} {dtype:?}: nmse {e:e}");
+        }
+    }
+    let tt = empty(&ctx, &[1, 4, 8], DType::F32);
+    let tw = empty(&ctx, &[3, 8], DType::F32);
+    let bad = empty(&ctx, &[1, 4, 3], DType::F32);
+    let mut rec = ctx.recorder().unwrap();
+    let e = mm::linear_to_channels(&mut rec, &tt, &tw, None, None, &bad).unwrap_err();
+    assert!(format!("{e:#}").contains("out"), "{e:#}");
     assert_no_validation_errors();
 }

@@ -202,7 +202,10 @@ fn group_norm_first_element_outlier_keeps_precision() {
         let e = nmse(&got, &want);
         let got_rest: Vec<f32> = rest(&got64).iter().map(|v| *v as f32).collect();
         let er = nmse(&got_rest, &rest(&want));
-        assert!(e <= 1e-7 && er <= 1e-7, "{h}x{w}: nmse {e:e}, without the outliers {er:e}");
+        assert!(
+            e <= 1e-7 && er <= 1e-7,
+            "{h}x{w}: nmse {e:e}, without the outliers {er:e}"
+        );
     }
     assert_no_validation_errors();
 }
@@ -309,4 +312,65 @@ fn norm_bad_inputs_are_errors() {
         .to_string();
     assert!(e.contains("layer_norm") && e.contains("eps"), "{e}");
     assert_eq!(rec.dispatch_count(), 0);
+}
+
+#[test]
+fn group_norm_tokens_is_group_norm_transposed() {
+    let Some(ctx) = ctx() else { return };
+    // out (N, H W, C): the vec4 kernel's two normalise passes (16 x 16; 7 x 13 with whole-vec4 groups) and the
+    // scalar kernel (5 x 5 with 3 channels per group), with SiLU, f32 and f16.
+    for (c, g, h, w) in [
+        (8usize, 2usize, 16usize, 16usize),
+        (16, 4, 7, 13),
+        (6, 2, 5, 5),
+    ] {
+        for dtype in [DType::F32, DType::F16] {
+            let n = 2;
+            let x = uniform(n * c * h * w, 1.0, 11);
+            let gamma = uniform(c, 1.0, 12);
+            let beta = uniform(c, 1.0, 13);
+            let tx = upload(&ctx, &[n, c, h, w], dtype, &x);
+            let tg = upload(&ctx, &[c], dtype, &gamma);
+            let tb = upload(&ctx, &[c], dtype, &beta);
+            let out = empty(&ctx, &[n, h * w, c], dtype);
+            run(&ctx, |rec| {
+                norm::group_norm_tokens(rec, &tx, g, &tg, &tb, 1e-5, true, &out)
+            });
+            let y = r::group_norm(
+                &stored(&x, dtype),
+                n,
+                c,
+                h * w,
+                g,
+                &stored(&gamma, dtype),
+                &stored(&beta, dtype),
+                1e-5,
+                true,
+            );
+            let hw = h * w;
+            let mut want = vec![0.0; y.len()];
+            for i in 0..n {
+                for ch in 0..c {
+                    for p in 0..hw {
+                        want[(i * hw + p) * c + ch] = y[(i * c + ch) * hw + p];
+                    }
+                }
+            }
+            let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
+            let tol = if dtype == DType::F32 {
+                1e-7
+            } else {
+                elementwise_tol(DType::F16)
+            };
+            assert!(e <= tol, "{c}ch {h}x{w} {dtype:?}: nmse {e:e}");
+        }
+    }
+    // the token output must be (N, H W, C)
+    let x = empty(&ctx, &[1, 4, 2, 3], DType::F32);
+    let gb = empty(&ctx, &[4], DType::F32);
+    let bad = empty(&ctx, &[1, 4, 6], DType::F32);
+    let mut rec = ctx.recorder().unwrap();
+    let e = norm::group_norm_tokens(&mut rec, &x, 2, &gb, &gb, 1e-5, false, &bad).unwrap_err();
+    assert!(format!("{e:#}").contains("out"), "{e:#}");
+    assert_no_validation_errors();
 }

@@ -136,18 +136,23 @@ impl ControlNet {
             silu_temb,
         } = self.enc.forward(f, sample, t, context, Some(emb))?;
         f.ws.release(silu_temb);
-        let mut down = vec![];
-        for (z, sk) in self.down_zero.iter().zip(&skips) {
-            let r = z.forward(f, sk)?;
+        // scale 1 (the default) multiplies by one: no pass
+        let scaled = |f: &mut Fwd, r: Tensor| -> Result<Tensor> {
+            if scale == 1.0 {
+                return Ok(r);
+            }
             let y = f.ws.alloc(r.shape())?;
             ew::scale_add(f.rec, scale, &r, 0.0, &r, &y)?;
             f.ws.release(r);
-            down.push(y);
+            Ok(y)
+        };
+        let mut down = vec![];
+        for (z, sk) in self.down_zero.iter().zip(&skips) {
+            let r = z.forward(f, sk)?;
+            down.push(scaled(f, r)?);
         }
         let m = self.mid_zero.forward(f, &x)?;
-        let mid = f.ws.alloc(m.shape())?;
-        ew::scale_add(f.rec, scale, &m, 0.0, &m, &mid)?;
-        f.ws.release(m);
+        let mid = scaled(f, m)?;
         f.ws.release(x);
         Ok(ControlOut { down, mid })
     }

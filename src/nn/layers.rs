@@ -138,13 +138,48 @@ impl Linear {
         })
     }
 
+    /// A token-wise projection stored either as a Linear (O, C) or as a 1x1 Conv2d (O, C, 1, 1) weight
+    /// (diffusers' `use_linear_projection` false / true): the same map on tokens.
+    pub fn load_projection(dw: &DeviceWeights, name: &str) -> Result<Self> {
+        let mut l = Self::load(dw, name)?;
+        let s = l.w.shape().to_vec();
+        match s.len() {
+            2 => {}
+            4 if s[2] == 1 && s[3] == 1 => l.w = l.w.reshape(&[s[0], s[1]])?,
+            _ => anyhow::bail!("{name}.weight {s:?} must be (O, C) or (O, C, 1, 1)"),
+        }
+        Ok(l)
+    }
+
+    /// tokens (N, H W, in) -> (N, out, H, W) (+ residual (N, out, H, W)): the projection computed straight into
+    /// the channels-first layout, the residual added in the GEMM.
+    pub fn forward_to_channels(
+        &self,
+        f: &mut Fwd,
+        tokens: &Tensor,
+        residual: Option<&Tensor>,
+        h: usize,
+        w: usize,
+    ) -> Result<Tensor> {
+        let n = tokens.shape()[0];
+        let out = f.ws.alloc(&[n, self.w.shape()[0], h, w])?;
+        matmul::linear_to_channels(f.rec, tokens, &self.w, self.b.as_ref(), residual, &out)
+            .with_context(|| format!("linear {}", self.name))?;
+        Ok(out)
+    }
+
     /// x: (.., in) -> (.., out)
     pub fn forward(&self, f: &mut Fwd, x: &Tensor) -> Result<Tensor> {
         self.forward_res(f, x, None)
     }
 
     /// x: (.., in) -> (.., out) + residual (shaped as the output), the add fused into the GEMM.
-    pub fn forward_res(&self, f: &mut Fwd, x: &Tensor, residual: Option<&Tensor>) -> Result<Tensor> {
+    pub fn forward_res(
+        &self,
+        f: &mut Fwd,
+        x: &Tensor,
+        residual: Option<&Tensor>,
+    ) -> Result<Tensor> {
         let mut s = x.shape().to_vec();
         *s.last_mut().expect("non-empty") = self.w.shape()[0];
         let out = f.ws.alloc(&s)?;
@@ -170,6 +205,23 @@ impl GroupNorm {
             groups,
             eps: eps as f32,
         })
+    }
+
+    /// x: (N, C, H, W) -> tokens (N, H W, C), normalised (the transformer's input layout, no transpose pass)
+    pub fn forward_tokens(&self, f: &mut Fwd, x: &Tensor, silu: bool) -> Result<Tensor> {
+        let s = x.shape();
+        let out = f.ws.alloc(&[s[0], s[2] * s[3], s[1]])?;
+        norm::group_norm_tokens(
+            f.rec,
+            x,
+            self.groups,
+            &self.gamma,
+            &self.beta,
+            self.eps,
+            silu,
+            &out,
+        )?;
+        Ok(out)
     }
 
     /// x: (N, C, H, W) -> (N, C, H, W)

@@ -46,7 +46,12 @@ impl Resnet {
                         bp.shape(),
                         bc.shape()
                     );
-                    let sum = Tensor::empty(&dw.ctx, bp.shape(), bp.dtype(), &format!("{name}.temb_bias"))?;
+                    let sum = Tensor::empty(
+                        &dw.ctx,
+                        bp.shape(),
+                        bp.dtype(),
+                        &format!("{name}.temb_bias"),
+                    )?;
                     let mut rec = dw.ctx.recorder()?;
                     ew::add(&mut rec, bp, bc, &sum)?;
                     rec.finish()?.submit_wait()?;

@@ -1,9 +1,14 @@
 //! diffusers Transformer2DModel (SD1.5: GN eps 1e-6, conv 1x1 proj_in/proj_out, one BasicTransformerBlock with
 //! self-attention, cross-attention and a GEGLU feed-forward) and the VAE's single-head mid-block attention.
+//!
+//! Layout: the group norm writes tokens (N, H W, C) directly, proj_in runs as a linear on them, and proj_out
+//! (the VAE attention's output projection) computes straight back into (N, C, H, W) with the block's
+//! residual added in the same GEMM: no transpose passes. Every residual add of the blocks is fused into the
+//! GEMM producing its branch.
 use anyhow::Result;
 
 use super::device::{DeviceWeights, Fwd};
-use super::layers::{Conv, GroupNorm, LayerNorm, Linear};
+use super::layers::{GroupNorm, LayerNorm, Linear};
 use crate::ops::{attention, attention_naive, elementwise as ew};
 use crate::tensor::Tensor;
 
@@ -36,6 +41,14 @@ impl Attn {
         ctx: Option<&Tensor>,
         residual: Option<&Tensor>,
     ) -> Result<Tensor> {
+        let o = self.attend(f, x, ctx)?;
+        let r = self.out.forward_res(f, &o, residual)?;
+        f.ws.release(o);
+        Ok(r)
+    }
+
+    /// The attention of [`Self::forward`] without the output projection: (B, L, D) before `to_out`.
+    fn attend(&self, f: &mut Fwd, x: &Tensor, ctx: Option<&Tensor>) -> Result<Tensor> {
         let c = ctx.unwrap_or(x);
         let q = self.q.forward(f, x)?;
         let k = self.k.forward(f, c)?;
@@ -51,26 +64,8 @@ impl Attn {
         for t in [q, k, v] {
             f.ws.release(t);
         }
-        let r = self.out.forward_res(f, &o, residual)?;
-        f.ws.release(o);
-        Ok(r)
+        Ok(o)
     }
-}
-
-/// (N, C, H, W) -> tokens (N, HW, C)
-pub(crate) fn to_tokens(f: &mut Fwd, x: &Tensor) -> Result<Tensor> {
-    let s = x.shape();
-    let t = f.ws.alloc(&[s[0], s[2] * s[3], s[1]])?;
-    ew::transpose(f.rec, &x.reshape(&[s[0], s[1], s[2] * s[3]])?, &t)?;
-    Ok(t)
-}
-
-/// tokens (N, HW, C) -> (N, C, H, W)
-pub(crate) fn from_tokens(f: &mut Fwd, t: &Tensor, h: usize, w: usize) -> Result<Tensor> {
-    let s = t.shape();
-    let x = f.ws.alloc(&[s[0], s[2], h, w])?;
-    ew::transpose(f.rec, t, &x.reshape(&[s[0], s[2], s[1]])?)?;
-    Ok(x)
 }
 
 struct Block {
@@ -85,9 +80,9 @@ struct Block {
 
 pub struct Transformer2D {
     norm: GroupNorm,
-    proj_in: Conv,
+    proj_in: Linear,
     blocks: Vec<Block>,
-    proj_out: Conv,
+    proj_out: Linear,
 }
 
 impl Transformer2D {
@@ -110,20 +105,18 @@ impl Transformer2D {
         anyhow::ensure!(!blocks.is_empty(), "{name}: no transformer_blocks found");
         Ok(Self {
             norm: GroupNorm::load(dw, &format!("{name}.norm"), groups, 1e-6)?,
-            proj_in: Conv::one(dw, &format!("{name}.proj_in"))?,
+            proj_in: Linear::load_projection(dw, &format!("{name}.proj_in"))?,
             blocks,
-            proj_out: Conv::one(dw, &format!("{name}.proj_out"))?,
+            proj_out: Linear::load_projection(dw, &format!("{name}.proj_out"))?,
         })
     }
 
     /// x: (N, C, H, W), context: (N, 77, Dc) -> (N, C, H, W)
     pub fn forward(&self, f: &mut Fwd, x: &Tensor, context: &Tensor) -> Result<Tensor> {
         let (h, w) = (x.shape()[2], x.shape()[3]);
-        let n = self.norm.forward(f, x, false)?;
-        let p = self.proj_in.forward(f, &n)?;
+        let n = self.norm.forward_tokens(f, x, false)?;
+        let mut t = self.proj_in.forward(f, &n)?;
         f.ws.release(n);
-        let mut t = to_tokens(f, &p)?;
-        f.ws.release(p);
         for b in &self.blocks {
             // each residual add is fused into the GEMM that produces the branch
             let n1 = b.norm1.forward(f, &t)?;
@@ -146,12 +139,8 @@ impl Transformer2D {
             f.ws.release(gg);
             f.ws.release(std::mem::replace(&mut t, ff));
         }
-        let y = from_tokens(f, &t, h, w)?;
+        let out = self.proj_out.forward_to_channels(f, &t, Some(x), h, w)?;
         f.ws.release(t);
-        let out = self
-            .proj_out
-            .forward_ex(f, &y, self.proj_out.b.as_ref(), Some(x))?;
-        f.ws.release(y);
         Ok(out)
     }
 }
@@ -173,16 +162,11 @@ impl VaeAttention {
     /// x: (N, C, H, W) -> (N, C, H, W)
     pub fn forward(&self, f: &mut Fwd, x: &Tensor) -> Result<Tensor> {
         let (h, w) = (x.shape()[2], x.shape()[3]);
-        let n = self.norm.forward(f, x, false)?;
-        let t = to_tokens(f, &n)?;
-        f.ws.release(n);
-        let a = self.attn.forward(f, &t, None, None)?;
+        let t = self.norm.forward_tokens(f, x, false)?;
+        let a = self.attn.attend(f, &t, None)?;
         f.ws.release(t);
-        let y = from_tokens(f, &a, h, w)?;
+        let out = self.attn.out.forward_to_channels(f, &a, Some(x), h, w)?;
         f.ws.release(a);
-        let out = f.ws.alloc(x.shape())?;
-        ew::add(f.rec, &y, x, &out)?;
-        f.ws.release(y);
         Ok(out)
     }
 }

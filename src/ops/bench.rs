@@ -208,7 +208,8 @@ pub fn run_case(
         e.0 += t.ms;
         e.1 += 1;
     }
-    let mut profile: Vec<(String, f64, usize)> = by.into_iter().map(|(l, (ms, n))| (l, ms, n)).collect();
+    let mut profile: Vec<(String, f64, usize)> =
+        by.into_iter().map(|(l, (ms, n))| (l, ms, n)).collect();
     profile.sort_by(|a, b| b.1.total_cmp(&a.1));
     Ok(BenchResult {
         name: case.name.clone(),

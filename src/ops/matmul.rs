@@ -394,3 +394,67 @@ pub fn linear_residual(
         },
     )
 }
+
+/// Tokens back to channels-first through a linear layer: tokens (N, L, C), w (O, C) (+ bias (O)) (+ residual
+/// (N, O, L)) -> out (N, O, L) = w tokens[n]^T per image: a transformer's output projection straight into the
+/// NCHW layout (no transpose pass), with the block's residual added in the GEMM's epilogue. `out` may be given
+/// as (N, O, H, W).
+pub fn linear_to_channels(
+    rec: &mut Recorder,
+    tokens: &Tensor,
+    w: &Tensor,
+    bias: Option<&Tensor>,
+    residual: Option<&Tensor>,
+    out: &Tensor,
+) -> Result<()> {
+    let op = "linear_to_channels";
+    let (ts, ws) = (tokens.shape(), w.shape());
+    ensure!(
+        ts.len() == 3 && ws.len() == 2 && ts[2] == ws[1],
+        "{op}: tokens {ts:?} must be (N, L, C) and w {ws:?} (O, C)"
+    );
+    let (n, l, c, o) = (ts[0], ts[1], ts[2], ws[0]);
+    ensure!(
+        out.numel() == n * o * l && out.shape().first() == Some(&n) && out.shape().get(1) == Some(&o),
+        "{op}: out {:?} must be ({n}, {o}, {l}) or ({n}, {o}, H, W) with H W = {l} (tokens {ts:?}, w {ws:?})",
+        out.shape()
+    );
+    let mut all = vec![tokens, w, out];
+    all.extend(bias);
+    all.extend(residual);
+    let d = same_dtype(op, &all)?;
+    if let Some(b) = bias {
+        expect_shape(op, "bias", b, &[o])?;
+    }
+    if let Some(r) = residual {
+        expect_shape(op, "residual", r, out.shape())?;
+    }
+    let g = Gemm {
+        m: o,
+        n: l,
+        k: c,
+        batch: n,
+        sa: 0,
+        sb: l * c,
+        trans_b: true,
+        bias_mode: if bias.is_some() { 2 } else { 0 },
+        res: residual.is_some(),
+        dtype: d,
+        path: MatmulPath::Auto,
+    };
+    let b = bias.unwrap_or(w);
+    let r = residual.unwrap_or(out);
+    gemm(
+        rec,
+        op,
+        &g,
+        [
+            w.buffer(),
+            tokens.buffer(),
+            b.buffer(),
+            out.buffer(),
+            r.buffer(),
+        ],
+        None,
+    )
+}

@@ -37,7 +37,8 @@ fn norm(
     // vec4 statistics (one Welford pass) for group norms whose segments are whole vec4s; the normalise pass is
     // vec4 too when H W % 4 == 0
     let b = [x.buffer(), gamma.buffer(), beta.buffer(), out.buffer()];
-    if p.inner > 1 && p.len % 4 == 0 {
+    // (gn4 merges statistics through subgroup operations: devices without them run `main`)
+    if p.inner > 1 && p.len % 4 == 0 && rec.context().supports(K::NormF32Gn4) {
         // `gn4` also binds x and out a second time (scalar views, bindings 4 and 5): naga refuses two views of
         // one binding in one entry point
         let k = pick(d, K::NormF32Gn4, K::NormF16Gn4);
@@ -62,6 +63,37 @@ pub fn group_norm(
     silu: bool,
     out: &Tensor,
 ) -> Result<()> {
+    group_norm_impl(rec, x, groups, gamma, beta, eps, silu, out, false)
+}
+
+#[allow(clippy::too_many_arguments)] // as group_norm
+/// [`group_norm`] writing its output as tokens: out (N, H W, C), the layout a transformer block reads (saves
+/// the transpose after the norm).
+pub fn group_norm_tokens(
+    rec: &mut Recorder,
+    x: &Tensor,
+    groups: usize,
+    gamma: &Tensor,
+    beta: &Tensor,
+    eps: f32,
+    silu: bool,
+    out: &Tensor,
+) -> Result<()> {
+    group_norm_impl(rec, x, groups, gamma, beta, eps, silu, out, true)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn group_norm_impl(
+    rec: &mut Recorder,
+    x: &Tensor,
+    groups: usize,
+    gamma: &Tensor,
+    beta: &Tensor,
+    eps: f32,
+    silu: bool,
+    out: &Tensor,
+    tokens: bool,
+) -> Result<()> {
     let s = x.shape();
     ensure!(
         s.len() == 4,
@@ -76,6 +108,12 @@ pub fn group_norm(
     expect_shape("group_norm", "beta", beta, &[s[1]])?;
     let cpg = s[1] / groups;
     let hw = s[2] * s[3];
+    let out = if tokens {
+        expect_shape("group_norm (tokens)", "out", out, &[s[0], hw, s[1]])?;
+        out.reshape(s)?
+    } else {
+        out.clone()
+    };
     let p = NormParams {
         len: (cpg * hw) as u32,
         segs_per_item: groups as u32,
@@ -83,8 +121,9 @@ pub fn group_norm(
         inner: hw as u32,
         eps,
         silu: silu as u32,
+        tokens: tokens as u32,
     };
-    norm(rec, "group_norm", x, gamma, beta, out, s[0] * groups, p)
+    norm(rec, "group_norm", x, gamma, beta, &out, s[0] * groups, p)
 }
 
 /// x: (.., D), gamma/beta: (D) -> out: (.., D); PyTorch LayerNorm over the last dimension.
@@ -118,6 +157,7 @@ pub fn layer_norm(
             inner: 1,
             eps,
             silu: 0,
+            tokens: 0,
         };
         let groups = rows.div_ceil(64 / sg);
         let gx = groups.min(65535);
@@ -143,6 +183,7 @@ pub fn layer_norm(
         inner: 1,
         eps,
         silu: 0,
+        tokens: 0,
     };
     norm(rec, "layer_norm", x, gamma, beta, out, rows, p)
 }
