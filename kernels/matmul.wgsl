@@ -391,3 +391,41 @@ fn nt8a4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index)
     nt8a_k(wo, row0, lane, wid.z * p.sa);
     store_tile4(wid.z * p.m * p.n, row0, col0);
 }
+
+// ---- GEGLU feed-forward input: C (B, M, N / 2) = a * gelu(g) (+ res) with [a | g] = A W^T + bias, W: (N, K)
+// permuted at load (`matmul::geglu_permutation`) so that in each block of 4 SG columns the lane's column j
+// (col0 + SG j) holds value column blk 2 SG + (j / 2) SG + lane for even j and its gate column for odd j: one
+// lane holds both halves of its two output columns, and the (M, N) pre-activation never goes to memory (one
+// pass instead of a GEMM store, a GEGLU read and its store). Needs N % (4 SG) == 0, K % 8 == 0 (as nt8a). The
+// residual (p.res) exists so every entry of this file binds 0..4 (the f16chk flag is binding 5).
+fn store_geglu(cbase: u32, row0: u32, oc: u32, col0: u32, sgs: u32) {
+    let d = p.n / 2u;
+    var bv = vec4<f32>(0.0);
+    if (p.bias_mode == 1u) {
+        bv = vec4<f32>(f32(bias[col0]), f32(bias[col0 + sgs]), f32(bias[col0 + 2u * sgs]), f32(bias[col0 + 3u * sgs]));
+    }
+    for (var r = 0u; r < TM; r++) {
+        let m = row0 + r;
+        if (m >= p.m) { return; }
+        let v = acc[r] + bv;
+        let o = cbase + m * d + oc;
+        var y0 = v.x * gelu_erf(v.y);
+        var y1 = v.z * gelu_erf(v.w);
+        if (p.res == 1u) { y0 += f32(res[o]); y1 += f32(res[o + sgs]); }
+        c[o] = out_val(y0);
+        c[o + sgs] = out_val(y1);
+    }
+}
+
+@compute @workgroup_size(WG)
+fn nt8a_geglu(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li: u32,
+              @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sgs: u32) {
+    let row0 = (wid.y * (WG / sgs) + li / sgs) * TM;
+    // a subgroup past the last row leaves at once (uniform per subgroup; no barriers follow)
+    if (row0 >= p.m) { return; }
+    let col0 = wid.x * 4u * sgs + lane;
+    let nm = p.n - 1u;
+    let wo = (min(vec4<u32>(col0, col0 + sgs, col0 + 2u * sgs, col0 + 3u * sgs), vec4<u32>(nm)) * p.k + wid.z * p.sb) / 8u;
+    nt8a_k(wo, row0, lane, wid.z * p.sa);
+    store_geglu(wid.z * p.m * (p.n / 2u), row0, wid.x * 2u * sgs + lane, col0, sgs);
+}

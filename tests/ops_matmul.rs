@@ -515,3 +515,65 @@ fn linear_to_channels_matches_reference() {
     assert!(format!("{e:#}").contains("out"), "{e:#}");
     assert_no_validation_errors();
 }
+
+#[test]
+fn linear_geglu_matches_linear_then_geglu() {
+    let Some(ctx) = ctx() else { return };
+    let sg = ctx.info().subgroup_size as usize;
+    // x (.., K) . W^T + b -> [a | g] -> a * gelu(g), W given in geglu_permutation's row order; rows not a
+    // multiple of the tile, K % 32 != 0, f32 and f16, with and without bias.
+    for (rows, k, d) in [
+        (70usize, 32usize, 64usize),
+        (13, 40, 4 * sg),
+        (200, 16, 2 * sg),
+    ] {
+        for dtype in [DType::F32, DType::F16] {
+            for with_bias in [true, false] {
+                let x = uniform(rows * k, 1.0, 31);
+                let w = uniform(2 * d * k, 0.5, 32);
+                let b = uniform(2 * d, 0.5, 33);
+                let perm = mm::geglu_permutation(2 * d, sg).expect("fusable shape");
+                let wp: Vec<f32> = perm
+                    .iter()
+                    .flat_map(|&o| w[o * k..(o + 1) * k].to_vec())
+                    .collect();
+                let bp: Vec<f32> = perm.iter().map(|&o| b[o]).collect();
+                let tx = upload(&ctx, &[2, rows / 2, k], dtype, &x[..2 * (rows / 2) * k]);
+                let tw = upload(&ctx, &[2 * d, k], dtype, &wp);
+                let tb = upload(&ctx, &[2 * d], dtype, &bp);
+                let out = empty(&ctx, &[2, rows / 2, d], dtype);
+                run(&ctx, |rec| {
+                    mm::linear_geglu(rec, &tx, &tw, with_bias.then_some(&tb), &out)
+                });
+                let r = 2 * (rows / 2);
+                let bs = stored(&b, dtype);
+                let pre = rmm::matmul(
+                    &stored(&x[..r * k], dtype),
+                    &stored(&w, dtype),
+                    with_bias.then_some(&bs[..]),
+                    1,
+                    r,
+                    2 * d,
+                    k,
+                    true,
+                );
+                let want = b2dr::ops::reference::geglu(&pre, r, d);
+                let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
+                let tol = if dtype == DType::F32 { 1e-7 } else { 5e-4 };
+                assert!(
+                    e <= tol,
+                    "{rows}x{k} -> {d} {dtype:?} bias {with_bias}: nmse {e:e}"
+                );
+            }
+        }
+    }
+    // a shape the fused kernel cannot take is an error, not garbage
+    assert!(mm::geglu_permutation(2 * sg + 2, sg).is_none());
+    let x = empty(&ctx, &[4, 12], DType::F32);
+    let w = empty(&ctx, &[4 * sg, 12], DType::F32);
+    let out = empty(&ctx, &[4, 2 * sg], DType::F32);
+    let mut rec = ctx.recorder().unwrap();
+    let e = mm::linear_geglu(&mut rec, &x, &w, None, &out).unwrap_err();
+    assert!(format!("{e:#}").contains("K % 8"), "{e:#}");
+    assert_no_validation_errors();
+}

@@ -253,16 +253,25 @@ fn group_norm_vae_sized_segment_is_not_cut_by_the_loop_budget() {
 fn layer_norm_matches_reference() {
     let Some(ctx) = ctx() else { return };
     for dtype in [DType::F32, DType::F16] {
-        for (rows, d, scale) in [
-            (1400usize, 320usize, 1.0f32),
-            (77, 1280, 1.0),
-            (7, 13, 1.0),
-            (1, 1, 1.0),
-            (5, 97, 1e3),
+        for (rows, d, scale, offset) in [
+            (1400usize, 320usize, 1.0f32, 0.0f32),
+            (77, 1280, 1.0, 0.0),
+            (7, 13, 1.0, 0.0),
+            (1, 1, 1.0, 0.0),
+            (5, 97, 1e3, 0.0),
             // vec4 kernel (D % 4 == 0) on large inputs
-            (4, 32, 1e3),
+            (4, 32, 1e3, 0.0),
+            // near-constant rows (f32 only: f16 cannot hold 100 +- 1e-3), vec4 and scalar kernels
+            (6, 64, 1e-3, 100.0),
+            (6, 63, 1e-3, 100.0),
         ] {
-            let x = uniform(rows * d, scale, 4);
+            if offset != 0.0 && dtype == DType::F16 {
+                continue;
+            }
+            let x: Vec<f32> = uniform(rows * d, scale, 4)
+                .iter()
+                .map(|v| v + offset)
+                .collect();
             let (g, b) = (uniform(d, 1.0, 5), uniform(d, 1.0, 6));
             let (tx, tg, tb) = (
                 upload(&ctx, &[rows, d], dtype, &x),

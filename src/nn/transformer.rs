@@ -9,7 +9,7 @@ use anyhow::Result;
 
 use super::device::{DeviceWeights, Fwd};
 use super::layers::{GroupNorm, LayerNorm, Linear};
-use crate::ops::{attention, attention_naive, elementwise as ew};
+use crate::ops::{attention, attention_naive, elementwise as ew, matmul};
 use crate::tensor::Tensor;
 
 /// diffusers Attention (q/k/v projections, multi-head attention, output projection).
@@ -68,13 +68,67 @@ impl Attn {
     }
 }
 
+/// diffusers GEGLU (`ff.net.0`): Linear to 2 D, then value * gelu(gate). Where the device takes it
+/// (`matmul::geglu_fusable`) the weight rows are permuted once at load and one GEMM writes the activation
+/// (`matmul::linear_geglu`); elsewhere a linear and `elementwise::geglu`.
+struct Geglu {
+    proj: Linear,
+    fused: bool,
+}
+
+impl Geglu {
+    fn load(dw: &DeviceWeights, name: &str) -> Result<Self> {
+        let mut proj = Linear::load(dw, name)?;
+        let ws = proj.w.shape().to_vec();
+        anyhow::ensure!(ws.len() == 2, "{name}.weight {ws:?} must be (2 D, in)");
+        let sg = dw.ctx.info().subgroup_size as usize;
+        let fused = matmul::geglu_fusable(&dw.ctx, ws[1], ws[0]);
+        if fused {
+            let perm = matmul::geglu_permutation(ws[0], sg).expect("fusable");
+            let permute = |t: &Tensor, row: usize| -> Result<Tensor> {
+                let v = t.to_f32(&dw.ctx)?;
+                let p: Vec<f32> = perm
+                    .iter()
+                    .flat_map(|&o| v[o * row..(o + 1) * row].iter().copied())
+                    .collect();
+                Tensor::from_f32(
+                    &dw.ctx,
+                    t.shape(),
+                    t.dtype(),
+                    &p,
+                    &format!("{name} (GEGLU order)"),
+                )
+            };
+            proj.w = permute(&proj.w, ws[1])?;
+            proj.b = proj.b.as_ref().map(|b| permute(b, 1)).transpose()?;
+        }
+        Ok(Self { proj, fused })
+    }
+
+    /// x: (.., in) -> (.., D)
+    fn forward(&self, f: &mut Fwd, x: &Tensor) -> Result<Tensor> {
+        let mut s = x.shape().to_vec();
+        *s.last_mut().expect("dims") = self.proj.w.shape()[0] / 2;
+        if self.fused {
+            let out = f.ws.alloc(&s)?;
+            matmul::linear_geglu(f.rec, x, &self.proj.w, self.proj.b.as_ref(), &out)?;
+            return Ok(out);
+        }
+        let g = self.proj.forward(f, x)?;
+        let out = f.ws.alloc(&s)?;
+        ew::geglu(f.rec, &g, &out)?;
+        f.ws.release(g);
+        Ok(out)
+    }
+}
+
 struct Block {
     norm1: LayerNorm,
     attn1: Attn,
     norm2: LayerNorm,
     attn2: Attn,
     norm3: LayerNorm,
-    ff_in: Linear,
+    ff_in: Geglu,
     ff_out: Linear,
 }
 
@@ -97,7 +151,7 @@ impl Transformer2D {
                 norm2: LayerNorm::load(dw, &format!("{b}.norm2"), 1e-5)?,
                 attn2: Attn::load(dw, &format!("{b}.attn2"), heads)?,
                 norm3: LayerNorm::load(dw, &format!("{b}.norm3"), 1e-5)?,
-                ff_in: Linear::load(dw, &format!("{b}.ff.net.0.proj"))?,
+                ff_in: Geglu::load(dw, &format!("{b}.ff.net.0.proj"))?,
                 ff_out: Linear::load(dw, &format!("{b}.ff.net.2"))?,
             });
             i += 1;
@@ -128,13 +182,8 @@ impl Transformer2D {
             f.ws.release(n2);
             f.ws.release(std::mem::replace(&mut t, a2));
             let n3 = b.norm3.forward(f, &t)?;
-            let g = b.ff_in.forward(f, &n3)?;
+            let gg = b.ff_in.forward(f, &n3)?;
             f.ws.release(n3);
-            let mut gs = g.shape().to_vec();
-            *gs.last_mut().expect("dims") /= 2;
-            let gg = f.ws.alloc(&gs)?;
-            ew::geglu(f.rec, &g, &gg)?;
-            f.ws.release(g);
             let ff = b.ff_out.forward_res(f, &gg, Some(&t))?;
             f.ws.release(gg);
             f.ws.release(std::mem::replace(&mut t, ff));

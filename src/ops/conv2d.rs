@@ -47,13 +47,17 @@ pub enum ConvPath {
 /// Whether `Auto` runs a 3x3 stride-1 conv (batch N, C -> O channels, OH x OW output) through Winograd: only on
 /// CPU devices (lavapipe), where it was measured (GPUs keep the implicit GEMM; the f32 transformed weights are
 /// 4x the 3x3 weights), and only where the transforms pay: wide convs (C, O >= 256: the 320-channel 28x50 op
-/// case takes 30 ms instead of 74), or >= 180 output tiles of 4x4 (b2dr-tiny VAE decode 2.58 s -> 2.06 s; on
-/// the small UNet convs it gained nothing measurable), down to C = 3 (the ControlNet's 3 -> 16 conv at
-/// 224 x 400: its 27.6 ms implicit-GEMM profile entry went, the Winograd transform totals rose ~10 ms).
-/// lavapipe 22.3, 2026-11-23, see BENCHMARKS.md.
+/// case takes 30 ms instead of 74), >= 180 output tiles of 4x4 (b2dr-tiny VAE decode 2.58 s -> 2.06 s; on the
+/// small UNet convs it gained nothing measurable), down to C = 3 (the ControlNet's 3 -> 16 conv at 224 x 400:
+/// its 27.6 ms implicit-GEMM profile entry went, the Winograd transform totals rose ~10 ms), or >= 64 tiles
+/// with C, O >= 128 (the VAE decoder's ten 128-channel convs at 28 x 50, 91 tiles: 132 ms -> ~68 ms in
+/// `--profile`, decode ~1.29 s -> ~1.22 s). lavapipe 22.3, 2026-11-23, see BENCHMARKS.md.
 pub fn winograd_pays(dev: &DeviceInfo, n: usize, c: usize, o: usize, oh: usize, ow: usize) -> bool {
     let tiles = n * oh.div_ceil(4) * ow.div_ceil(4);
-    dev.is_cpu() && c >= 3 && o >= 8 && (tiles >= 180 || c.min(o) >= 256)
+    dev.is_cpu()
+        && c >= 3
+        && o >= 8
+        && (tiles >= 180 || c.min(o) >= 256 || (tiles >= 64 && c.min(o) >= 128))
 }
 
 /// lavapipe stops every loop of an invocation after 65535 back-edges in total: stay well below.

@@ -131,7 +131,11 @@ fn ids(d: DType, checked: bool, tiled: bool, trans: bool, w: Width) -> K {
 
 /// Whether the tiled kernels can run here (subgroup broadcast, 8 <= subgroup size <= 64 dividing 64).
 pub fn tiled_supported(rec: &Recorder) -> bool {
-    let ctx = rec.context();
+    tiled_supported_on(rec.context())
+}
+
+/// [`tiled_supported`] for a context.
+pub fn tiled_supported_on(ctx: &crate::vk::Context) -> bool {
     let sg = ctx.info().subgroup_size as usize;
     ctx.supports(K::MatmulF32Nn) && (8..=TILED_WG).contains(&sg) && TILED_WG % sg == 0
 }
@@ -456,5 +460,98 @@ pub fn linear_to_channels(
             r.buffer(),
         ],
         None,
+    )
+}
+
+/// Row order of a GEGLU feed-forward's first linear weight (2 D, K) for [`linear_geglu`] on a device with
+/// subgroups of `sg` lanes: `perm[new] = old`, the same for the bias. None when the fused kernel cannot take
+/// the shape (D % (2 sg) != 0).
+pub fn geglu_permutation(two_d: usize, sg: usize) -> Option<Vec<usize>> {
+    if sg == 0 || two_d % (4 * sg) != 0 {
+        return None;
+    }
+    let d = two_d / 2;
+    Some(
+        (0..two_d)
+            .map(|p| {
+                let (b, q) = (p / (4 * sg), p % (4 * sg));
+                let (j, l) = (q / sg, q % sg);
+                (j % 2) * d + b * 2 * sg + (j / 2) * sg + l
+            })
+            .collect(),
+    )
+}
+
+/// Whether [`linear_geglu`] runs here for x (.., K) and a weight of 2 D rows: tiled kernels, K % 8 == 0 and
+/// D % (2 subgroup size) == 0.
+pub fn geglu_fusable(ctx: &crate::vk::Context, k: usize, two_d: usize) -> bool {
+    let sg = ctx.info().subgroup_size as usize;
+    tiled_supported_on(ctx) && k % 8 == 0 && geglu_permutation(two_d, sg).is_some()
+}
+
+/// GEGLU feed-forward input in one pass: x (.., K), w_perm (2 D, K) and bias_perm (2 D) in the order of
+/// [`geglu_permutation`] -> out (.., D) = a * gelu(g) with [a | g] = x W^T + bias (diffusers GEGLU, erf GELU).
+/// Errors where [`geglu_fusable`] is false (callers then run [`linear`] and `elementwise::geglu`).
+pub fn linear_geglu(
+    rec: &mut Recorder,
+    x: &Tensor,
+    w_perm: &Tensor,
+    bias_perm: Option<&Tensor>,
+    out: &Tensor,
+) -> Result<()> {
+    let op = "linear_geglu";
+    let (xs, ws) = (x.shape(), w_perm.shape());
+    ensure!(
+        ws.len() == 2 && !xs.is_empty() && xs[xs.len() - 1] == ws[1] && ws[0] % 2 == 0,
+        "{op}: x {xs:?} and weight {ws:?} (2 D, in) do not match"
+    );
+    let mut os = xs.to_vec();
+    *os.last_mut().expect("non-empty") = ws[0] / 2;
+    expect_shape(op, "out", out, &os)?;
+    let mut all = vec![x, w_perm, out];
+    all.extend(bias_perm);
+    let d = same_dtype(op, &all)?;
+    if let Some(b) = bias_perm {
+        expect_shape(op, "bias", b, &[ws[0]])?;
+    }
+    ensure!(
+        geglu_fusable(rec.context(), ws[1], ws[0]),
+        "{op}: needs subgroups, K % 8 == 0 and D a multiple of twice the subgroup size (x {xs:?}, w {ws:?})"
+    );
+    let m = x.numel() / ws[1];
+    let p = MatmulParams {
+        m: m as u32,
+        n: ws[0] as u32,
+        k: ws[1] as u32,
+        sa: 0,
+        sb: 0,
+        bias_mode: bias_perm.is_some() as u32,
+        batch: 1,
+        res: 0,
+    };
+    let (rows, cols) = tile_shape(rec);
+    let groups = [ws[0].div_ceil(cols) as u32, m.div_ceil(rows) as u32, 1];
+    ensure!(
+        groups.iter().all(|&g| g <= 65535),
+        "{op}: x {xs:?} is too large for one dispatch"
+    );
+    let id = match d {
+        DType::F32 => K::MatmulF32Nt8aGeglu,
+        DType::F16 => K::MatmulF16Nt8aGeglu,
+    };
+    let b = bias_perm.unwrap_or(w_perm);
+    let label = format!("{op} {}x{}x{}", m, ws[0], ws[1]);
+    rec.dispatch(
+        id,
+        &[
+            x.buffer(),
+            w_perm.buffer(),
+            b.buffer(),
+            out.buffer(),
+            out.buffer(),
+        ],
+        bytemuck::bytes_of(&p),
+        groups,
+        &label,
     )
 }
