@@ -194,6 +194,9 @@ fn weight(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
 @group(0) @binding(0) var<storage, read> m4: array<vec4<f32>>;
 @group(0) @binding(2) var<storage, read_write> y4: array<vec4<ST>>;
 @group(0) @binding(3) var<storage, read> res4: array<vec4<ST>>;
+// scalar view of x for `input4` (bound a second time by the launcher: naga refuses two views of one binding in
+// one entry point)
+@group(0) @binding(2) var<storage, read> xs: array<ST>;
 
 fn bt4(d: array<vec4<f32>, 6>) -> array<vec4<f32>, 6> {
     return array<vec4<f32>, 6>(
@@ -220,12 +223,18 @@ fn xq(base: u32, iy: i32, q4: i32) -> vec4<f32> {
     return select(vec4<f32>(0.0), vec4<f32>(x4[o]), ok);
 }
 
-// Window row iy, columns 4 tx - 1 .. 4 tx + 4 (left padding 1) of one channel plane.
+// Window row iy, columns 4 tx - 1 .. 4 tx + 4 (left padding 1) of one channel plane: the middle 4 as one vec4
+// load, the two ends as scalar loads (on lavapipe every loaded component costs a bounds-checked load, so this
+// reads 6 components instead of 3 vec4s' 12).
 fn xrow4(base: u32, iy: i32, tx: i32) -> array<f32, 6> {
-    let a = xq(base, iy, tx - 1);
     let b = xq(base, iy, tx);
-    let c = xq(base, iy, tx + 1);
-    return array<f32, 6>(a.w, b.x, b.y, b.z, b.w, c.x);
+    let ok = iy >= 0 && iy < i32(p.h);
+    let rb = base + u32(clamp(iy, 0, i32(p.h) - 1)) * p.w;
+    let xl = 4 * tx - 1;
+    let xr = 4 * tx + 4;
+    let a = select(0.0, f32(xs[rb + u32(max(xl, 0))]), ok && xl >= 0);
+    let c = select(0.0, f32(xs[rb + u32(min(xr, i32(p.w) - 1))]), ok && xr < i32(p.w));
+    return array<f32, 6>(a, b.x, b.y, b.z, b.w, c);
 }
 
 // One window row of 4 channel planes as vec4s over the channels.
@@ -325,4 +334,38 @@ fn output4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
 fn out4(v: vec4<f32>) -> vec4<f32> {
     if (IS_F16) { return clamp(v, vec4<f32>(-F16_MAX), vec4<f32>(F16_MAX)); }
     return v;
+}
+
+// `input` for 4 channels c0 .. c0 + 3 per invocation with scalar loads (any W and padding; C % 4 == 0): the 36
+// transformed values of the 4 channels go out as 36 vec4 stores instead of 144 scalar ones.
+@compute @workgroup_size(256)
+fn input4s(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let i = flat_index(wid, nwg, lid);
+    let cq = p.c / 4u;
+    if (i >= p.nt * cq) { return; }
+    let c0 = 4u * (i % cq);
+    let tl = i / cq;
+    let tc = tile(tl);
+    let plane = p.h * p.w;
+    let base = (tc.x * p.c + c0) * plane;
+    let iy0 = i32(4u * tc.y) - i32(p.pt);
+    let ix0 = i32(4u * tc.z) - i32(p.pl);
+    var rows: array<array<vec4<f32>, 6>, 6>;
+    for (var r = 0u; r < 6u; r++) {
+        let q0 = bt(xrow(base, iy0 + i32(r), ix0));
+        let q1 = bt(xrow(base + plane, iy0 + i32(r), ix0));
+        let q2 = bt(xrow(base + 2u * plane, iy0 + i32(r), ix0));
+        let q3 = bt(xrow(base + 3u * plane, iy0 + i32(r), ix0));
+        for (var j = 0u; j < 6u; j++) {
+            rows[r][j] = vec4<f32>(q0[j], q1[j], q2[j], q3[j]);
+        }
+    }
+    let st = p.nt * cq;
+    let o0 = tl * cq + c0 / 4u;
+    for (var j = 0u; j < 6u; j++) {
+        let col = bt4(array<vec4<f32>, 6>(rows[0][j], rows[1][j], rows[2][j], rows[3][j], rows[4][j], rows[5][j]));
+        for (var i2 = 0u; i2 < 6u; i2++) {
+            v4[(i2 * 6u + j) * st + o0] = col[i2];
+        }
+    }
 }

@@ -13,12 +13,13 @@ use crate::tensor::{DType, Tensor};
 /// Bytes of each intermediate (V or M) per slab at most.
 const SLAB_BYTES: usize = 16 << 20;
 
-/// (input, input4, output, output4, weight) kernels.
-fn ids(d: DType) -> [K; 5] {
+/// (input, input4, input4s, output, output4, weight) kernels.
+fn ids(d: DType) -> [K; 6] {
     match d {
         DType::F32 => [
             K::WinogradF32Input,
             K::WinogradF32Input4,
+            K::WinogradF32Input4s,
             K::WinogradF32Output,
             K::WinogradF32Output4,
             K::WinogradF32Weight,
@@ -26,6 +27,7 @@ fn ids(d: DType) -> [K; 5] {
         DType::F16 => [
             K::WinogradF16Input,
             K::WinogradF16Input4,
+            K::WinogradF16Input4s,
             K::WinogradF16Output,
             K::WinogradF16Output4,
             K::WinogradF16Weight,
@@ -57,7 +59,7 @@ pub fn transform_weight(rec: &mut Recorder, w: &Tensor, u: &Tensor) -> Result<()
     };
     let g = super::grid_1d("conv2d winograd weight", ws[0] * ws[1])?;
     rec.dispatch(
-        ids(w.dtype())[4],
+        ids(w.dtype())[5],
         &[w.buffer(), u.buffer()],
         bytemuck::bytes_of(&p),
         g,
@@ -84,13 +86,19 @@ pub(crate) fn conv3x3(
     let tiles = n * th * tw;
     let per_tile = 36 * c.max(o) * 4;
     let slab = (SLAB_BYTES / per_tile).clamp(1, tiles);
-    let [inp1, inp4, outp1, outp4, _] = ids(x.dtype());
-    // vec4 transforms (4 channels per invocation, rows as vec4s: a quarter of the per-lane access loops on
-    // lavapipe) where the layout allows: input C % 4 == 0, W % 4 == 0, left padding 1; output O % 4 == 0,
-    // OW % 4 == 0
+    let [inp1, inp4, inp4s, outp1, outp4, _] = ids(x.dtype());
+    // vec4 transforms (4 channels per invocation: fewer per-lane access loops on lavapipe) where the layout
+    // allows: input C % 4 == 0 (rows loaded as vec4s too when W % 4 == 0 and the left padding is 1); output
+    // O % 4 == 0, OW % 4 == 0
     let in4 = c % 4 == 0 && w % 4 == 0 && pad[2] == 1;
     let out4 = o % 4 == 0 && ow % 4 == 0;
-    let (inp, in_items) = if in4 { (inp4, c / 4) } else { (inp1, c) };
+    let (inp, in_items) = if in4 {
+        (inp4, c / 4)
+    } else if c % 4 == 0 {
+        (inp4s, c / 4)
+    } else {
+        (inp1, c)
+    };
     let (outp, out_items) = if out4 { (outp4, o / 4) } else { (outp1, o) };
     let vb = rec.scratch(SCRATCH_WINO_V, (36 * slab * c * 4) as u64)?;
     let mb = rec.scratch(SCRATCH_WINO_M, (36 * slab * o * 4) as u64)?;
@@ -122,9 +130,15 @@ pub(crate) fn conv3x3(
             has_res: residual.is_some() as u32,
         };
         let g = super::grid_1d("conv2d winograd", nt * in_items)?;
+        // input4 also reads x through a scalar view (binding 2)
+        let in_bufs: &[&std::sync::Arc<crate::vk::Buffer>] = if in4 {
+            &[x.buffer(), &vb, x.buffer()]
+        } else {
+            &[x.buffer(), &vb]
+        };
         rec.dispatch(
             inp,
-            &[x.buffer(), &vb],
+            in_bufs,
             bytemuck::bytes_of(&p),
             g,
             "conv2d winograd in",
