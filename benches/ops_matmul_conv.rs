@@ -95,6 +95,7 @@ fn conv_case(
             packed_w: None,
             wino_w: None,
             residual: None,
+            silu: false,
         },
     )
     .expect("conv2d");

@@ -17,6 +17,8 @@ struct Conv2dParams {
     has_bias: u32,
     // 1: add res (N, O, OH, OW) in the epilogue (conv2d_packed only; the launcher adds separately elsewhere)
     has_res: u32,
+    // 1: SiLU on the result (conv2d_packed only; the launcher runs a separate pass elsewhere)
+    silu: u32,
 }
 
 @group(0) @binding(0) var<storage, read> x: array<ST>;

@@ -17,6 +17,8 @@ struct Conv2dParams {
     has_bias: u32,
     // 1: add res (N, O, OH, OW) in the epilogue (conv2d_packed only; the launcher adds separately elsewhere)
     has_res: u32,
+    // 1: SiLU on the result (conv2d_packed only; the launcher runs a separate pass elsewhere)
+    silu: u32,
 }
 struct PackParams { o: u32, c: u32, kk: u32 }
 
@@ -87,7 +89,7 @@ fn tap_rows(ky: u32, kx: u32, mul: u32, add: u32) {
     }
 }
 
-// y[n, col0 + j, row0 + r] = acc[r][j] + bias (+ res) (f16: saturated), guarded.
+// y[n, col0 + j, row0 + r] = acc[r][j] + bias (+ res) (then SiLU) (f16: saturated), guarded.
 fn store_rows(n: u32, row0: u32, col0: u32, np: u32) {
     let yb = n * p.o * np;
     for (var r = 0u; r < TM; r++) {
@@ -101,6 +103,7 @@ fn store_rows(n: u32, row0: u32, col0: u32, np: u32) {
                 if (p.has_bias == 2u) { v += f32(bias[n * p.o + oc]); }
                 let yi = yb + oc * np + q;
                 if (p.has_res == 1u) { v += f32(res[yi]); }
+                if (p.silu == 1u) { v = silu(v); }
                 if (IS_F16) { v = clamp(v, -65504.0, 65504.0); }
                 y[yi] = ST(v);
             }

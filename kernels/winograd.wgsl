@@ -23,6 +23,8 @@ struct WinoParams {
     has_bias: u32,
     // 1: add res (N, O, OH, OW) (a fused residual; the launcher binds y at binding 3 otherwise)
     has_res: u32,
+    // 1: SiLU on the result
+    silu: u32,
 }
 
 @group(0) @binding(0) var<storage, read> x: array<ST>;
@@ -159,6 +161,7 @@ fn output(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
                 if (xx < p.ow) {
                     var val = row[s] + b;
                     if (p.has_res == 1u) { val += f32(res[yi]); }
+                    if (p.silu == 1u) { val = silu(val); }
                     y[yi] = out_val(val);
                 }
             }
@@ -322,6 +325,12 @@ fn output4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
                 v1 += vec4<f32>(res4[pb + ps + e]);
                 v2 += vec4<f32>(res4[pb + 2u * ps + e]);
                 v3 += vec4<f32>(res4[pb + 3u * ps + e]);
+            }
+            if (p.silu == 1u) {
+                v0 = v0 / (1.0 + exp(-v0));
+                v1 = v1 / (1.0 + exp(-v1));
+                v2 = v2 / (1.0 + exp(-v2));
+                v3 = v3 / (1.0 + exp(-v3));
             }
             y4[pb + e] = vec4<ST>(out4(v0));
             y4[pb + ps + e] = vec4<ST>(out4(v1));

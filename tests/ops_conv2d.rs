@@ -116,6 +116,7 @@ fn run_case(ctx: &b2dr::vk::Context, c: &Case, dtype: DType, path: ConvPath, see
                 packed_w: None,
                 wino_w: None,
                 residual: None,
+                silu: false,
             },
         )
     });
@@ -241,6 +242,7 @@ fn winograd_edges_match_reference() {
                 packed_w: None,
                 wino_w: Some(&u),
                 residual: None,
+                silu: false,
             },
         )
     });
@@ -278,6 +280,7 @@ fn winograd_edges_match_reference() {
             packed_w: None,
             wino_w: None,
             residual: None,
+            silu: false,
         },
     );
     let msg = format!("{:#}", r.expect_err("stride 2 must be refused"));
@@ -314,6 +317,7 @@ fn prepacked_weights_match() {
                     packed_w: Some(&packed),
                     wino_w: None,
                     residual: None,
+                    silu: false,
                 },
             )
         });
@@ -465,6 +469,7 @@ fn convs_sharing_scratch_in_one_recording_match() {
                     packed_w: None,
                     wino_w: None,
                     residual: None,
+                    silu: false,
                 },
             )?;
         }
@@ -497,7 +502,7 @@ fn fused_bias_per_image_and_residual_match_reference() {
     // out = conv(x) + bias[n, o] + residual[n, o, y, x] (a ResNet block's conv1 with its time embedding and
     // conv2 with its skip), on every path: Winograd with scalar and vec4 transforms, the packed implicit GEMM
     // (fused), the O % 4 != 0 implicit GEMM and the direct kernel (separate adds), the 1x1 GEMM. Also with the
-    // residual being `out` itself (in place) and with a per-channel bias.
+    // residual being `out` itself (in place), with a per-channel bias, and with SiLU on the result.
     let cases: &[(&str, [usize; 4], usize, usize, ConvPath)] = &[
         (
             "winograd_scalar_28x50",
@@ -520,7 +525,7 @@ fn fused_bias_per_image_and_residual_match_reference() {
     ];
     for (i, &(name, [n, c, h, w], o, k, path)) in cases.iter().enumerate() {
         for dtype in [DType::F32, DType::F16] {
-            for (per_image, in_place) in [(true, false), (false, true)] {
+            for (per_image, in_place, silu) in [(true, false, false), (false, true, true), (true, false, true)] {
                 let seed = 900 + 10 * i as u64;
                 let x = uniform(n * c * h * w, 1.0, seed);
                 let wt = uniform(o * c * k * k, 1.0, seed + 1);
@@ -552,6 +557,7 @@ fn fused_bias_per_image_and_residual_match_reference() {
                             packed_w: None,
                             wino_w: None,
                             residual: Some(&tr),
+                            silu,
                         },
                     )
                 });
@@ -576,14 +582,19 @@ fn fused_bias_per_image_and_residual_match_reference() {
                     .enumerate()
                     .map(|(j, v)| {
                         let (img, ch) = (j / (o * hw), (j / hw) % o);
-                        v + if per_image { bs[img * o + ch] } else { bs[ch] } + rs[j]
+                        let y = v + if per_image { bs[img * o + ch] } else { bs[ch] } + rs[j];
+                        if silu {
+                            b2dr::ops::reference::silu(y)
+                        } else {
+                            y
+                        }
                     })
                     .collect();
                 let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
                 let tol = if dtype == DType::F32 { 1e-6 } else { 5e-4 };
                 assert!(
                     e <= tol,
-                    "{name} {dtype:?} per_image {per_image} in_place {in_place}: nmse {e:e}"
+                    "{name} {dtype:?} per_image {per_image} in_place {in_place} silu {silu}: nmse {e:e}"
                 );
             }
         }
@@ -612,6 +623,7 @@ fn fused_bias_per_image_and_residual_match_reference() {
                 packed_w: None,
                 wino_w: None,
                 residual: res,
+                silu: false,
             },
         )
         .unwrap_err();

@@ -55,13 +55,6 @@ impl ControlNet {
         })
     }
 
-    fn silu(f: &mut Fwd, x: Tensor) -> Result<Tensor> {
-        let y = f.ws.alloc(x.shape())?;
-        ew::silu(f.rec, &x, &y)?;
-        f.ws.release(x);
-        Ok(y)
-    }
-
     /// cond: (M, Cc, 8H, 8W) -> the conditioning embedding (M, C0, H, W). It depends on the conditioning
     /// images only, so a sampling loop computes it once and hands it to every step's [`Self::forward_embedded`].
     pub fn embed(&self, f: &mut Fwd, cond: &Tensor) -> Result<Tensor> {
@@ -71,12 +64,12 @@ impl ControlNet {
             "controlnet: controlnet_cond {c:?} must be (M, {}, H, W)",
             self.cfg.conditioning_channels
         );
-        let e0 = self.cond_in.forward(f, cond)?;
-        let mut e = Self::silu(f, e0)?;
+        // conv + SiLU pairs, the SiLU in the conv's epilogue
+        let mut e = self.cond_in.forward_ex(f, cond, self.cond_in.b.as_ref(), None, true)?;
         for b in &self.cond_blocks {
-            let y = b.forward(f, &e)?;
+            let y = b.forward_ex(f, &e, b.b.as_ref(), None, true)?;
             f.ws.release(e);
-            e = Self::silu(f, y)?;
+            e = y;
         }
         let emb = self.cond_out.forward(f, &e)?;
         f.ws.release(e);

@@ -86,18 +86,19 @@ impl Conv {
 
     /// x: (N, C, H, W) -> (N, O, OH, OW)
     pub fn forward(&self, f: &mut Fwd, x: &Tensor) -> Result<Tensor> {
-        self.forward_ex(f, x, self.b.as_ref(), None)
+        self.forward_ex(f, x, self.b.as_ref(), None, false)
     }
 
     /// [`Self::forward`] with the bias replaced by `bias` ((O) or (N, O), e.g. the layer's bias plus a time
-    /// embedding, or None) and `residual` ((N, O, OH, OW)) added, both in the conv's epilogue where its kernel
-    /// allows (see `conv2d::Conv2dArgs`).
+    /// embedding, or None), `residual` ((N, O, OH, OW)) added and SiLU applied if `silu`, in the conv's
+    /// epilogue where its kernel allows (see `conv2d::Conv2dArgs`).
     pub fn forward_ex(
         &self,
         f: &mut Fwd,
         x: &Tensor,
         bias: Option<&Tensor>,
         residual: Option<&Tensor>,
+        silu: bool,
     ) -> Result<Tensor> {
         let (s, ws) = (x.shape(), self.w.shape());
         let oh = (s[2] + self.pad[0] + self.pad[1] - ws[2]) / self.stride + 1;
@@ -114,6 +115,7 @@ impl Conv {
             packed_w: self.packed.as_ref(),
             wino_w: self.wino.as_ref(),
             residual,
+            silu,
         };
         conv2d::conv2d_ex(f.rec, &args).with_context(|| format!("conv {}", self.name))?;
         Ok(out)

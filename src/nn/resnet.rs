@@ -80,7 +80,7 @@ impl Resnet {
         let h1 = match (&self.time_emb_proj, silu_temb) {
             (Some(p), Some(t)) => {
                 let tp = p.forward(f, t)?; // (N, O), conv1's bias included
-                let y = self.conv1.forward_ex(f, &h, Some(&tp), None)?;
+                let y = self.conv1.forward_ex(f, &h, Some(&tp), None, false)?;
                 f.ws.release(tp);
                 y
             }
@@ -92,13 +92,13 @@ impl Resnet {
         let out = match &self.shortcut {
             Some(sc) => {
                 let h3 = self.conv2.forward(f, &h2)?;
-                let y = sc.forward_ex(f, x, sc.b.as_ref(), Some(&h3))?;
+                let y = sc.forward_ex(f, x, sc.b.as_ref(), Some(&h3), false)?;
                 f.ws.release(h3);
                 y
             }
             None => self
                 .conv2
-                .forward_ex(f, &h2, self.conv2.b.as_ref(), Some(x))?,
+                .forward_ex(f, &h2, self.conv2.b.as_ref(), Some(x), false)?,
         };
         f.ws.release(h2);
         Ok(out)

@@ -138,6 +138,7 @@ fn conv_case(dtype: DType, path: conv2d::ConvPath) -> BenchCase {
                         packed_w: Some(&packed),
                         wino_w: Some(&wino),
                         residual: None,
+                        silu: false,
                     },
                 )
             })

@@ -87,6 +87,9 @@ pub struct Conv2dArgs<'a> {
     /// (N, O, OH, OW), added to the output (a residual connection; it may be `out` itself). Fused into the
     /// epilogue of the Winograd, packed implicit-GEMM and 1x1 GEMM paths, a separate add elsewhere.
     pub residual: Option<&'a Tensor>,
+    /// SiLU on the result (after bias and residual): in the epilogue of the Winograd and packed implicit-GEMM
+    /// paths, a separate pass elsewhere.
+    pub silu: bool,
 }
 
 /// Output shape of x: (N, C, H, W) convolved with w: (O, C, KH, KW), with checks naming the shapes.
@@ -231,7 +234,7 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
                 &tmp
             }
         };
-        return super::winograd::conv3x3(rec, a.x, u, a.bias, a.residual, a.out, a.pad);
+        return super::winograd::conv3x3(rec, a.x, u, a.bias, a.residual, a.silu, a.out, a.pad);
     }
     if fast && kh == 1 && kw == 1 && a.stride == 1 && a.pad == [0; 4] && !bias_nc {
         // (O, C) x (C, H W) per image -> (O, H W) per image
@@ -256,7 +259,11 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
             a.out.buffer(),
             res.buffer(),
         ];
-        return gemm(rec, "conv2d(1x1 as gemm)", &g, bufs, None);
+        gemm(rec, "conv2d(1x1 as gemm)", &g, bufs, None)?;
+        if a.silu {
+            super::elementwise::silu(rec, a.out, a.out)?;
+        }
+        return Ok(());
     }
     let p = Conv2dParams {
         n: n as u32,
@@ -273,6 +280,7 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
         pl: a.pad[2] as u32,
         has_bias: a.bias.is_some() as u32,
         has_res: 0,
+        silu: 0,
     };
     let mut p = p;
     let mut bufs = vec![a.x.buffer(), a.w.buffer(), bias.buffer(), a.out.buffer()];
@@ -292,6 +300,7 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
     let conv_out;
     if packed_path {
         p.has_res = a.residual.is_some() as u32;
+        p.silu = a.silu as u32;
         bufs.push(a.residual.unwrap_or(a.out).buffer());
     } else if let Some(r) = a.residual {
         after_res = Some(r);
@@ -402,6 +411,9 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
     if let Some(r) = after_res {
         super::elementwise::add(rec, &y, r, a.out)?;
     }
+    if a.silu && !packed_path {
+        super::elementwise::silu(rec, a.out, a.out)?;
+    }
     Ok(())
 }
 
@@ -428,6 +440,7 @@ pub fn conv2d(
             packed_w: None,
             wino_w: None,
             residual: None,
+            silu: false,
         },
     )
 }

@@ -163,7 +163,9 @@ pub(crate) fn gemm(
     };
     // vector loads need rows (and batch strides) of B aligned to their width
     let row = if g.trans_b { g.k } else { g.n };
-    let a_vec4 = g.k % 4 == 0 && g.sa % 4 == 0;
+    // 32-k chunks with vec4 A loads pay when few of a chunk's loads fall past K: with K = 16 half the chunk's
+    // A and B loads are wasted, and the 8-k kernels do fewer loads (lavapipe counts every loaded component)
+    let a_vec4 = g.k % 4 == 0 && g.sa % 4 == 0 && (g.k % 32 == 0 || g.k >= 64);
     let width = if g.trans_b && row % 8 == 0 && g.sb % 8 == 0 {
         if a_vec4 && g.n % 4 == 0 {
             Width::Wide4

@@ -67,7 +67,7 @@ pub fn transform_weight(rec: &mut Recorder, w: &Tensor, u: &Tensor) -> Result<()
     )
 }
 
-/// out = conv3x3(x, w) (+ bias (O) or (N, O)) (+ residual), stride 1, padding (top, bottom, left, right) each
+/// out = conv3x3(x, w) (+ bias (O) or (N, O)) (+ residual) (then SiLU), stride 1, padding (top, bottom, left, right) each
 /// <= 2, with u the transformed weight ([`transform_weight`]). Shapes were checked by the caller (`conv2d_ex`).
 pub(crate) fn conv3x3(
     rec: &mut Recorder,
@@ -75,6 +75,7 @@ pub(crate) fn conv3x3(
     u: &Tensor,
     bias: Option<&Tensor>,
     residual: Option<&Tensor>,
+    silu: bool,
     out: &Tensor,
     pad: [usize; 4],
 ) -> Result<()> {
@@ -128,6 +129,7 @@ pub(crate) fn conv3x3(
             nt: nt as u32,
             has_bias,
             has_res: residual.is_some() as u32,
+            silu: silu as u32,
         };
         let g = super::grid_1d("conv2d winograd", nt * in_items)?;
         // input4 also reads x through a scalar view (binding 2)
