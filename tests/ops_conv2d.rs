@@ -525,7 +525,11 @@ fn fused_bias_per_image_and_residual_match_reference() {
     ];
     for (i, &(name, [n, c, h, w], o, k, path)) in cases.iter().enumerate() {
         for dtype in [DType::F32, DType::F16] {
-            for (per_image, in_place, silu) in [(true, false, false), (false, true, true), (true, false, true)] {
+            for (per_image, in_place, silu) in [
+                (true, false, false),
+                (false, true, true),
+                (true, false, true),
+            ] {
                 let seed = 900 + 10 * i as u64;
                 let x = uniform(n * c * h * w, 1.0, seed);
                 let wt = uniform(o * c * k * k, 1.0, seed + 1);

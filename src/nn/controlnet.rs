@@ -65,7 +65,9 @@ impl ControlNet {
             self.cfg.conditioning_channels
         );
         // conv + SiLU pairs, the SiLU in the conv's epilogue
-        let mut e = self.cond_in.forward_ex(f, cond, self.cond_in.b.as_ref(), None, true)?;
+        let mut e = self
+            .cond_in
+            .forward_ex(f, cond, self.cond_in.b.as_ref(), None, true)?;
         for b in &self.cond_blocks {
             let y = b.forward_ex(f, &e, b.b.as_ref(), None, true)?;
             f.ws.release(e);

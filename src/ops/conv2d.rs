@@ -234,7 +234,7 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
                 &tmp
             }
         };
-        return super::winograd::conv3x3(rec, a.x, u, a.bias, a.residual, a.silu, a.out, a.pad);
+        return super::winograd::conv3x3(rec, a, u);
     }
     if fast && kh == 1 && kw == 1 && a.stride == 1 && a.pad == [0; 4] && !bias_nc {
         // (O, C) x (C, H W) per image -> (O, H W) per image

@@ -67,18 +67,11 @@ pub fn transform_weight(rec: &mut Recorder, w: &Tensor, u: &Tensor) -> Result<()
     )
 }
 
-/// out = conv3x3(x, w) (+ bias (O) or (N, O)) (+ residual) (then SiLU), stride 1, padding (top, bottom, left, right) each
-/// <= 2, with u the transformed weight ([`transform_weight`]). Shapes were checked by the caller (`conv2d_ex`).
-pub(crate) fn conv3x3(
-    rec: &mut Recorder,
-    x: &Tensor,
-    u: &Tensor,
-    bias: Option<&Tensor>,
-    residual: Option<&Tensor>,
-    silu: bool,
-    out: &Tensor,
-    pad: [usize; 4],
-) -> Result<()> {
+/// out = conv3x3(x, w) (+ bias (O) or (N, O)) (+ residual) (then SiLU), stride 1, padding (top, bottom, left,
+/// right) each <= 2, with u the transformed weight ([`transform_weight`]); everything but `w` from `a`. Shapes
+/// were checked by the caller (`conv2d_ex`).
+pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Tensor) -> Result<()> {
+    let (x, bias, residual, silu, out, pad) = (a.x, a.bias, a.residual, a.silu, a.out, a.pad);
     let (xs, os) = (x.shape(), out.shape());
     let [n, c, h, w] = [xs[0], xs[1], xs[2], xs[3]];
     let (o, oh, ow) = (os[1], os[2], os[3]);
