@@ -96,6 +96,7 @@ fn conv_case(
             wino_w: None,
             residual: None,
             silu: false,
+            pre_gn_silu: None,
         },
     )
     .expect("conv2d");

@@ -254,3 +254,53 @@ fn layer_norm_sg4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
         yv4[base + i] = vec4<ST>(((vec4<f32>(xv4[base + i]) - x0) - mean) * rstd * vec4<f32>(gv4[i]) + vec4<f32>(bv4[i]));
     }
 }
+
+// group_norm_stats: the statistics of `gn4` only, as a per-(n, c) prologue for a following conv, which reads
+// silu((x - x0) scale + shift) (kernels/winograd.wgsl `*_gs`): the normalised tensor is never written, the
+// conv's own loads apply it. out (N, C) vec4 f32: (scale = gamma rstd, shift = beta - mean scale, x0, 0) with
+// mean the mean of the values shifted by x0 (as in `gn4`, so near-constant groups keep their precision).
+// vec4 statistics when len % 4 == 0, scalar otherwise.
+@group(0) @binding(3) var<storage, read_write> gstats: array<vec4<f32>>;
+
+@compute @workgroup_size(256)
+fn gn_stats(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>,
+            @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32) {
+    let seg = wid.y * nwg.x + wid.x;
+    let l = lid.x;
+    let base = seg * p.len;
+    let x0 = f32(xs[base]);
+    var k = 0.0;
+    var m = vec4<f32>(0.0);
+    var q = vec4<f32>(0.0);
+    var lane_st = vec3<f32>(0.0);
+    if (p.len % 4u == 0u) {
+        let b4 = base / 4u;
+        for (var i = l; i < p.len / 4u; i += 256u) {
+            let d = vec4<f32>(x4[b4 + i]) - x0;
+            k += 1.0;
+            let dm = d - m;
+            m += dm / k;
+            q += dm * (d - m);
+        }
+        let mm = (m.x + m.y + m.z + m.w) * 0.25;
+        let dc = m - mm;
+        lane_st = vec3<f32>(4.0 * k, mm, q.x + q.y + q.z + q.w + k * dot(dc, dc));
+    } else {
+        for (var i = l; i < p.len; i += 256u) {
+            let d = f32(xs[base + i]) - x0;
+            k += 1.0;
+            let dm = d - m.x;
+            m.x += dm / k;
+            q.x += dm * (d - m.x);
+        }
+        lane_st = vec3<f32>(k, m.x, q.x);
+    }
+    let st = reduce_welford(lane_st, l, lane, sg);
+    let rstd = inverseSqrt(st.z / f32(p.len) + p.eps);
+    let cbase = (seg % p.segs_per_item) * p.ch_per_seg;
+    let ob = (seg / p.segs_per_item) * p.segs_per_item * p.ch_per_seg + cbase;
+    for (var c = l; c < p.ch_per_seg; c += 256u) {
+        let g = rstd * f32(gamma[cbase + c]);
+        gstats[ob + c] = vec4<f32>(g, f32(beta[cbase + c]) - st.y * g, x0, 0.0);
+    }
+}

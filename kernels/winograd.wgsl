@@ -29,6 +29,10 @@ struct WinoParams {
 
 @group(0) @binding(0) var<storage, read> x: array<ST>;
 @group(0) @binding(1) var<storage, read_write> v: array<f32>;
+// GroupNorm + SiLU prologue of the `*_gs` input entries: per (n, c) (scale, shift, x0, -) from
+// `norm::group_norm_stats`; the conv reads silu((x - x0) scale + shift). Every input entry binds it (the
+// launcher passes x when unused) so all input entries share one binding layout.
+@group(0) @binding(2) var<storage, read> ss: array<vec4<f32>>;
 // output transform: m (36, nt, O) f32 -> y (N, O, OH, OW)
 @group(0) @binding(0) var<storage, read> m: array<f32>;
 @group(0) @binding(1) var<storage, read> bias: array<ST>;
@@ -79,23 +83,52 @@ fn gg(g: vec3<f32>) -> array<f32, 6> {
         g.z);
 }
 
-// x[n, c, iy, ix], 0 outside the image.
-fn xin(base: u32, iy: i32, ix: i32) -> f32 {
+// The prologue on a loaded value: identity, or silu((v - x0) scale + shift) with a = (scale, shift, x0) when
+// `pre` (a literal in every entry point: NIR inlines and folds the branch, so plain entries pay nothing).
+fn act(v: f32, pre: bool, a: vec4<f32>) -> f32 {
+    if (!pre) { return v; }
+    let t = (v - a.z) * a.x + a.y;
+    return t / (1.0 + exp(-t));
+}
+
+fn act4(v: vec4<f32>, pre: bool, a: vec4<f32>) -> vec4<f32> {
+    if (!pre) { return v; }
+    let t = (v - a.z) * a.x + a.y;
+    return t / (1.0 + exp(-t));
+}
+
+// (scale, shift, x0) of image n, channel c for the prologue (unused without it).
+fn pre_of(pre: bool, n: u32, c: u32) -> vec4<f32> {
+    if (!pre) { return vec4<f32>(0.0); }
+    return ss[n * p.c + c];
+}
+
+// x[n, c, iy, ix] (through the prologue), 0 outside the image (the conv pads the normalised input with zeros).
+fn xin(base: u32, iy: i32, ix: i32, pre: bool, a: vec4<f32>) -> f32 {
     let ok = iy >= 0 && iy < i32(p.h) && ix >= 0 && ix < i32(p.w);
     let o = base + u32(clamp(iy, 0, i32(p.h) - 1)) * p.w + u32(clamp(ix, 0, i32(p.w) - 1));
-    return select(0.0, f32(x[o]), ok);
+    return select(0.0, act(f32(x[o]), pre, a), ok);
 }
 
 // Window row r (input row iy) of 6 values from column ix0.
-fn xrow(base: u32, iy: i32, ix0: i32) -> array<f32, 6> {
-    return array<f32, 6>(xin(base, iy, ix0), xin(base, iy, ix0 + 1), xin(base, iy, ix0 + 2),
-                         xin(base, iy, ix0 + 3), xin(base, iy, ix0 + 4), xin(base, iy, ix0 + 5));
+fn xrow(base: u32, iy: i32, ix0: i32, pre: bool, a: vec4<f32>) -> array<f32, 6> {
+    return array<f32, 6>(xin(base, iy, ix0, pre, a), xin(base, iy, ix0 + 1, pre, a), xin(base, iy, ix0 + 2, pre, a),
+                         xin(base, iy, ix0 + 3, pre, a), xin(base, iy, ix0 + 4, pre, a), xin(base, iy, ix0 + 5, pre, a));
 }
 
-// x: (N, C, H, W) -> v: (36, nt, C); invocation = (slab tile, channel), channel fastest.
+// x: (N, C, H, W) -> v: (36, nt, C); invocation = (slab tile, channel), channel fastest. `input_gs`: through
+// the GroupNorm + SiLU prologue.
 @compute @workgroup_size(256)
 fn input(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
-    let i = flat_index(wid, nwg, lid);
+    input_impl(flat_index(wid, nwg, lid), false);
+}
+
+@compute @workgroup_size(256)
+fn input_gs(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    input_impl(flat_index(wid, nwg, lid), true);
+}
+
+fn input_impl(i: u32, pre: bool) {
     if (i >= p.nt * p.c) { return; }
     let c = i % p.c;
     let tl = i / p.c;
@@ -106,13 +139,14 @@ fn input(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: ve
     let base = (n * p.c + c) * p.h * p.w;
     let iy0 = i32(4u * ty) - i32(p.pt);
     let ix0 = i32(4u * tx) - i32(p.pl);
+    let a = pre_of(pre, n, c);
     // rows of B^T d: first each input row along x (d B), then along y
-    let r0 = bt(xrow(base, iy0, ix0));
-    let r1 = bt(xrow(base, iy0 + 1, ix0));
-    let r2 = bt(xrow(base, iy0 + 2, ix0));
-    let r3 = bt(xrow(base, iy0 + 3, ix0));
-    let r4 = bt(xrow(base, iy0 + 4, ix0));
-    let r5 = bt(xrow(base, iy0 + 5, ix0));
+    let r0 = bt(xrow(base, iy0, ix0, pre, a));
+    let r1 = bt(xrow(base, iy0 + 1, ix0, pre, a));
+    let r2 = bt(xrow(base, iy0 + 2, ix0, pre, a));
+    let r3 = bt(xrow(base, iy0 + 3, ix0, pre, a));
+    let r4 = bt(xrow(base, iy0 + 4, ix0, pre, a));
+    let r5 = bt(xrow(base, iy0 + 5, ix0, pre, a));
     let st = p.nt * p.c;
     let o0 = tl * p.c + c;
     for (var j = 0u; j < 6u; j++) {
@@ -199,7 +233,7 @@ fn weight(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
 @group(0) @binding(3) var<storage, read> res4: array<vec4<ST>>;
 // scalar view of x for `input4` (bound a second time by the launcher: naga refuses two views of one binding in
 // one entry point)
-@group(0) @binding(2) var<storage, read> xs: array<ST>;
+@group(0) @binding(3) var<storage, read> xs: array<ST>;
 
 fn bt4(d: array<vec4<f32>, 6>) -> array<vec4<f32>, 6> {
     return array<vec4<f32>, 6>(
@@ -220,41 +254,54 @@ fn at4(s: array<vec4<f32>, 6>) -> array<vec4<f32>, 4> {
 }
 
 // The vec4 of row iy (of the plane at element `base`) starting at column 4 q4, 0 outside the image.
-fn xq(base: u32, iy: i32, q4: i32) -> vec4<f32> {
+fn xq(base: u32, iy: i32, q4: i32, pre: bool, a: vec4<f32>) -> vec4<f32> {
     let ok = iy >= 0 && iy < i32(p.h) && q4 >= 0 && 4 * q4 < i32(p.w);
     let o = (base + u32(clamp(iy, 0, i32(p.h) - 1)) * p.w) / 4u + u32(clamp(q4, 0, i32(p.w / 4u) - 1));
-    return select(vec4<f32>(0.0), vec4<f32>(x4[o]), ok);
+    return select(vec4<f32>(0.0), act4(vec4<f32>(x4[o]), pre, a), ok);
 }
 
 // Window row iy, columns 4 tx - 1 .. 4 tx + 4 (left padding 1) of one channel plane: the middle 4 as one vec4
 // load, the two ends as scalar loads (on lavapipe every loaded component costs a bounds-checked load, so this
 // reads 6 components instead of 3 vec4s' 12).
-fn xrow4(base: u32, iy: i32, tx: i32) -> array<f32, 6> {
-    let b = xq(base, iy, tx);
+fn xrow4(base: u32, iy: i32, tx: i32, pre: bool, pa: vec4<f32>) -> array<f32, 6> {
+    let b = xq(base, iy, tx, pre, pa);
     let ok = iy >= 0 && iy < i32(p.h);
     let rb = base + u32(clamp(iy, 0, i32(p.h) - 1)) * p.w;
     let xl = 4 * tx - 1;
     let xr = 4 * tx + 4;
-    let a = select(0.0, f32(xs[rb + u32(max(xl, 0))]), ok && xl >= 0);
-    let c = select(0.0, f32(xs[rb + u32(min(xr, i32(p.w) - 1))]), ok && xr < i32(p.w));
+    let a = select(0.0, act(f32(xs[rb + u32(max(xl, 0))]), pre, pa), ok && xl >= 0);
+    let c = select(0.0, act(f32(xs[rb + u32(min(xr, i32(p.w) - 1))]), pre, pa), ok && xr < i32(p.w));
     return array<f32, 6>(a, b.x, b.y, b.z, b.w, c);
 }
 
-// One window row of 4 channel planes as vec4s over the channels.
-fn xrow4c(base: u32, plane: u32, iy: i32, tx: i32) -> array<vec4<f32>, 6> {
-    let r0 = xrow4(base, iy, tx);
-    let r1 = xrow4(base + plane, iy, tx);
-    let r2 = xrow4(base + 2u * plane, iy, tx);
-    let r3 = xrow4(base + 3u * plane, iy, tx);
+// One window row of 4 channel planes as vec4s over the channels; pa[k]: channel k's prologue.
+fn xrow4c(base: u32, plane: u32, iy: i32, tx: i32, pre: bool, pa: array<vec4<f32>, 4>) -> array<vec4<f32>, 6> {
+    let r0 = xrow4(base, iy, tx, pre, pa[0]);
+    let r1 = xrow4(base + plane, iy, tx, pre, pa[1]);
+    let r2 = xrow4(base + 2u * plane, iy, tx, pre, pa[2]);
+    let r3 = xrow4(base + 3u * plane, iy, tx, pre, pa[3]);
     return array<vec4<f32>, 6>(vec4<f32>(r0[0], r1[0], r2[0], r3[0]), vec4<f32>(r0[1], r1[1], r2[1], r3[1]),
                                vec4<f32>(r0[2], r1[2], r2[2], r3[2]), vec4<f32>(r0[3], r1[3], r2[3], r3[3]),
                                vec4<f32>(r0[4], r1[4], r2[4], r3[4]), vec4<f32>(r0[5], r1[5], r2[5], r3[5]));
 }
 
-// `input` for 4 channels c0 .. c0 + 3 per invocation (channel quad fastest).
+// `input` for 4 channels c0 .. c0 + 3 per invocation (channel quad fastest); `input4_gs` with the prologue.
 @compute @workgroup_size(256)
 fn input4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
-    let i = flat_index(wid, nwg, lid);
+    input4_impl(flat_index(wid, nwg, lid), false);
+}
+
+@compute @workgroup_size(256)
+fn input4_gs(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    input4_impl(flat_index(wid, nwg, lid), true);
+}
+
+// The 4 channels' prologues.
+fn pre4(pre: bool, n: u32, c0: u32) -> array<vec4<f32>, 4> {
+    return array<vec4<f32>, 4>(pre_of(pre, n, c0), pre_of(pre, n, c0 + 1u), pre_of(pre, n, c0 + 2u), pre_of(pre, n, c0 + 3u));
+}
+
+fn input4_impl(i: u32, pre: bool) {
     let cq = p.c / 4u;
     if (i >= p.nt * cq) { return; }
     let c0 = 4u * (i % cq);
@@ -266,12 +313,13 @@ fn input4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
     let plane = p.h * p.w;
     let base = (n * p.c + c0) * plane;
     let iy0 = i32(4u * ty) - i32(p.pt);
-    let r0 = bt4(xrow4c(base, plane, iy0, tx));
-    let r1 = bt4(xrow4c(base, plane, iy0 + 1, tx));
-    let r2 = bt4(xrow4c(base, plane, iy0 + 2, tx));
-    let r3 = bt4(xrow4c(base, plane, iy0 + 3, tx));
-    let r4 = bt4(xrow4c(base, plane, iy0 + 4, tx));
-    let r5 = bt4(xrow4c(base, plane, iy0 + 5, tx));
+    let pa = pre4(pre, n, c0);
+    let r0 = bt4(xrow4c(base, plane, iy0, tx, pre, pa));
+    let r1 = bt4(xrow4c(base, plane, iy0 + 1, tx, pre, pa));
+    let r2 = bt4(xrow4c(base, plane, iy0 + 2, tx, pre, pa));
+    let r3 = bt4(xrow4c(base, plane, iy0 + 3, tx, pre, pa));
+    let r4 = bt4(xrow4c(base, plane, iy0 + 4, tx, pre, pa));
+    let r5 = bt4(xrow4c(base, plane, iy0 + 5, tx, pre, pa));
     let st = p.nt * cq;
     let o0 = tl * cq + c0 / 4u;
     for (var j = 0u; j < 6u; j++) {
@@ -346,10 +394,19 @@ fn out4(v: vec4<f32>) -> vec4<f32> {
 }
 
 // `input` for 4 channels c0 .. c0 + 3 per invocation with scalar loads (any W and padding; C % 4 == 0): the 36
-// transformed values of the 4 channels go out as 36 vec4 stores instead of 144 scalar ones.
+// transformed values of the 4 channels go out as 36 vec4 stores instead of 144 scalar ones. `input4s_gs` with
+// the prologue.
 @compute @workgroup_size(256)
 fn input4s(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
-    let i = flat_index(wid, nwg, lid);
+    input4s_impl(flat_index(wid, nwg, lid), false);
+}
+
+@compute @workgroup_size(256)
+fn input4s_gs(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    input4s_impl(flat_index(wid, nwg, lid), true);
+}
+
+fn input4s_impl(i: u32, pre: bool) {
     let cq = p.c / 4u;
     if (i >= p.nt * cq) { return; }
     let c0 = 4u * (i % cq);
@@ -359,12 +416,13 @@ fn input4s(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
     let base = (tc.x * p.c + c0) * plane;
     let iy0 = i32(4u * tc.y) - i32(p.pt);
     let ix0 = i32(4u * tc.z) - i32(p.pl);
+    let pa = pre4(pre, tc.x, c0);
     var rows: array<array<vec4<f32>, 6>, 6>;
     for (var r = 0u; r < 6u; r++) {
-        let q0 = bt(xrow(base, iy0 + i32(r), ix0));
-        let q1 = bt(xrow(base + plane, iy0 + i32(r), ix0));
-        let q2 = bt(xrow(base + 2u * plane, iy0 + i32(r), ix0));
-        let q3 = bt(xrow(base + 3u * plane, iy0 + i32(r), ix0));
+        let q0 = bt(xrow(base, iy0 + i32(r), ix0, pre, pa[0]));
+        let q1 = bt(xrow(base + plane, iy0 + i32(r), ix0, pre, pa[1]));
+        let q2 = bt(xrow(base + 2u * plane, iy0 + i32(r), ix0, pre, pa[2]));
+        let q3 = bt(xrow(base + 3u * plane, iy0 + i32(r), ix0, pre, pa[3]));
         for (var j = 0u; j < 6u; j++) {
             rows[r][j] = vec4<f32>(q0[j], q1[j], q2[j], q3[j]);
         }

@@ -117,6 +117,7 @@ fn run_case(ctx: &b2dr::vk::Context, c: &Case, dtype: DType, path: ConvPath, see
                 wino_w: None,
                 residual: None,
                 silu: false,
+                pre_gn_silu: None,
             },
         )
     });
@@ -243,6 +244,7 @@ fn winograd_edges_match_reference() {
                 wino_w: Some(&u),
                 residual: None,
                 silu: false,
+                pre_gn_silu: None,
             },
         )
     });
@@ -281,6 +283,7 @@ fn winograd_edges_match_reference() {
             wino_w: None,
             residual: None,
             silu: false,
+            pre_gn_silu: None,
         },
     );
     let msg = format!("{:#}", r.expect_err("stride 2 must be refused"));
@@ -318,6 +321,7 @@ fn prepacked_weights_match() {
                     wino_w: None,
                     residual: None,
                     silu: false,
+                    pre_gn_silu: None,
                 },
             )
         });
@@ -470,6 +474,7 @@ fn convs_sharing_scratch_in_one_recording_match() {
                     wino_w: None,
                     residual: None,
                     silu: false,
+                    pre_gn_silu: None,
                 },
             )?;
         }
@@ -562,6 +567,7 @@ fn fused_bias_per_image_and_residual_match_reference() {
                             wino_w: None,
                             residual: Some(&tr),
                             silu,
+                            pre_gn_silu: None,
                         },
                     )
                 });
@@ -628,10 +634,126 @@ fn fused_bias_per_image_and_residual_match_reference() {
                 wino_w: None,
                 residual: res,
                 silu: false,
+                pre_gn_silu: None,
             },
         )
         .unwrap_err();
         assert!(format!("{e:#}").contains(what), "{what}: {e:#}");
     }
+    assert_no_validation_errors();
+}
+
+#[test]
+fn group_norm_prologue_matches_norm_then_conv() {
+    let Some(ctx) = ctx() else { return };
+    // conv(silu(group_norm(x))) with the norm folded into the Winograd input loads (norm::group_norm_stats +
+    // Conv2dArgs::pre_gn_silu) against the f64 reference of the three steps: scalar input transform (C % 4 != 0),
+    // input4s (W % 4 != 0), input4 (W % 4 == 0, left padding 1), an asymmetric padding, offset inputs (the
+    // shift by each group's first element), f32 and f16, with a residual.
+    let cases: &[(&str, [usize; 4], usize, usize, [usize; 4], f32)] = &[
+        ("scalar_c6_9x11", [2, 6, 9, 11], 8, 3, [1; 4], 0.0),
+        ("input4s_c8_7x13", [2, 8, 7, 13], 8, 4, [1; 4], 0.0),
+        ("input4_c8_12x16", [1, 8, 12, 16], 12, 2, [1; 4], 0.0),
+        ("asym_pad_c8_10x10", [1, 8, 10, 10], 8, 2, [0, 2, 2, 1], 0.0),
+        ("offset_c8_12x16", [1, 8, 12, 16], 8, 4, [1; 4], 50.0),
+    ];
+    for (i, &(name, [n, c, h, w], o, groups, pad, offset)) in cases.iter().enumerate() {
+        for dtype in [DType::F32, DType::F16] {
+            let seed = 1200 + 10 * i as u64;
+            let x: Vec<f32> = uniform(n * c * h * w, 1.0, seed)
+                .iter()
+                .map(|v| v + offset)
+                .collect();
+            let wt = uniform(o * c * 9, 1.0, seed + 1);
+            let b = uniform(o, 1.0, seed + 2);
+            let gamma = uniform(c, 1.0, seed + 3);
+            let beta = uniform(c, 1.0, seed + 4);
+            let tx = upload(&ctx, &[n, c, h, w], dtype, &x);
+            let tw = upload(&ctx, &[o, c, 3, 3], dtype, &wt);
+            let tb = upload(&ctx, &[o], dtype, &b);
+            let tg = upload(&ctx, &[c], dtype, &gamma);
+            let tbe = upload(&ctx, &[c], dtype, &beta);
+            let os = cv::conv2d_out_shape(&[n, c, h, w], &[o, c, 3, 3], 1, pad).unwrap();
+            let r = uniform(os.iter().product(), 1.0, seed + 5);
+            let tr = upload(&ctx, &os, dtype, &r);
+            let st = empty(&ctx, &[n, c, 4], DType::F32);
+            let out = empty(&ctx, &os, dtype);
+            run(&ctx, |rec| {
+                b2dr::ops::norm::group_norm_stats(rec, &tx, groups, &tg, &tbe, 1e-5, &st)?;
+                cv::conv2d_ex(
+                    rec,
+                    &Conv2dArgs {
+                        x: &tx,
+                        w: &tw,
+                        bias: Some(&tb),
+                        out: &out,
+                        stride: 1,
+                        pad,
+                        path: ConvPath::Winograd,
+                        packed_w: None,
+                        wino_w: None,
+                        residual: Some(&tr),
+                        silu: false,
+                        pre_gn_silu: Some(&st),
+                    },
+                )
+            });
+            let hn = b2dr::ops::reference::image::group_norm(
+                &stored(&x, dtype),
+                n,
+                c,
+                h * w,
+                groups,
+                &stored(&gamma, dtype),
+                &stored(&beta, dtype),
+                1e-5,
+                true,
+            );
+            let g = ConvGeom {
+                kh: 3,
+                kw: 3,
+                stride: 1,
+                pad,
+            };
+            let conv = rc::conv2d(
+                &hn,
+                &stored(&wt, dtype),
+                Some(&stored(&b, dtype)),
+                (n, c, h, w),
+                o,
+                g,
+            );
+            let rs = stored(&r, dtype);
+            let want: Vec<f64> = conv.iter().zip(&rs).map(|(a, b)| a + b).collect();
+            let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
+            let tol = if dtype == DType::F32 { 1e-6 } else { 5e-4 };
+            assert!(e <= tol, "{name} {dtype:?}: nmse {e:e}");
+        }
+    }
+    // the prologue exists on the Winograd path only: elsewhere it is an error, not an unnormalised conv
+    let x = empty(&ctx, &[1, 4, 6, 6], DType::F32);
+    let w = empty(&ctx, &[4, 4, 3, 3], DType::F32);
+    let st = empty(&ctx, &[1, 4, 4], DType::F32);
+    let out = empty(&ctx, &[1, 4, 3, 3], DType::F32);
+    let mut rec = ctx.recorder().unwrap();
+    let e = cv::conv2d_ex(
+        &mut rec,
+        &Conv2dArgs {
+            x: &x,
+            w: &w,
+            bias: None,
+            out: &out,
+            stride: 2,
+            pad: [1; 4],
+            path: ConvPath::Auto,
+            packed_w: None,
+            wino_w: None,
+            residual: None,
+            silu: false,
+            pre_gn_silu: Some(&st),
+        },
+    )
+    .unwrap_err();
+    assert!(format!("{e:#}").contains("Winograd"), "{e:#}");
     assert_no_validation_errors();
 }

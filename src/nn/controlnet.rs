@@ -67,9 +67,9 @@ impl ControlNet {
         // conv + SiLU pairs, the SiLU in the conv's epilogue
         let mut e = self
             .cond_in
-            .forward_ex(f, cond, self.cond_in.b.as_ref(), None, true)?;
+            .forward_ex(f, cond, self.cond_in.b.as_ref(), None, true, None)?;
         for b in &self.cond_blocks {
-            let y = b.forward_ex(f, &e, b.b.as_ref(), None, true)?;
+            let y = b.forward_ex(f, &e, b.b.as_ref(), None, true, None)?;
             f.ws.release(e);
             e = y;
         }

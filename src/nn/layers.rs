@@ -86,12 +86,19 @@ impl Conv {
 
     /// x: (N, C, H, W) -> (N, O, OH, OW)
     pub fn forward(&self, f: &mut Fwd, x: &Tensor) -> Result<Tensor> {
-        self.forward_ex(f, x, self.b.as_ref(), None, false)
+        self.forward_ex(f, x, self.b.as_ref(), None, false, None)
+    }
+
+    /// Whether [`Self::forward_ex`] can take a GroupNorm + SiLU prologue for input x (N, C, H, W).
+    pub fn takes_gn_prologue(&self, ctx: &crate::vk::Context, x: &[usize]) -> bool {
+        conv2d::pre_gn_fusable(ctx.info(), x, self.w.shape(), self.stride, self.pad)
     }
 
     /// [`Self::forward`] with the bias replaced by `bias` ((O) or (N, O), e.g. the layer's bias plus a time
     /// embedding, or None), `residual` ((N, O, OH, OW)) added and SiLU applied if `silu`, in the conv's
-    /// epilogue where its kernel allows (see `conv2d::Conv2dArgs`).
+    /// epilogue where its kernel allows, and with x read through a GroupNorm + SiLU prologue when
+    /// `pre_gn_silu` (statistics from [`GroupNorm::stats`]; only where `conv2d::pre_gn_fusable`). See
+    /// `conv2d::Conv2dArgs`.
     pub fn forward_ex(
         &self,
         f: &mut Fwd,
@@ -99,6 +106,7 @@ impl Conv {
         bias: Option<&Tensor>,
         residual: Option<&Tensor>,
         silu: bool,
+        pre_gn_silu: Option<&Tensor>,
     ) -> Result<Tensor> {
         let (s, ws) = (x.shape(), self.w.shape());
         let oh = (s[2] + self.pad[0] + self.pad[1] - ws[2]) / self.stride + 1;
@@ -116,6 +124,7 @@ impl Conv {
             wino_w: self.wino.as_ref(),
             residual,
             silu,
+            pre_gn_silu,
         };
         conv2d::conv2d_ex(f.rec, &args).with_context(|| format!("conv {}", self.name))?;
         Ok(out)
@@ -207,6 +216,23 @@ impl GroupNorm {
             groups,
             eps: eps as f32,
         })
+    }
+
+    /// x: (N, C, H, W) -> (N, C, 4) f32 statistics for a following conv's GroupNorm + SiLU prologue
+    /// (`Conv::forward_ex`'s `pre_gn_silu`): the normalised tensor is never written.
+    pub fn stats(&self, f: &mut Fwd, x: &Tensor) -> Result<Tensor> {
+        let s = x.shape();
+        let out = f.ws.alloc_dtype(&[s[0], s[1], 4], DType::F32)?;
+        norm::group_norm_stats(
+            f.rec,
+            x,
+            self.groups,
+            &self.gamma,
+            &self.beta,
+            self.eps,
+            &out,
+        )?;
+        Ok(out)
     }
 
     /// x: (N, C, H, W) -> tokens (N, H W, C), normalised (the transformer's input layout, no transpose pass)

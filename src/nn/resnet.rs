@@ -76,31 +76,63 @@ impl Resnet {
 
     /// x: (N, C, H, W), silu_temb: (N, T) = SiLU(temb) or None -> (N, O, H, W)
     pub fn forward(&self, f: &mut Fwd, x: &Tensor, silu_temb: Option<&Tensor>) -> Result<Tensor> {
-        let h = self.norm1.forward(f, x, true)?;
-        let h1 = match (&self.time_emb_proj, silu_temb) {
-            (Some(p), Some(t)) => {
-                let tp = p.forward(f, t)?; // (N, O), conv1's bias included
-                let y = self.conv1.forward_ex(f, &h, Some(&tp), None, false)?;
-                f.ws.release(tp);
-                y
-            }
-            _ => self.conv1.forward(f, &h)?,
+        let tp = match (&self.time_emb_proj, silu_temb) {
+            (Some(p), Some(t)) => Some(p.forward(f, t)?), // (N, O), conv1's bias included
+            _ => None,
         };
-        f.ws.release(h);
-        let h2 = self.norm2.forward(f, &h1, true)?;
-        f.ws.release(h1);
+        let bias1 = tp.as_ref().or(self.conv1.b.as_ref());
+        let h1 = self.norm_conv(f, &self.norm1, &self.conv1, x, bias1, None)?;
+        if let Some(t) = tp {
+            f.ws.release(t);
+        }
         let out = match &self.shortcut {
             Some(sc) => {
-                let h3 = self.conv2.forward(f, &h2)?;
-                let y = sc.forward_ex(f, x, sc.b.as_ref(), Some(&h3), false)?;
+                let h3 = self.norm_conv(
+                    f,
+                    &self.norm2,
+                    &self.conv2,
+                    &h1,
+                    self.conv2.b.as_ref(),
+                    None,
+                )?;
+                let y = sc.forward_ex(f, x, sc.b.as_ref(), Some(&h3), false, None)?;
                 f.ws.release(h3);
                 y
             }
-            None => self
-                .conv2
-                .forward_ex(f, &h2, self.conv2.b.as_ref(), Some(x), false)?,
+            None => self.norm_conv(
+                f,
+                &self.norm2,
+                &self.conv2,
+                &h1,
+                self.conv2.b.as_ref(),
+                Some(x),
+            )?,
         };
-        f.ws.release(h2);
+        f.ws.release(h1);
         Ok(out)
+    }
+
+    /// conv(silu(norm(x))) (+ bias) (+ residual): where the conv runs Winograd, the norm's statistics only and the
+    /// conv applies GroupNorm + SiLU as it loads x (the normalised tensor is never written); else GroupNorm + SiLU
+    /// into a temporary first.
+    fn norm_conv(
+        &self,
+        f: &mut Fwd,
+        norm: &GroupNorm,
+        conv: &Conv,
+        x: &Tensor,
+        bias: Option<&Tensor>,
+        residual: Option<&Tensor>,
+    ) -> Result<Tensor> {
+        if conv.takes_gn_prologue(f.rec.context(), x.shape()) {
+            let st = norm.stats(f, x)?;
+            let y = conv.forward_ex(f, x, bias, residual, false, Some(&st))?;
+            f.ws.release(st);
+            return Ok(y);
+        }
+        let h = norm.forward(f, x, true)?;
+        let y = conv.forward_ex(f, &h, bias, residual, false, None)?;
+        f.ws.release(h);
+        Ok(y)
     }
 }

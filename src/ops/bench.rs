@@ -139,6 +139,7 @@ fn conv_case(dtype: DType, path: conv2d::ConvPath) -> BenchCase {
                         wino_w: Some(&wino),
                         residual: None,
                         silu: false,
+                        pre_gn_silu: None,
                     },
                 )
             })

@@ -90,6 +90,31 @@ pub struct Conv2dArgs<'a> {
     /// SiLU on the result (after bias and residual): in the epilogue of the Winograd and packed implicit-GEMM
     /// paths, a separate pass elsewhere.
     pub silu: bool,
+    /// (N, C, 4) f32 from `norm::group_norm_stats`: the conv reads silu(group_norm(x)) instead of x (a ResNet
+    /// block's GroupNorm + SiLU folded into the conv's input loads; the normalised tensor is never written).
+    /// Winograd path only ([`pre_gn_fusable`] says where); an error elsewhere.
+    pub pre_gn_silu: Option<&'a Tensor>,
+}
+
+/// Whether `Auto` runs this conv where a GroupNorm + SiLU prologue (`Conv2dArgs::pre_gn_silu`) can be fused:
+/// the Winograd path (3x3, stride 1, [`winograd_pays`], subgroups).
+pub fn pre_gn_fusable(
+    dev: &DeviceInfo,
+    x: &[usize],
+    w: &[usize],
+    stride: usize,
+    pad: [usize; 4],
+) -> bool {
+    let Ok(os) = conv2d_out_shape(x, w, stride, pad) else {
+        return false;
+    };
+    w[2] == 3
+        && w[3] == 3
+        && stride == 1
+        && pad.iter().all(|&p| p <= 2)
+        && dev.subgroup_size >= 8
+        && dev.subgroup_size <= 64
+        && winograd_pays(dev, x[0], x[1], w[0], os[2], os[3])
 }
 
 /// Output shape of x: (N, C, H, W) convolved with w: (O, C, KH, KW), with checks naming the shapes.
@@ -192,6 +217,13 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
     if let Some(r) = a.residual {
         expect_shape("conv2d", "residual", r, &os)?;
     }
+    if let Some(g) = a.pre_gn_silu {
+        expect_shape("conv2d", "pre_gn_silu", g, &[xs[0], xs[1], 4])?;
+        ensure!(
+            g.dtype() == DType::F32,
+            "conv2d: pre_gn_silu must be f32 (from norm::group_norm_stats)"
+        );
+    }
     let [n, c, h, w] = [xs[0], xs[1], xs[2], xs[3]];
     let (o, kh, kw) = (ws[0], ws[2], ws[3]);
     let np = os[2] * os[3];
@@ -221,6 +253,11 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
         }
         _ => false,
     };
+    ensure!(
+        wino || a.pre_gn_silu.is_none(),
+        "conv2d: a GroupNorm prologue (pre_gn_silu) is fused only on the Winograd path (x {xs:?}, w {ws:?}, stride {}; see conv2d::pre_gn_fusable)",
+        a.stride
+    );
     if wino {
         let tmp;
         let u = match a.wino_w {
@@ -441,6 +478,7 @@ pub fn conv2d(
             wino_w: None,
             residual: None,
             silu: false,
+            pre_gn_silu: None,
         },
     )
 }

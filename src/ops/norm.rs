@@ -187,3 +187,76 @@ pub fn layer_norm(
     };
     norm(rec, "layer_norm", x, gamma, beta, out, rows, p)
 }
+
+/// GroupNorm statistics as a per-(image, channel) prologue for a following conv: x (N, C, H, W) -> out (N, C, 4)
+/// f32 = (scale, shift, x0, 0) per (n, c), such that group_norm(x) = (x - x0) scale + shift (x0 the group's
+/// first element; see kernels/norm.wgsl `gn_stats`). A conv given it (`conv2d::Conv2dArgs::pre_gn_silu`) reads
+/// silu(group_norm(x)) without the normalised tensor being written.
+#[allow(clippy::too_many_arguments)]
+pub fn group_norm_stats(
+    rec: &mut Recorder,
+    x: &Tensor,
+    groups: usize,
+    gamma: &Tensor,
+    beta: &Tensor,
+    eps: f32,
+    out: &Tensor,
+) -> Result<()> {
+    let op = "group_norm_stats";
+    let s = x.shape();
+    ensure!(s.len() == 4, "{op}: x must be (N, C, H, W), got {s:?}");
+    ensure!(
+        groups > 0 && s[1] % groups == 0,
+        "{op}: {groups} groups do not divide {} channels of {s:?}",
+        s[1]
+    );
+    same_dtype(op, &[x, gamma, beta])?;
+    expect_shape(op, "gamma", gamma, &[s[1]])?;
+    expect_shape(op, "beta", beta, &[s[1]])?;
+    expect_shape(op, "out", out, &[s[0], s[1], 4])?;
+    ensure!(
+        out.dtype() == crate::tensor::DType::F32,
+        "{op}: out must be f32, got {}",
+        out.dtype().name()
+    );
+    ensure!(
+        eps.is_finite() && eps >= 0.0,
+        "{op}: eps {eps} must be finite and >= 0"
+    );
+    let k = pick(x.dtype(), K::NormF32GnStats, K::NormF16GnStats);
+    ensure!(
+        rec.context().supports(k),
+        "{op}: needs subgroup operations, which {:?} lacks",
+        rec.context().info().name
+    );
+    let cpg = s[1] / groups;
+    let segs = s[0] * groups;
+    let p = NormParams {
+        len: (cpg * s[2] * s[3]) as u32,
+        segs_per_item: groups as u32,
+        ch_per_seg: cpg as u32,
+        inner: (s[2] * s[3]) as u32,
+        eps,
+        silu: 0,
+        tokens: 0,
+    };
+    let gx = segs.min(65535);
+    ensure!(
+        segs % gx == 0,
+        "{op}: {segs} segments cannot be tiled over the grid"
+    );
+    let grid = [gx as u32, (segs / gx) as u32, 1];
+    rec.dispatch(
+        k,
+        &[
+            x.buffer(),
+            gamma.buffer(),
+            beta.buffer(),
+            out.buffer(),
+            x.buffer(),
+        ],
+        bytemuck::bytes_of(&p),
+        grid,
+        op,
+    )
+}

@@ -13,10 +13,27 @@ use crate::tensor::{DType, Tensor};
 /// Bytes of each intermediate (V or M) per slab at most.
 const SLAB_BYTES: usize = 16 << 20;
 
-/// (input, input4, input4s, output, output4, weight) kernels.
-fn ids(d: DType) -> [K; 6] {
-    match d {
-        DType::F32 => [
+/// (input, input4, input4s, output, output4, weight) kernels; `gs`: the inputs with the GroupNorm + SiLU
+/// prologue.
+fn ids(d: DType, gs: bool) -> [K; 6] {
+    match (d, gs) {
+        (DType::F32, true) => [
+            K::WinogradF32InputGs,
+            K::WinogradF32Input4Gs,
+            K::WinogradF32Input4sGs,
+            K::WinogradF32Output,
+            K::WinogradF32Output4,
+            K::WinogradF32Weight,
+        ],
+        (DType::F16, true) => [
+            K::WinogradF16InputGs,
+            K::WinogradF16Input4Gs,
+            K::WinogradF16Input4sGs,
+            K::WinogradF16Output,
+            K::WinogradF16Output4,
+            K::WinogradF16Weight,
+        ],
+        (DType::F32, false) => [
             K::WinogradF32Input,
             K::WinogradF32Input4,
             K::WinogradF32Input4s,
@@ -24,7 +41,7 @@ fn ids(d: DType) -> [K; 6] {
             K::WinogradF32Output4,
             K::WinogradF32Weight,
         ],
-        DType::F16 => [
+        (DType::F16, false) => [
             K::WinogradF16Input,
             K::WinogradF16Input4,
             K::WinogradF16Input4s,
@@ -59,7 +76,7 @@ pub fn transform_weight(rec: &mut Recorder, w: &Tensor, u: &Tensor) -> Result<()
     };
     let g = super::grid_1d("conv2d winograd weight", ws[0] * ws[1])?;
     rec.dispatch(
-        ids(w.dtype())[5],
+        ids(w.dtype(), false)[5],
         &[w.buffer(), u.buffer()],
         bytemuck::bytes_of(&p),
         g,
@@ -80,7 +97,9 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
     let tiles = n * th * tw;
     let per_tile = 36 * c.max(o) * 4;
     let slab = (SLAB_BYTES / per_tile).clamp(1, tiles);
-    let [inp1, inp4, inp4s, outp1, outp4, _] = ids(x.dtype());
+    let [inp1, inp4, inp4s, outp1, outp4, _] = ids(x.dtype(), a.pre_gn_silu.is_some());
+    // the prologue's statistics (binding 2 of every input entry; x when there is no prologue)
+    let ss = a.pre_gn_silu.unwrap_or(x);
     // vec4 transforms (4 channels per invocation: fewer per-lane access loops on lavapipe) where the layout
     // allows: input C % 4 == 0 (rows loaded as vec4s too when W % 4 == 0 and the left padding is 1); output
     // O % 4 == 0, OW % 4 == 0
@@ -125,11 +144,11 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
             silu: silu as u32,
         };
         let g = super::grid_1d("conv2d winograd", nt * in_items)?;
-        // input4 also reads x through a scalar view (binding 2)
+        // input4 also reads x through a scalar view (binding 3)
         let in_bufs: &[&std::sync::Arc<crate::vk::Buffer>] = if in4 {
-            &[x.buffer(), &vb, x.buffer()]
+            &[x.buffer(), &vb, ss.buffer(), x.buffer()]
         } else {
-            &[x.buffer(), &vb]
+            &[x.buffer(), &vb, ss.buffer()]
         };
         rec.dispatch(
             inp,
