@@ -650,7 +650,9 @@ fn group_norm_prologue_matches_norm_then_conv() {
     // Conv2dArgs::pre_gn_silu) against the f64 reference of the three steps: scalar input transform (C % 4 != 0),
     // input4s (W % 4 != 0), input4 (W % 4 == 0, left padding 1), an asymmetric padding, offset inputs (the
     // shift by each group's first element), f32 and f16, with a residual.
-    let cases: &[(&str, [usize; 4], usize, usize, [usize; 4], f32)] = &[
+    // (name, x shape, O, groups, padding, input offset)
+    type PrologueCase = (&'static str, [usize; 4], usize, usize, [usize; 4], f32);
+    let cases: &[PrologueCase] = &[
         ("scalar_c6_9x11", [2, 6, 9, 11], 8, 3, [1; 4], 0.0),
         ("input4s_c8_7x13", [2, 8, 7, 13], 8, 4, [1; 4], 0.0),
         ("input4_c8_12x16", [1, 8, 12, 16], 12, 2, [1; 4], 0.0),
