@@ -53,8 +53,11 @@ const fn kern(
 
 /// All attention kernels, in order of preference for a given head dim (the first that fits is the default).
 pub const KERNELS: &[AttnKernel] = &[
+    kern(K::AttentionF32D8r8, DType::F32, 8, 8, false, false),
     kern(K::AttentionF32D8r4, DType::F32, 8, 4, false, false),
     kern(K::AttentionF32D8, DType::F32, 8, 1, false, false),
+    kern(K::AttentionF32D16r4, DType::F32, 16, 4, false, false),
+    kern(K::AttentionF32D32r4, DType::F32, 32, 4, false, false),
     kern(K::AttentionF32D40r4, DType::F32, 40, 4, false, false),
     kern(K::AttentionF32D40r2, DType::F32, 40, 2, false, false),
     kern(K::AttentionF32D40, DType::F32, 40, 1, false, false),
@@ -63,11 +66,15 @@ pub const KERNELS: &[AttnKernel] = &[
     kern(K::AttentionF32D160, DType::F32, 160, 1, false, false),
     kern(K::AttentionF32W128Wide, DType::F32, 128, 1, true, false),
     kern(K::AttentionF16pD8r4, DType::F16, 8, 4, false, true),
+    kern(K::AttentionF16pD16r4, DType::F16, 16, 4, false, true),
+    kern(K::AttentionF16pD32r4, DType::F16, 32, 4, false, true),
     kern(K::AttentionF16pD40r2, DType::F16, 40, 2, false, true),
     kern(K::AttentionF16pD40r4, DType::F16, 40, 4, false, true),
     kern(K::AttentionF16pD80r2, DType::F16, 80, 2, false, true),
     kern(K::AttentionF16D8r4, DType::F16, 8, 4, false, false),
     kern(K::AttentionF16D8, DType::F16, 8, 1, false, false),
+    kern(K::AttentionF16D16r4, DType::F16, 16, 4, false, false),
+    kern(K::AttentionF16D32r4, DType::F16, 32, 4, false, false),
     kern(K::AttentionF16D40r4, DType::F16, 40, 4, false, false),
     kern(K::AttentionF16D40r2, DType::F16, 40, 2, false, false),
     kern(K::AttentionF16D40, DType::F16, 40, 1, false, false),
