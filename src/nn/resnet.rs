@@ -3,7 +3,8 @@
 //!
 //! Both adds are fused into convs (one pass over the activations each instead of a conv and an add): the time
 //! embedding projection, whose bias has conv1's folded in at load, is conv1's per-image bias (N, O); the skip
-//! is the residual of conv2, or conv2's output is the residual of the 1x1 shortcut conv.
+//! is the residual of conv2, or conv2's output is the residual of the 1x1 shortcut conv. Where a conv runs
+//! Winograd, its GroupNorm + SiLU is folded into its input loads too (`norm_conv`).
 use anyhow::Result;
 
 use super::device::{DeviceWeights, Fwd};

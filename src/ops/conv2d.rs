@@ -190,7 +190,8 @@ pub fn pack_weight(rec: &mut Recorder, w: &Tensor, packed: &Tensor) -> Result<()
     )
 }
 
-/// out = conv2d(x, w) (+ bias) (+ residual), see [`Conv2dArgs`].
+/// out = conv2d(x, w) (+ bias) (+ residual) (then SiLU), x optionally read through a GroupNorm + SiLU prologue;
+/// see [`Conv2dArgs`].
 pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
     let mut ts = vec![a.x, a.w, a.out];
     ts.extend(a.bias);
