@@ -97,6 +97,7 @@ fn conv_case(
             residual: None,
             silu: false,
             pre_gn_silu: None,
+            upsample2x: false,
         },
     )
     .expect("conv2d");

@@ -25,6 +25,9 @@ struct WinoParams {
     has_res: u32,
     // 1: SiLU on the result
     silu: u32,
+    // 1: x is stored at half the conv's input size (h, w), read through a nearest 2x upsampling (`input`,
+    // `input4s` only): the upsampled tensor is never written
+    up: u32,
 }
 
 @group(0) @binding(0) var<storage, read> x: array<ST>;
@@ -104,9 +107,10 @@ fn pre_of(pre: bool, n: u32, c: u32) -> vec4<f32> {
 }
 
 // x[n, c, iy, ix] (through the prologue), 0 outside the image (the conv pads the normalised input with zeros).
+// With p.up the stored plane is (h / 2, w / 2) and (iy, ix) reads its (iy / 2, ix / 2).
 fn xin(base: u32, iy: i32, ix: i32, pre: bool, a: vec4<f32>) -> f32 {
     let ok = iy >= 0 && iy < i32(p.h) && ix >= 0 && ix < i32(p.w);
-    let o = base + u32(clamp(iy, 0, i32(p.h) - 1)) * p.w + u32(clamp(ix, 0, i32(p.w) - 1));
+    let o = base + (u32(clamp(iy, 0, i32(p.h) - 1)) >> p.up) * (p.w >> p.up) + (u32(clamp(ix, 0, i32(p.w) - 1)) >> p.up);
     return select(0.0, act(f32(x[o]), pre, a), ok);
 }
 
@@ -136,7 +140,7 @@ fn input_impl(i: u32, pre: bool) {
     let n = tc.x;
     let ty = tc.y;
     let tx = tc.z;
-    let base = (n * p.c + c) * p.h * p.w;
+    let base = (n * p.c + c) * (p.h >> p.up) * (p.w >> p.up);
     let iy0 = i32(4u * ty) - i32(p.pt);
     let ix0 = i32(4u * tx) - i32(p.pl);
     let a = pre_of(pre, n, c);
@@ -412,7 +416,7 @@ fn input4s_impl(i: u32, pre: bool) {
     let c0 = 4u * (i % cq);
     let tl = i / cq;
     let tc = tile(tl);
-    let plane = p.h * p.w;
+    let plane = (p.h >> p.up) * (p.w >> p.up);
     let base = (tc.x * p.c + c0) * plane;
     let iy0 = i32(4u * tc.y) - i32(p.pt);
     let ix0 = i32(4u * tc.z) - i32(p.pl);

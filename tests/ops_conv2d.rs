@@ -118,6 +118,7 @@ fn run_case(ctx: &b2dr::vk::Context, c: &Case, dtype: DType, path: ConvPath, see
                 residual: None,
                 silu: false,
                 pre_gn_silu: None,
+                upsample2x: false,
             },
         )
     });
@@ -245,6 +246,7 @@ fn winograd_edges_match_reference() {
                 residual: None,
                 silu: false,
                 pre_gn_silu: None,
+                upsample2x: false,
             },
         )
     });
@@ -284,6 +286,7 @@ fn winograd_edges_match_reference() {
             residual: None,
             silu: false,
             pre_gn_silu: None,
+            upsample2x: false,
         },
     );
     let msg = format!("{:#}", r.expect_err("stride 2 must be refused"));
@@ -322,6 +325,7 @@ fn prepacked_weights_match() {
                     residual: None,
                     silu: false,
                     pre_gn_silu: None,
+                    upsample2x: false,
                 },
             )
         });
@@ -475,6 +479,7 @@ fn convs_sharing_scratch_in_one_recording_match() {
                     residual: None,
                     silu: false,
                     pre_gn_silu: None,
+                    upsample2x: false,
                 },
             )?;
         }
@@ -568,6 +573,7 @@ fn fused_bias_per_image_and_residual_match_reference() {
                             residual: Some(&tr),
                             silu,
                             pre_gn_silu: None,
+                            upsample2x: false,
                         },
                     )
                 });
@@ -635,6 +641,7 @@ fn fused_bias_per_image_and_residual_match_reference() {
                 residual: res,
                 silu: false,
                 pre_gn_silu: None,
+                upsample2x: false,
             },
         )
         .unwrap_err();
@@ -697,6 +704,7 @@ fn group_norm_prologue_matches_norm_then_conv() {
                         residual: Some(&tr),
                         silu: false,
                         pre_gn_silu: Some(&st),
+                        upsample2x: false,
                     },
                 )
             });
@@ -753,9 +761,94 @@ fn group_norm_prologue_matches_norm_then_conv() {
             residual: None,
             silu: false,
             pre_gn_silu: Some(&st),
+            upsample2x: false,
         },
     )
     .unwrap_err();
     assert!(format!("{e:#}").contains("Winograd"), "{e:#}");
+    assert_no_validation_errors();
+}
+
+#[test]
+fn upsampled_input_matches_upsample_then_conv() {
+    let Some(ctx) = ctx() else { return };
+    // conv of the nearest 2x upsampling of x, read through the upsampling (Winograd: scalar input transform
+    // for C % 4 != 0, input4s otherwise) or from an upsampled copy (the packed implicit GEMM, the direct
+    // kernel), against the f64 reference of both steps; f32 and f16, with bias.
+    let cases = [
+        (
+            "winograd_scalar_c6",
+            [2usize, 6usize, 7usize, 9usize],
+            8usize,
+            ConvPath::Winograd,
+        ),
+        (
+            "winograd_input4s_c8",
+            [1, 8, 14, 25],
+            12,
+            ConvPath::Winograd,
+        ),
+        ("packed_c8", [2, 8, 5, 7], 8, ConvPath::Fast),
+        ("direct_c5", [1, 5, 4, 6], 3, ConvPath::Direct),
+    ];
+    for (i, &(name, [n, c, h, w], o, path)) in cases.iter().enumerate() {
+        for dtype in [DType::F32, DType::F16] {
+            let seed = 1500 + 10 * i as u64;
+            let x = uniform(n * c * h * w, 1.0, seed);
+            let wt = uniform(o * c * 9, 1.0, seed + 1);
+            let b = uniform(o, 1.0, seed + 2);
+            let tx = upload(&ctx, &[n, c, h, w], dtype, &x);
+            let tw = upload(&ctx, &[o, c, 3, 3], dtype, &wt);
+            let tb = upload(&ctx, &[o], dtype, &b);
+            let out = empty(&ctx, &[n, o, 2 * h, 2 * w], dtype);
+            run(&ctx, |rec| {
+                cv::conv2d_ex(
+                    rec,
+                    &Conv2dArgs {
+                        x: &tx,
+                        w: &tw,
+                        bias: Some(&tb),
+                        out: &out,
+                        stride: 1,
+                        pad: [1; 4],
+                        path,
+                        packed_w: None,
+                        wino_w: None,
+                        residual: None,
+                        silu: false,
+                        pre_gn_silu: None,
+                        upsample2x: true,
+                    },
+                )
+            });
+            let xs = stored(&x, dtype);
+            let (h2, w2) = (2 * h, 2 * w);
+            let mut xu = vec![0.0; n * c * h2 * w2];
+            for p in 0..n * c {
+                for yy in 0..h2 {
+                    for xx in 0..w2 {
+                        xu[(p * h2 + yy) * w2 + xx] = xs[(p * h + yy / 2) * w + xx / 2];
+                    }
+                }
+            }
+            let g = ConvGeom {
+                kh: 3,
+                kw: 3,
+                stride: 1,
+                pad: [1; 4],
+            };
+            let want = rc::conv2d(
+                &xu,
+                &stored(&wt, dtype),
+                Some(&stored(&b, dtype)),
+                (n, c, h2, w2),
+                o,
+                g,
+            );
+            let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
+            let tol = if dtype == DType::F32 { 1e-6 } else { 5e-4 };
+            assert!(e <= tol, "{name} {dtype:?}: nmse {e:e}");
+        }
+    }
     assert_no_validation_errors();
 }

@@ -89,6 +89,34 @@ impl Conv {
         self.forward_ex(f, x, self.b.as_ref(), None, false, None)
     }
 
+    /// x (N, C, H, W) -> the conv of its nearest 2x upsampling (Upsample2D), reading through the upsampling
+    /// where the conv runs Winograd (see `conv2d::Conv2dArgs::upsample2x`).
+    pub fn forward_upsampled2x(&self, f: &mut Fwd, x: &Tensor) -> Result<Tensor> {
+        let (s, ws) = (x.shape(), self.w.shape());
+        let (h, w) = (2 * s[2], 2 * s[3]);
+        let oh = (h + self.pad[0] + self.pad[1] - ws[2]) / self.stride + 1;
+        let ow = (w + self.pad[2] + self.pad[3] - ws[3]) / self.stride + 1;
+        let out = f.ws.alloc(&[s[0], ws[0], oh, ow])?;
+        let args = conv2d::Conv2dArgs {
+            x,
+            w: &self.w,
+            bias: self.b.as_ref(),
+            out: &out,
+            stride: self.stride,
+            pad: self.pad,
+            path: conv2d::ConvPath::Auto,
+            packed_w: self.packed.as_ref(),
+            wino_w: self.wino.as_ref(),
+            residual: None,
+            silu: false,
+            pre_gn_silu: None,
+            upsample2x: true,
+        };
+        conv2d::conv2d_ex(f.rec, &args)
+            .with_context(|| format!("conv {} (2x upsampled input)", self.name))?;
+        Ok(out)
+    }
+
     /// Whether [`Self::forward_ex`] can take a GroupNorm + SiLU prologue for input x (N, C, H, W).
     pub fn takes_gn_prologue(&self, ctx: &crate::vk::Context, x: &[usize]) -> bool {
         conv2d::pre_gn_fusable(ctx.info(), x, self.w.shape(), self.stride, self.pad)
@@ -125,6 +153,7 @@ impl Conv {
             residual,
             silu,
             pre_gn_silu,
+            upsample2x: false,
         };
         conv2d::conv2d_ex(f.rec, &args).with_context(|| format!("conv {}", self.name))?;
         Ok(out)

@@ -338,11 +338,18 @@ impl UNet {
                     .expect("skips remain before the last block")
                     .shape();
                 let s = x.shape();
-                let upx = f.ws.alloc(&[s[0], s[1], target[2], target[3]])?;
-                resample::upsample_nearest(f.rec, &x, &upx, (target[2], target[3]))?;
-                f.ws.release(x);
-                x = conv.forward(f, &upx)?;
-                f.ws.release(upx);
+                if target[2] == 2 * s[2] && target[3] == 2 * s[3] {
+                    // exactly 2x: the conv reads through the upsampling where it can
+                    let y = conv.forward_upsampled2x(f, &x)?;
+                    f.ws.release(x);
+                    x = y;
+                } else {
+                    let upx = f.ws.alloc(&[s[0], s[1], target[2], target[3]])?;
+                    resample::upsample_nearest(f.rec, &x, &upx, (target[2], target[3]))?;
+                    f.ws.release(x);
+                    x = conv.forward(f, &upx)?;
+                    f.ws.release(upx);
+                }
             }
         }
         let n = self.norm_out.forward(f, &x, true)?;

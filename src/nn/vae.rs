@@ -7,7 +7,6 @@ use super::device::{DeviceWeights, Fwd};
 use super::layers::{Conv, GroupNorm};
 use super::resnet::Resnet;
 use super::transformer::VaeAttention;
-use crate::ops::resample;
 use crate::tensor::Tensor;
 
 struct Mid {
@@ -221,12 +220,10 @@ impl VaeDecoder {
                 x = y;
             }
             if let Some(c) = us {
-                let s = x.shape().to_vec();
-                let u = f.ws.alloc(&[s[0], s[1], 2 * s[2], 2 * s[3]])?;
-                resample::upsample_nearest(f.rec, &x, &u, (2 * s[2], 2 * s[3]))?;
+                // Upsample2D: nearest 2x, then the conv (which reads through the upsampling where it can)
+                let y = c.forward_upsampled2x(f, &x)?;
                 f.ws.release(x);
-                x = c.forward(f, &u)?;
-                f.ws.release(u);
+                x = y;
             }
         }
         let n = self.norm_out.forward(f, &x, true)?;

@@ -140,6 +140,7 @@ fn conv_case(dtype: DType, path: conv2d::ConvPath) -> BenchCase {
                         residual: None,
                         silu: false,
                         pre_gn_silu: None,
+                        upsample2x: false,
                     },
                 )
             })

@@ -14,7 +14,9 @@ use anyhow::{ensure, Result};
 
 use super::matmul::{gemm, tile_shape, tiled_supported, Gemm, MatmulPath};
 use super::{expect_shape, same_dtype, Recorder};
-use super::{SCRATCH_CONV_OUT, SCRATCH_PACKED_W, SCRATCH_WINO_W, SCRATCH_X_HWNC};
+use super::{
+    SCRATCH_CONV_OUT, SCRATCH_PACKED_W, SCRATCH_UPSAMPLED, SCRATCH_WINO_W, SCRATCH_X_HWNC,
+};
 use crate::kernels::params::{Conv2dParams, PackParams};
 use crate::kernels::KernelId as K;
 use crate::tensor::{DType, Tensor};
@@ -94,6 +96,10 @@ pub struct Conv2dArgs<'a> {
     /// block's GroupNorm + SiLU folded into the conv's input loads; the normalised tensor is never written).
     /// Winograd path only ([`pre_gn_fusable`] says where); an error elsewhere.
     pub pre_gn_silu: Option<&'a Tensor>,
+    /// x (N, C, H, W) is read as its nearest 2x upsampling (N, C, 2H, 2W), the input size the conv's geometry
+    /// refers to (an Upsample2D's conv): through the upsampling on the Winograd path (the upsampled tensor is
+    /// never written), from an upsampled copy elsewhere.
+    pub upsample2x: bool,
 }
 
 /// Whether `Auto` runs this conv where a GroupNorm + SiLU prologue (`Conv2dArgs::pre_gn_silu`) can be fused:
@@ -197,7 +203,25 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
     ts.extend(a.bias);
     ts.extend(a.residual);
     let d = same_dtype("conv2d", &ts)?;
-    let (xs, ws) = (a.x.shape(), a.w.shape());
+    let ws = a.w.shape();
+    ensure!(
+        a.x.shape().len() == 4,
+        "conv2d: x {:?} must be (N, C, H, W)",
+        a.x.shape()
+    );
+    // the input the conv's geometry refers to: x itself, or its 2x upsampling
+    let xs_up;
+    let xs: &[usize] = if a.upsample2x {
+        let s = a.x.shape();
+        xs_up = [s[0], s[1], 2 * s[2], 2 * s[3]];
+        ensure!(
+            a.pre_gn_silu.is_none(),
+            "conv2d: a GroupNorm prologue and a 2x upsampling of the input are not combined"
+        );
+        &xs_up
+    } else {
+        a.x.shape()
+    };
     let os = conv2d_out_shape(xs, ws, a.stride, a.pad)?;
     expect_shape("conv2d", "out", a.out, &os)?;
     let bias_nc = match a.bias {
@@ -254,6 +278,23 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
         }
         _ => false,
     };
+    if a.upsample2x && !wino {
+        // this path reads x directly: upsample into the recording's scratch first
+        let b = rec.scratch(
+            SCRATCH_UPSAMPLED,
+            (xs.iter().product::<usize>() * d.size()) as u64,
+        )?;
+        let xu = Tensor::on_buffer(b, xs, d)?;
+        super::resample::upsample_nearest(rec, a.x, &xu, (xs[2], xs[3]))?;
+        return conv2d_ex(
+            rec,
+            &Conv2dArgs {
+                x: &xu,
+                upsample2x: false,
+                ..*a
+            },
+        );
+    }
     ensure!(
         wino || a.pre_gn_silu.is_none(),
         "conv2d: a GroupNorm prologue (pre_gn_silu) is fused only on the Winograd path (x {xs:?}, w {ws:?}, stride {}; see conv2d::pre_gn_fusable)",
@@ -480,6 +521,7 @@ pub fn conv2d(
             residual: None,
             silu: false,
             pre_gn_silu: None,
+            upsample2x: false,
         },
     )
 }

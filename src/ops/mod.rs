@@ -27,6 +27,8 @@ pub(crate) const SCRATCH_X_HWNC: usize = 3;
 pub(crate) const SCRATCH_PACKED_W: usize = 4;
 /// conv2d output before a separate residual add when the residual is the output itself
 pub(crate) const SCRATCH_CONV_OUT: usize = 5;
+/// conv2d input upsampled 2x, on paths that cannot read through the upsampling
+pub(crate) const SCRATCH_UPSAMPLED: usize = 6;
 
 use crate::kernels::KernelId;
 use crate::tensor::{DType, Tensor};

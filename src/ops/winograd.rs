@@ -90,7 +90,9 @@ pub fn transform_weight(rec: &mut Recorder, w: &Tensor, u: &Tensor) -> Result<()
 pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Tensor) -> Result<()> {
     let (x, bias, residual, silu, out, pad) = (a.x, a.bias, a.residual, a.silu, a.out, a.pad);
     let (xs, os) = (x.shape(), out.shape());
-    let [n, c, h, w] = [xs[0], xs[1], xs[2], xs[3]];
+    // the conv's input size (twice the stored one when x is read through a 2x upsampling)
+    let up = a.upsample2x as usize;
+    let [n, c, h, w] = [xs[0], xs[1], xs[2] << up, xs[3] << up];
     let (o, oh, ow) = (os[1], os[2], os[3]);
     expect_shape("conv2d winograd", "u", u, &[36, c, o])?;
     let (th, tw) = (oh.div_ceil(4), ow.div_ceil(4));
@@ -103,7 +105,7 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
     // vec4 transforms (4 channels per invocation: fewer per-lane access loops on lavapipe) where the layout
     // allows: input C % 4 == 0 (rows loaded as vec4s too when W % 4 == 0 and the left padding is 1); output
     // O % 4 == 0, OW % 4 == 0
-    let in4 = c % 4 == 0 && w % 4 == 0 && pad[2] == 1;
+    let in4 = c % 4 == 0 && w % 4 == 0 && pad[2] == 1 && !a.upsample2x;
     let out4 = o % 4 == 0 && ow % 4 == 0;
     let (inp, in_items) = if in4 {
         (inp4, c / 4)
@@ -142,6 +144,7 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
             has_bias,
             has_res: residual.is_some() as u32,
             silu: silu as u32,
+            up: up as u32,
         };
         let g = super::grid_1d("conv2d winograd", nt * in_items)?;
         // input4 also reads x through a scalar view (binding 3)
