@@ -85,19 +85,8 @@ fn conv_case(
     conv2d::conv2d_ex(
         &mut rec,
         &Conv2dArgs {
-            x: &x,
-            w: &wt,
-            bias: Some(&bias),
-            out: &out,
-            stride: 1,
-            pad: [p; 4],
             path,
-            packed_w: None,
-            wino_w: None,
-            residual: None,
-            silu: false,
-            pre_gn_silu: None,
-            upsample2x: false,
+            ..Conv2dArgs::new(&x, &wt, Some(&bias), &out, 1, [p; 4])
         },
     )
     .expect("conv2d");

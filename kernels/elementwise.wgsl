@@ -62,6 +62,18 @@ fn unary4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
     o1v4[i] = vec4<ST>(y);
 }
 
+// Element offsets in a and b of output element i of (d0, d1, d2, d3) (broadcast strides from the launcher).
+fn operand_offsets(i: u32) -> vec2<u32> {
+    let i3 = i % bp.d3;
+    let r3 = i / bp.d3;
+    let i2 = r3 % bp.d2;
+    let r2 = r3 / bp.d2;
+    let i1 = r2 % bp.d1;
+    let i0 = r2 / bp.d1;
+    return vec2<u32>(i0 * bp.sa0 + i1 * bp.sa1 + i2 * bp.sa2 + i3 * bp.sa3,
+                     i0 * bp.sb0 + i1 * bp.sb1 + i2 * bp.sb2 + i3 * bp.sb3);
+}
+
 // `binary` on 4 consecutive elements of the last dimension (d3 % 4 == 0); bp.n counts vec4s. An operand with
 // stride 1 on d3 (its other strides multiples of 4) loads a vec4, one with stride 0 the vec4 holding its
 // element (buffers are allocated in whole 16-byte units, so that vec4 is inside the allocation).
@@ -69,15 +81,9 @@ fn unary4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
 fn binary4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
     let q = flat_index(wid, nwg, lid);
     if (q >= bp.n) { return; }
-    let i = 4u * q;
-    let i3 = i % bp.d3;
-    let r3 = i / bp.d3;
-    let i2 = r3 % bp.d2;
-    let r2 = r3 / bp.d2;
-    let i1 = r2 % bp.d1;
-    let i0 = r2 / bp.d1;
-    let ia = i0 * bp.sa0 + i1 * bp.sa1 + i2 * bp.sa2 + i3 * bp.sa3;
-    let ib = i0 * bp.sb0 + i1 * bp.sb1 + i2 * bp.sb2 + i3 * bp.sb3;
+    let o = operand_offsets(4u * q);
+    let ia = o.x;
+    let ib = o.y;
     var x: vec4<f32>;
     if (bp.sa3 == 1u) { x = vec4<f32>(av4[ia / 4u]); } else { x = vec4<f32>(f32(av4[ia / 4u][ia % 4u])); }
     var y: vec4<f32>;
@@ -92,14 +98,9 @@ fn binary4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
 fn binary(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
     let i = flat_index(wid, nwg, lid);
     if (i >= bp.n) { return; }
-    let i3 = i % bp.d3;
-    let r3 = i / bp.d3;
-    let i2 = r3 % bp.d2;
-    let r2 = r3 / bp.d2;
-    let i1 = r2 % bp.d1;
-    let i0 = r2 / bp.d1;
-    let x = f32(a[i0 * bp.sa0 + i1 * bp.sa1 + i2 * bp.sa2 + i3 * bp.sa3]);
-    let y = f32(b[i0 * bp.sb0 + i1 * bp.sb1 + i2 * bp.sb2 + i3 * bp.sb3]);
+    let o = operand_offsets(i);
+    let x = f32(a[o.x]);
+    let y = f32(b[o.y]);
     var z: f32;
     if (bp.op == 0u) { z = x + y; } else { z = x * y; }
     out[i] = ST(z);

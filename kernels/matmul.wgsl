@@ -76,6 +76,13 @@ fn setup_rows(abase: u32, row0: u32) {
     }
 }
 
+// Element offsets of the W rows (PyTorch Linear layout (N, K)) of a lane's 4 columns col0 + step j (j < 4),
+// clamped to the last row (their results are never stored), plus `bbase` (the batch's offset).
+fn w_rows(col0: u32, step: u32, bbase: u32) -> vec4<u32> {
+    let cols = vec4<u32>(col0, col0 + step, col0 + 2u * step, col0 + 3u * step);
+    return min(cols, vec4<u32>(p.n - 1u)) * p.k + bbase;
+}
+
 // Lane `lane` loads A[m_r, k0 + lane] for its TM rows (0 past K).
 fn load_a(k0: u32, lane: u32) {
     let k = k0 + lane;
@@ -234,8 +241,7 @@ fn nt(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) li
     if (row0 >= p.m) { return; }
     let col0 = wid.x * 4u * sgs + lane;
     let bbase = wid.z * p.sb;
-    let nm = p.n - 1u;
-    let wo = min(vec4<u32>(col0, col0 + sgs, col0 + 2u * sgs, col0 + 3u * sgs), vec4<u32>(nm)) * p.k + bbase;
+    let wo = w_rows(col0, sgs, bbase);
     setup_rows(wid.z * p.sa, row0);
     for (var k0 = 0u; k0 < p.k; k0 += 8u) {
         load_a(k0, lane & 7u);
@@ -253,8 +259,7 @@ fn nt4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) l
     if (row0 >= p.m) { return; }
     let col0 = wid.x * 4u * sgs + lane;
     let bbase = wid.z * p.sb;
-    let nm = p.n - 1u;
-    let wo = min(vec4<u32>(col0, col0 + sgs, col0 + 2u * sgs, col0 + 3u * sgs), vec4<u32>(nm)) * p.k + bbase;
+    let wo = w_rows(col0, sgs, bbase);
     setup_rows(wid.z * p.sa, row0);
     for (var k0 = 0u; k0 < p.k; k0 += 8u) {
         load_a(k0, lane & 7u);
@@ -272,8 +277,7 @@ fn nt8(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) l
     // a subgroup past the last row leaves at once (uniform per subgroup; no barriers follow)
     if (row0 >= p.m) { return; }
     let col0 = wid.x * 4u * sgs + lane;
-    let nm = p.n - 1u;
-    let wo = (min(vec4<u32>(col0, col0 + sgs, col0 + 2u * sgs, col0 + 3u * sgs), vec4<u32>(nm)) * p.k + wid.z * p.sb) / 8u;
+    let wo = w_rows(col0, sgs, wid.z * p.sb) / 8u;
     setup_rows(wid.z * p.sa, row0);
     for (var k0 = 0u; k0 < p.k; k0 += 8u) {
         load_a(k0, lane & 7u);
@@ -346,8 +350,7 @@ fn nt8a(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index) 
     // a subgroup past the last row leaves at once (uniform per subgroup; no barriers follow)
     if (row0 >= p.m) { return; }
     let col0 = wid.x * 4u * sgs + lane;
-    let nm = p.n - 1u;
-    let wo = (min(vec4<u32>(col0, col0 + sgs, col0 + 2u * sgs, col0 + 3u * sgs), vec4<u32>(nm)) * p.k + wid.z * p.sb) / 8u;
+    let wo = w_rows(col0, sgs, wid.z * p.sb) / 8u;
     nt8a_k(wo, row0, lane, wid.z * p.sa);
     store_tile(wid.z * p.m * p.n, row0, col0, sgs);
 }
@@ -386,8 +389,7 @@ fn nt8a4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_index)
     // a subgroup past the last row leaves at once (uniform per subgroup; no barriers follow)
     if (row0 >= p.m) { return; }
     let col0 = (wid.x * sgs + lane) * 4u;
-    let nm = p.n - 1u;
-    let wo = (min(vec4<u32>(col0, col0 + 1u, col0 + 2u, col0 + 3u), vec4<u32>(nm)) * p.k + wid.z * p.sb) / 8u;
+    let wo = w_rows(col0, 1u, wid.z * p.sb) / 8u;
     nt8a_k(wo, row0, lane, wid.z * p.sa);
     store_tile4(wid.z * p.m * p.n, row0, col0);
 }
@@ -424,8 +426,7 @@ fn nt8a_geglu(@builtin(workgroup_id) wid: vec3<u32>, @builtin(local_invocation_i
     // a subgroup past the last row leaves at once (uniform per subgroup; no barriers follow)
     if (row0 >= p.m) { return; }
     let col0 = wid.x * 4u * sgs + lane;
-    let nm = p.n - 1u;
-    let wo = (min(vec4<u32>(col0, col0 + sgs, col0 + 2u * sgs, col0 + 3u * sgs), vec4<u32>(nm)) * p.k + wid.z * p.sb) / 8u;
+    let wo = w_rows(col0, sgs, wid.z * p.sb) / 8u;
     nt8a_k(wo, row0, lane, wid.z * p.sa);
     store_geglu(wid.z * p.m * (p.n / 2u), row0, wid.x * 2u * sgs + lane, col0, sgs);
 }

@@ -24,13 +24,10 @@ struct NormParams {
 @group(0) @binding(1) var<storage, read> gamma: array<ST>;
 @group(0) @binding(2) var<storage, read> beta: array<ST>;
 @group(0) @binding(3) var<storage, read_write> y: array<ST>;
-// vec4 views for `layer_norm_sg4` (D % 4 == 0)
-@group(0) @binding(0) var<storage, read> xv4: array<vec4<ST>>;
+// vec4 views (`gn4`, `gn_stats`, `layer_norm_sg4`)
+@group(0) @binding(0) var<storage, read> x4: array<vec4<ST>>;
 @group(0) @binding(1) var<storage, read> gv4: array<vec4<ST>>;
 @group(0) @binding(2) var<storage, read> bv4: array<vec4<ST>>;
-@group(0) @binding(3) var<storage, read_write> yv4: array<vec4<ST>>;
-
-@group(0) @binding(0) var<storage, read> x4: array<vec4<ST>>;
 @group(0) @binding(3) var<storage, read_write> y4: array<vec4<ST>>;
 var<immediate> p: NormParams;
 var<workgroup> red: array<f32, 256>;
@@ -157,6 +154,25 @@ fn reduce_welford(v: vec3<f32>, l: u32, lane: u32, sg: u32) -> vec3<f32> {
     return merge_sg(a);
 }
 
+// Welford over the vec4s x4[b4 + i] for i = start, start + stride, .. < n4, on the values shifted by x0 (each
+// vec4 component its own stream, all with the lane's count k), the 4 streams merged: this lane's (count, mean,
+// M2) for `reduce_welford` / `merge_sg`.
+fn welford4(b4: u32, n4: u32, x0: f32, start: u32, stride: u32) -> vec3<f32> {
+    var k = 0.0;
+    var m = vec4<f32>(0.0);
+    var q = vec4<f32>(0.0);
+    for (var i = start; i < n4; i += stride) {
+        let d = vec4<f32>(x4[b4 + i]) - x0;
+        k += 1.0;
+        let dm = d - m;
+        m += dm / k;
+        q += dm * (d - m);
+    }
+    let mm = (m.x + m.y + m.z + m.w) * 0.25;
+    let dc = m - mm;
+    return vec3<f32>(4.0 * k, mm, q.x + q.y + q.z + q.w + k * dot(dc, dc));
+}
+
 @compute @workgroup_size(256)
 fn gn4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>,
        @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32) {
@@ -165,23 +181,7 @@ fn gn4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
     let base = seg * p.len;
     let b4 = base / 4u;
     let x0 = f32(x4[b4].x);
-    let n4 = p.len / 4u;
-    // per-lane Welford over this lane's vec4s, each component a stream of k values
-    var k = 0.0;
-    var m = vec4<f32>(0.0);
-    var q = vec4<f32>(0.0);
-    for (var i = l; i < n4; i += 256u) {
-        let d = vec4<f32>(x4[b4 + i]) - x0;
-        k += 1.0;
-        let dm = d - m;
-        m += dm / k;
-        q += dm * (d - m);
-    }
-    // merge the 4 equal-count component streams
-    let mm = (m.x + m.y + m.z + m.w) * 0.25;
-    let dc = m - mm;
-    let lane_st = vec3<f32>(4.0 * k, mm, q.x + q.y + q.z + q.w + k * dot(dc, dc));
-    let st = reduce_welford(lane_st, l, lane, sg);
+    let st = reduce_welford(welford4(b4, p.len / 4u, x0, l, 256u), l, lane, sg);
     let mean = st.y; // mean of the shifted values
     let rstd = inverseSqrt(st.z / f32(p.len) + p.eps);
     let cbase = (seg % p.segs_per_item) * p.ch_per_seg;
@@ -234,24 +234,12 @@ fn layer_norm_sg4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
     if (row >= p.ch_per_seg) { return; }
     let d4 = p.len / 4u;
     let base = row * d4;
-    let x0 = f32(xv4[base].x);
-    var k = 0.0;
-    var m = vec4<f32>(0.0);
-    var q = vec4<f32>(0.0);
-    for (var i = lane; i < d4; i += sg) {
-        let t = vec4<f32>(xv4[base + i]) - x0;
-        k += 1.0;
-        let dm = t - m;
-        m += dm / k;
-        q += dm * (t - m);
-    }
-    let mm = (m.x + m.y + m.z + m.w) * 0.25;
-    let dc = m - mm;
-    let st = merge_sg(vec3<f32>(4.0 * k, mm, q.x + q.y + q.z + q.w + k * dot(dc, dc)));
+    let x0 = f32(x4[base].x);
+    let st = merge_sg(welford4(base, d4, x0, lane, sg));
     let mean = st.y;
     let rstd = inverseSqrt(st.z / f32(p.len) + p.eps);
     for (var i = lane; i < d4; i += sg) {
-        yv4[base + i] = vec4<ST>(((vec4<f32>(xv4[base + i]) - x0) - mean) * rstd * vec4<f32>(gv4[i]) + vec4<f32>(bv4[i]));
+        y4[base + i] = vec4<ST>(((vec4<f32>(x4[base + i]) - x0) - mean) * rstd * vec4<f32>(gv4[i]) + vec4<f32>(bv4[i]));
     }
 }
 
@@ -269,31 +257,22 @@ fn gn_stats(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
     let l = lid.x;
     let base = seg * p.len;
     let x0 = f32(xs[base]);
-    var k = 0.0;
-    var m = vec4<f32>(0.0);
-    var q = vec4<f32>(0.0);
-    var lane_st = vec3<f32>(0.0);
+    var lane_st: vec3<f32>;
     if (p.len % 4u == 0u) {
-        let b4 = base / 4u;
-        for (var i = l; i < p.len / 4u; i += 256u) {
-            let d = vec4<f32>(x4[b4 + i]) - x0;
+        lane_st = welford4(base / 4u, p.len / 4u, x0, l, 256u);
+    } else {
+        // scalar Welford (the vec4 one with a single stream)
+        var k = 0.0;
+        var m = 0.0;
+        var q = 0.0;
+        for (var i = l; i < p.len; i += 256u) {
+            let d = f32(xs[base + i]) - x0;
             k += 1.0;
             let dm = d - m;
             m += dm / k;
             q += dm * (d - m);
         }
-        let mm = (m.x + m.y + m.z + m.w) * 0.25;
-        let dc = m - mm;
-        lane_st = vec3<f32>(4.0 * k, mm, q.x + q.y + q.z + q.w + k * dot(dc, dc));
-    } else {
-        for (var i = l; i < p.len; i += 256u) {
-            let d = f32(xs[base + i]) - x0;
-            k += 1.0;
-            let dm = d - m.x;
-            m.x += dm / k;
-            q.x += dm * (d - m.x);
-        }
-        lane_st = vec3<f32>(k, m.x, q.x);
+        lane_st = vec3<f32>(k, m, q);
     }
     let st = reduce_welford(lane_st, l, lane, sg);
     let rstd = inverseSqrt(st.z / f32(p.len) + p.eps);

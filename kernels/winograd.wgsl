@@ -324,10 +324,14 @@ fn input4_impl(i: u32, pre: bool) {
     let r3 = bt4(xrow4c(base, plane, iy0 + 3, tx, pre, pa));
     let r4 = bt4(xrow4c(base, plane, iy0 + 4, tx, pre, pa));
     let r5 = bt4(xrow4c(base, plane, iy0 + 5, tx, pre, pa));
-    let st = p.nt * cq;
-    let o0 = tl * cq + c0 / 4u;
+    put_v4(array<array<vec4<f32>, 6>, 6>(r0, r1, r2, r3, r4, r5), p.nt * cq, tl * cq + c0 / 4u);
+}
+
+// The second half of B^T d B for 4 channels: rows r (B^T applied along x, as vec4s over the channels) -> along
+// y, stored to v4: (36, nt, C / 4) at slab-tile column o0 (st = nt C / 4).
+fn put_v4(r: array<array<vec4<f32>, 6>, 6>, st: u32, o0: u32) {
     for (var j = 0u; j < 6u; j++) {
-        let col = bt4(array<vec4<f32>, 6>(r0[j], r1[j], r2[j], r3[j], r4[j], r5[j]));
+        let col = bt4(array<vec4<f32>, 6>(r[0][j], r[1][j], r[2][j], r[3][j], r[4][j], r[5][j]));
         for (var i2 = 0u; i2 < 6u; i2++) {
             v4[(i2 * 6u + j) * st + o0] = col[i2];
         }
@@ -431,12 +435,5 @@ fn input4s_impl(i: u32, pre: bool) {
             rows[r][j] = vec4<f32>(q0[j], q1[j], q2[j], q3[j]);
         }
     }
-    let st = p.nt * cq;
-    let o0 = tl * cq + c0 / 4u;
-    for (var j = 0u; j < 6u; j++) {
-        let col = bt4(array<vec4<f32>, 6>(rows[0][j], rows[1][j], rows[2][j], rows[3][j], rows[4][j], rows[5][j]));
-        for (var i2 = 0u; i2 < 6u; i2++) {
-            v4[(i2 * 6u + j) * st + o0] = col[i2];
-        }
-    }
+    put_v4(rows, p.nt * cq, tl * cq + c0 / 4u);
 }

@@ -106,19 +106,8 @@ fn run_case(ctx: &b2dr::vk::Context, c: &Case, dtype: DType, path: ConvPath, see
         cv::conv2d_ex(
             rec,
             &Conv2dArgs {
-                x: &tx,
-                w: &tw,
-                bias: Some(&tb),
-                out: &out,
-                stride: c.stride,
-                pad: c.pad,
                 path,
-                packed_w: None,
-                wino_w: None,
-                residual: None,
-                silu: false,
-                pre_gn_silu: None,
-                upsample2x: false,
+                ..Conv2dArgs::new(&tx, &tw, Some(&tb), &out, c.stride, c.pad)
             },
         )
     });
@@ -234,19 +223,9 @@ fn winograd_edges_match_reference() {
         cv::conv2d_ex(
             rec,
             &Conv2dArgs {
-                x: &tx,
-                w: &tw,
-                bias: None,
-                out: &out,
-                stride: 1,
-                pad: [1; 4],
                 path: ConvPath::Winograd,
-                packed_w: None,
                 wino_w: Some(&u),
-                residual: None,
-                silu: false,
-                pre_gn_silu: None,
-                upsample2x: false,
+                ..Conv2dArgs::new(&tx, &tw, None, &out, 1, [1; 4])
             },
         )
     });
@@ -274,19 +253,8 @@ fn winograd_edges_match_reference() {
     let r = cv::conv2d_ex(
         &mut rec,
         &Conv2dArgs {
-            x: &x5,
-            w: &w5,
-            bias: None,
-            out: &o5,
-            stride: 2,
-            pad: [1; 4],
             path: ConvPath::Winograd,
-            packed_w: None,
-            wino_w: None,
-            residual: None,
-            silu: false,
-            pre_gn_silu: None,
-            upsample2x: false,
+            ..Conv2dArgs::new(&x5, &w5, None, &o5, 2, [1; 4])
         },
     );
     let msg = format!("{:#}", r.expect_err("stride 2 must be refused"));
@@ -313,19 +281,9 @@ fn prepacked_weights_match() {
             cv::conv2d_ex(
                 rec,
                 &Conv2dArgs {
-                    x: &tx,
-                    w: &tw,
-                    bias: None,
-                    out: &out,
-                    stride: 2,
-                    pad: [1, 1, 1, 1],
                     path: ConvPath::Fast,
                     packed_w: Some(&packed),
-                    wino_w: None,
-                    residual: None,
-                    silu: false,
-                    pre_gn_silu: None,
-                    upsample2x: false,
+                    ..Conv2dArgs::new(&tx, &tw, None, &out, 2, [1, 1, 1, 1])
                 },
             )
         });
@@ -467,19 +425,8 @@ fn convs_sharing_scratch_in_one_recording_match() {
             cv::conv2d_ex(
                 rec,
                 &Conv2dArgs {
-                    x: tx,
-                    w: tw,
-                    bias: None,
-                    out,
-                    stride: 1,
-                    pad: [1; 4],
                     path,
-                    packed_w: None,
-                    wino_w: None,
-                    residual: None,
-                    silu: false,
-                    pre_gn_silu: None,
-                    upsample2x: false,
+                    ..Conv2dArgs::new(tx, tw, None, out, 1, [1; 4])
                 },
             )?;
         }
@@ -561,19 +508,10 @@ fn fused_bias_per_image_and_residual_match_reference() {
                     cv::conv2d_ex(
                         rec,
                         &Conv2dArgs {
-                            x: &tx,
-                            w: &tw,
-                            bias: Some(&tb),
-                            out: &out,
-                            stride: 1,
-                            pad,
                             path,
-                            packed_w: None,
-                            wino_w: None,
                             residual: Some(&tr),
                             silu,
-                            pre_gn_silu: None,
-                            upsample2x: false,
+                            ..Conv2dArgs::new(&tx, &tw, Some(&tb), &out, 1, pad)
                         },
                     )
                 });
@@ -629,19 +567,8 @@ fn fused_bias_per_image_and_residual_match_reference() {
         let e = cv::conv2d_ex(
             &mut rec,
             &Conv2dArgs {
-                x: &x,
-                w: &w,
-                bias,
-                out: &out,
-                stride: 1,
-                pad: [1; 4],
-                path: ConvPath::Auto,
-                packed_w: None,
-                wino_w: None,
                 residual: res,
-                silu: false,
-                pre_gn_silu: None,
-                upsample2x: false,
+                ..Conv2dArgs::new(&x, &w, bias, &out, 1, [1; 4])
             },
         )
         .unwrap_err();
@@ -692,19 +619,10 @@ fn group_norm_prologue_matches_norm_then_conv() {
                 cv::conv2d_ex(
                     rec,
                     &Conv2dArgs {
-                        x: &tx,
-                        w: &tw,
-                        bias: Some(&tb),
-                        out: &out,
-                        stride: 1,
-                        pad,
                         path: ConvPath::Winograd,
-                        packed_w: None,
-                        wino_w: None,
                         residual: Some(&tr),
-                        silu: false,
                         pre_gn_silu: Some(&st),
-                        upsample2x: false,
+                        ..Conv2dArgs::new(&tx, &tw, Some(&tb), &out, 1, pad)
                     },
                 )
             });
@@ -749,19 +667,8 @@ fn group_norm_prologue_matches_norm_then_conv() {
     let e = cv::conv2d_ex(
         &mut rec,
         &Conv2dArgs {
-            x: &x,
-            w: &w,
-            bias: None,
-            out: &out,
-            stride: 2,
-            pad: [1; 4],
-            path: ConvPath::Auto,
-            packed_w: None,
-            wino_w: None,
-            residual: None,
-            silu: false,
             pre_gn_silu: Some(&st),
-            upsample2x: false,
+            ..Conv2dArgs::new(&x, &w, None, &out, 2, [1; 4])
         },
     )
     .unwrap_err();
@@ -805,32 +712,21 @@ fn upsampled_input_matches_upsample_then_conv() {
                 cv::conv2d_ex(
                     rec,
                     &Conv2dArgs {
-                        x: &tx,
-                        w: &tw,
-                        bias: Some(&tb),
-                        out: &out,
-                        stride: 1,
-                        pad: [1; 4],
                         path,
-                        packed_w: None,
-                        wino_w: None,
-                        residual: None,
-                        silu: false,
-                        pre_gn_silu: None,
                         upsample2x: true,
+                        ..Conv2dArgs::new(&tx, &tw, Some(&tb), &out, 1, [1; 4])
                     },
                 )
             });
-            let xs = stored(&x, dtype);
             let (h2, w2) = (2 * h, 2 * w);
-            let mut xu = vec![0.0; n * c * h2 * w2];
-            for p in 0..n * c {
-                for yy in 0..h2 {
-                    for xx in 0..w2 {
-                        xu[(p * h2 + yy) * w2 + xx] = xs[(p * h + yy / 2) * w + xx / 2];
-                    }
-                }
-            }
+            let xu = b2dr::ops::reference::image::upsample_nearest(
+                &stored(&x, dtype),
+                n * c,
+                h,
+                w,
+                h2,
+                w2,
+            );
             let g = ConvGeom {
                 kh: 3,
                 kw: 3,

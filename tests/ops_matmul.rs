@@ -410,12 +410,10 @@ fn fused_residual_matches_reference() {
                             },
                         )
                     });
-                    // b is shared over the batch: the reference takes it per batch
-                    let b64 = stored(&b, dtype);
-                    let bb: Vec<f64> = (0..batch).flat_map(|_| b64.iter().copied()).collect();
-                    let bs = stored(&bias, dtype);
-                    let mm_ =
-                        rmm::matmul(&stored(&a, dtype), &bb, Some(&bs), batch, m, n, k, trans_b);
+                    // b is shared over the batch (the reference broadcasts an unbatched operand)
+                    let (a64, b64, bs) =
+                        (stored(&a, dtype), stored(&b, dtype), stored(&bias, dtype));
+                    let mm_ = rmm::matmul(&a64, &b64, Some(&bs), batch, m, n, k, trans_b);
                     let rs = stored(&r, dtype);
                     let want: Vec<f64> = mm_.iter().zip(&rs).map(|(x, y)| x + y).collect();
                     let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
@@ -490,18 +488,13 @@ fn linear_to_channels_matches_reference() {
                 stored(&b, dtype),
                 stored(&r, dtype),
             );
-            let mut want = vec![0.0; n * o * l];
-            for i in 0..n {
-                for oc in 0..o {
-                    for p in 0..l {
-                        let dot: f64 = (0..c)
-                            .map(|k| w64[oc * c + k] * t64[(i * l + p) * c + k])
-                            .sum();
-                        let j = (i * o + oc) * l + p;
-                        want[j] = dot + b64[oc] + r64[j];
-                    }
-                }
-            }
+            // w (O, C) . tokens[i]^T per image: the reference's (batch, M = O, N = L) with b = the tokens
+            let prod = rmm::matmul(&w64, &t64, None, n, o, l, c, true);
+            let want: Vec<f64> = prod
+                .iter()
+                .enumerate()
+                .map(|(j, v)| v + b64[(j / l) % o] + r64[j])
+                .collect();
             let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
             let tol = if dtype == DType::F32 { 1e-7 } else { 5e-4 };
             assert!(e <= tol, "({n}, {l}, {c}) -> {o} {dtype:?}: nmse {e:e}");

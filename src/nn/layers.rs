@@ -92,28 +92,43 @@ impl Conv {
     /// x (N, C, H, W) -> the conv of its nearest 2x upsampling (Upsample2D), reading through the upsampling
     /// where the conv runs Winograd (see `conv2d::Conv2dArgs::upsample2x`).
     pub fn forward_upsampled2x(&self, f: &mut Fwd, x: &Tensor) -> Result<Tensor> {
-        let (s, ws) = (x.shape(), self.w.shape());
-        let (h, w) = (2 * s[2], 2 * s[3]);
-        let oh = (h + self.pad[0] + self.pad[1] - ws[2]) / self.stride + 1;
-        let ow = (w + self.pad[2] + self.pad[3] - ws[3]) / self.stride + 1;
-        let out = f.ws.alloc(&[s[0], ws[0], oh, ow])?;
+        self.run(f, x, self.b.as_ref(), true, None, false, None)
+    }
+
+    /// Allocates the output and runs the conv on x (read through a 2x upsampling if `up`) with this layer's
+    /// weights and the given bias, residual, SiLU and prologue (see [`Self::forward_ex`]).
+    #[allow(clippy::too_many_arguments)] // the conv's optional parts, named
+    fn run(
+        &self,
+        f: &mut Fwd,
+        x: &Tensor,
+        bias: Option<&Tensor>,
+        up: bool,
+        residual: Option<&Tensor>,
+        silu: bool,
+        pre_gn_silu: Option<&Tensor>,
+    ) -> Result<Tensor> {
+        let s = x.shape();
+        anyhow::ensure!(
+            s.len() == 4,
+            "conv {}: x {s:?} must be (N, C, H, W)",
+            self.name
+        );
+        let k = up as usize;
+        let xs = [s[0], s[1], s[2] << k, s[3] << k];
+        let os = conv2d::conv2d_out_shape(&xs, self.w.shape(), self.stride, self.pad)
+            .with_context(|| format!("conv {}", self.name))?;
+        let out = f.ws.alloc(&os)?;
         let args = conv2d::Conv2dArgs {
-            x,
-            w: &self.w,
-            bias: self.b.as_ref(),
-            out: &out,
-            stride: self.stride,
-            pad: self.pad,
-            path: conv2d::ConvPath::Auto,
             packed_w: self.packed.as_ref(),
             wino_w: self.wino.as_ref(),
-            residual: None,
-            silu: false,
-            pre_gn_silu: None,
-            upsample2x: true,
+            upsample2x: up,
+            residual,
+            silu,
+            pre_gn_silu,
+            ..conv2d::Conv2dArgs::new(x, &self.w, bias, &out, self.stride, self.pad)
         };
-        conv2d::conv2d_ex(f.rec, &args)
-            .with_context(|| format!("conv {} (2x upsampled input)", self.name))?;
+        conv2d::conv2d_ex(f.rec, &args).with_context(|| format!("conv {}", self.name))?;
         Ok(out)
     }
 
@@ -136,27 +151,7 @@ impl Conv {
         silu: bool,
         pre_gn_silu: Option<&Tensor>,
     ) -> Result<Tensor> {
-        let (s, ws) = (x.shape(), self.w.shape());
-        let oh = (s[2] + self.pad[0] + self.pad[1] - ws[2]) / self.stride + 1;
-        let ow = (s[3] + self.pad[2] + self.pad[3] - ws[3]) / self.stride + 1;
-        let out = f.ws.alloc(&[s[0], ws[0], oh, ow])?;
-        let args = conv2d::Conv2dArgs {
-            x,
-            w: &self.w,
-            bias,
-            out: &out,
-            stride: self.stride,
-            pad: self.pad,
-            path: conv2d::ConvPath::Auto,
-            packed_w: self.packed.as_ref(),
-            wino_w: self.wino.as_ref(),
-            residual,
-            silu,
-            pre_gn_silu,
-            upsample2x: false,
-        };
-        conv2d::conv2d_ex(f.rec, &args).with_context(|| format!("conv {}", self.name))?;
-        Ok(out)
+        self.run(f, x, bias, false, residual, silu, pre_gn_silu)
     }
 }
 

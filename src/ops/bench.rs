@@ -128,19 +128,10 @@ fn conv_case(dtype: DType, path: conv2d::ConvPath) -> BenchCase {
                 conv2d::conv2d_ex(
                     rec,
                     &conv2d::Conv2dArgs {
-                        x: &x,
-                        w: &wt,
-                        bias: Some(&b),
-                        out: &y,
-                        stride: 1,
-                        pad: [1; 4],
                         path,
                         packed_w: Some(&packed),
                         wino_w: Some(&wino),
-                        residual: None,
-                        silu: false,
-                        pre_gn_silu: None,
-                        upsample2x: false,
+                        ..conv2d::Conv2dArgs::new(&x, &wt, Some(&b), &y, 1, [1; 4])
                     },
                 )
             })

@@ -102,6 +102,35 @@ pub struct Conv2dArgs<'a> {
     pub upsample2x: bool,
 }
 
+impl<'a> Conv2dArgs<'a> {
+    /// A plain conv: path `Auto`, no pre-transformed weights, residual, SiLU, prologue or upsampling (set those
+    /// with struct update syntax: `Conv2dArgs { residual: Some(r), ..Conv2dArgs::new(..) }`).
+    pub fn new(
+        x: &'a Tensor,
+        w: &'a Tensor,
+        bias: Option<&'a Tensor>,
+        out: &'a Tensor,
+        stride: usize,
+        pad: [usize; 4],
+    ) -> Self {
+        Self {
+            x,
+            w,
+            bias,
+            out,
+            stride,
+            pad,
+            path: ConvPath::Auto,
+            packed_w: None,
+            wino_w: None,
+            residual: None,
+            silu: false,
+            pre_gn_silu: None,
+            upsample2x: false,
+        }
+    }
+}
+
 /// Whether `Auto` runs this conv where a GroupNorm + SiLU prologue (`Conv2dArgs::pre_gn_silu`) can be fused:
 /// the Winograd path (3x3, stride 1, [`winograd_pays`], subgroups).
 pub fn pre_gn_fusable(
@@ -506,22 +535,5 @@ pub fn conv2d(
     pad: [usize; 4],
     out: &Tensor,
 ) -> Result<()> {
-    conv2d_ex(
-        rec,
-        &Conv2dArgs {
-            x,
-            w,
-            bias,
-            out,
-            stride,
-            pad,
-            path: ConvPath::Auto,
-            packed_w: None,
-            wino_w: None,
-            residual: None,
-            silu: false,
-            pre_gn_silu: None,
-            upsample2x: false,
-        },
-    )
+    conv2d_ex(rec, &Conv2dArgs::new(x, w, bias, out, stride, pad))
 }
