@@ -80,6 +80,23 @@ const CASES: &[Case] = &[
         scale: 1e3,
         ..case("large_inputs_x1e3", 20, 24, 9, 15, 3, 1)
     },
+    // few output channels (a model's last conv): vec4 window rows (W % 4 == 0, left padding 1), a partial
+    // chunk of 8 input channels and a partial 8-pixel strip, asymmetric padding, batch 2
+    case("conv_out_3x3_32to3_24x40", 32, 3, 24, 40, 3, 1),
+    case("conv_out_3x3_20to4_13x18", 20, 4, 13, 18, 3, 1),
+    Case {
+        n: 2,
+        pad: [2, 0, 0, 1],
+        ..case(
+            "conv_out_asym_pad2001_13to1_9x11_batch2",
+            13,
+            1,
+            9,
+            11,
+            3,
+            0,
+        )
+    },
 ];
 
 fn run_case(ctx: &b2dr::vk::Context, c: &Case, dtype: DType, path: ConvPath, seed: u64) -> f64 {
@@ -131,6 +148,8 @@ fn fast_and_direct_match_reference() {
             ConvPath::Auto,
             ConvPath::FastHwnc,
             ConvPath::Winograd,
+            ConvPath::Winograd6,
+            ConvPath::Narrow,
             ConvPath::Direct,
         ] {
             let mut worst = 0.0f64;
@@ -138,7 +157,11 @@ fn fast_and_direct_match_reference() {
                 if path == ConvPath::Direct && !c.direct {
                     continue;
                 }
-                if path == ConvPath::Winograd && (c.k != (3, 3) || c.stride != 1) {
+                let wino = matches!(path, ConvPath::Winograd | ConvPath::Winograd6);
+                if wino && (c.k != (3, 3) || c.stride != 1) {
+                    continue;
+                }
+                if path == ConvPath::Narrow && (c.k != (3, 3) || c.stride != 1 || c.o > 4) {
                     continue;
                 }
                 let e = run_case(&ctx, c, dtype, path, 300 + i as u64);
@@ -175,9 +198,9 @@ fn long_reductions_are_not_truncated() {
     assert_no_validation_errors();
 }
 
-/// Winograd F(4x4, 3x3) on its edge cases: outputs that are not multiples of the 4x4 tile, asymmetric and
-/// zero padding, a 1x1 image, batches, several slabs of tiles (the intermediates are split at 16 MiB), large
-/// inputs, and weights transformed once beforehand.
+/// Winograd F(4x4, 3x3) and F(6x6, 3x3) on their edge cases: outputs that are not multiples of the tile,
+/// asymmetric and zero padding, a 1x1 image, batches, several slabs of tiles (the intermediates are split at
+/// 16 MiB), large inputs, and weights transformed once beforehand.
 #[test]
 fn winograd_edges_match_reference() {
     let Some(ctx) = ctx() else { return };
@@ -200,35 +223,21 @@ fn winograd_edges_match_reference() {
             ..case("large_inputs_x1e3_16to16_12x12", 16, 16, 12, 12, 3, 1)
         },
     ];
-    for dtype in [DType::F32, DType::F16] {
-        for (i, c) in cases.iter().enumerate() {
-            let e = run_case(&ctx, c, dtype, ConvPath::Winograd, 700 + i as u64);
-            eprintln!("{dtype:?} winograd {}: nmse {e:.2e}", c.name);
-            let tol = if dtype == DType::F32 { 1e-6 } else { 5e-4 };
-            assert!(e <= tol, "{} {dtype:?}: nmse {e:e}", c.name);
+    use b2dr::ops::winograd::{transform_weight, weight_shape, Tile};
+    for path in [ConvPath::Winograd, ConvPath::Winograd6] {
+        for dtype in [DType::F32, DType::F16] {
+            for (i, c) in cases.iter().enumerate() {
+                let e = run_case(&ctx, c, dtype, path, 700 + i as u64);
+                eprintln!("{dtype:?} {path:?} {}: nmse {e:.2e}", c.name);
+                let tol = if dtype == DType::F32 { 1e-6 } else { 5e-4 };
+                assert!(e <= tol, "{} {dtype:?} {path:?}: nmse {e:e}", c.name);
+            }
         }
     }
     // transformed once, as the layers do at load
     let (x, w) = (uniform(12 * 9 * 11, 1.0, 3), uniform(16 * 12 * 9, 1.0, 4));
     let tx = upload(&ctx, &[1, 12, 9, 11], DType::F32, &x);
     let tw = upload(&ctx, &[16, 12, 3, 3], DType::F32, &w);
-    let u = empty(
-        &ctx,
-        &b2dr::ops::winograd::weight_shape(tw.shape()),
-        DType::F32,
-    );
-    let out = empty(&ctx, &[1, 16, 9, 11], DType::F32);
-    run(&ctx, |rec| {
-        b2dr::ops::winograd::transform_weight(rec, &tw, &u)?;
-        cv::conv2d_ex(
-            rec,
-            &Conv2dArgs {
-                path: ConvPath::Winograd,
-                wino_w: Some(&u),
-                ..Conv2dArgs::new(&tx, &tw, None, &out, 1, [1; 4])
-            },
-        )
-    });
     let g = ConvGeom {
         kh: 3,
         kw: 3,
@@ -243,23 +252,48 @@ fn winograd_edges_match_reference() {
         16,
         g,
     );
-    let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
-    assert!(e <= 1e-6, "pre-transformed: nmse {e:e}");
-    // the Winograd path refuses other geometries
+    for (tile, path) in [
+        (Tile::F4, ConvPath::Winograd),
+        (Tile::F6, ConvPath::Winograd6),
+    ] {
+        let u = empty(&ctx, &weight_shape(tw.shape(), tile), DType::F32);
+        let out = empty(&ctx, &[1, 16, 9, 11], DType::F32);
+        run(&ctx, |rec| {
+            transform_weight(rec, &tw, &u)?;
+            let (w4, w6) = if tile == Tile::F4 {
+                (Some(&u), None)
+            } else {
+                (None, Some(&u))
+            };
+            cv::conv2d_ex(
+                rec,
+                &Conv2dArgs {
+                    path,
+                    wino_w: w4,
+                    wino_w6: w6,
+                    ..Conv2dArgs::new(&tx, &tw, None, &out, 1, [1; 4])
+                },
+            )
+        });
+        let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
+        assert!(e <= 1e-6, "pre-transformed {tile:?}: nmse {e:e}");
+    }
+    // the Winograd paths refuse other geometries
     let x5 = empty(&ctx, &[1, 4, 8, 8], DType::F32);
     let w5 = empty(&ctx, &[4, 4, 3, 3], DType::F32);
     let o5 = empty(&ctx, &[1, 4, 4, 4], DType::F32);
-    let mut rec = ctx.recorder().unwrap();
-    let r = cv::conv2d_ex(
-        &mut rec,
-        &Conv2dArgs {
-            path: ConvPath::Winograd,
-            ..Conv2dArgs::new(&x5, &w5, None, &o5, 2, [1; 4])
-        },
-    );
-    let msg = format!("{:#}", r.expect_err("stride 2 must be refused"));
-    assert!(msg.contains("3x3 stride-1"), "{msg}");
-    drop(rec);
+    for path in [ConvPath::Winograd, ConvPath::Winograd6] {
+        let mut rec = ctx.recorder().unwrap();
+        let r = cv::conv2d_ex(
+            &mut rec,
+            &Conv2dArgs {
+                path,
+                ..Conv2dArgs::new(&x5, &w5, None, &o5, 2, [1; 4])
+            },
+        );
+        let msg = format!("{:#}", r.expect_err("stride 2 must be refused"));
+        assert!(msg.contains("3x3 stride-1"), "{msg}");
+    }
     assert_no_validation_errors();
 }
 
@@ -409,6 +443,8 @@ fn convs_sharing_scratch_in_one_recording_match() {
         (12, 16, 7, 13, ConvPath::FastHwnc),
         (16, 12, 12, 12, ConvPath::Winograd),
         (8, 20, 10, 9, ConvPath::Winograd),
+        (12, 8, 13, 14, ConvPath::Winograd6),
+        (6, 4, 9, 8, ConvPath::Winograd6),
         (12, 8, 5, 6, ConvPath::Fast),
     ];
     let mut data = vec![];
@@ -475,6 +511,29 @@ fn fused_bias_per_image_and_residual_match_reference() {
             3,
             ConvPath::Winograd,
         ),
+        (
+            "winograd6_scalar_o6_13x20",
+            [2, 5, 13, 20],
+            6,
+            3,
+            ConvPath::Winograd6,
+        ),
+        (
+            "winograd6_pairs_12x16",
+            [2, 8, 12, 16],
+            12,
+            3,
+            ConvPath::Winograd6,
+        ),
+        (
+            "winograd6_quad_14x25",
+            [2, 8, 14, 25],
+            12,
+            3,
+            ConvPath::Winograd6,
+        ),
+        ("narrow_o3_12x16", [2, 8, 12, 16], 3, 3, ConvPath::Narrow),
+        ("narrow_o4_7x13", [2, 11, 7, 13], 4, 3, ConvPath::Narrow),
         ("packed_7x13", [2, 16, 7, 13], 8, 3, ConvPath::Fast),
         ("implicit_o6_7x13", [2, 5, 7, 13], 6, 3, ConvPath::Fast),
         ("direct_7x13", [2, 5, 7, 13], 8, 3, ConvPath::Direct),
@@ -593,7 +652,24 @@ fn group_norm_prologue_matches_norm_then_conv() {
         ("asym_pad_c8_10x10", [1, 8, 10, 10], 8, 2, [0, 2, 2, 1], 0.0),
         ("offset_c8_12x16", [1, 8, 12, 16], 8, 4, [1; 4], 50.0),
     ];
-    for (i, &(name, [n, c, h, w], o, groups, pad, offset)) in cases.iter().enumerate() {
+    // and the few-output-channel kernel (its vec4-row and scalar loads)
+    let narrow: &[PrologueCase] = &[
+        ("narrow_rows4_c8_12x16", [2, 8, 12, 16], 3, 4, [1; 4], 0.0),
+        ("narrow_scalar_c6_9x11", [1, 6, 9, 11], 4, 3, [1; 4], 0.0),
+        (
+            "narrow_offset_c12_8x20",
+            [1, 12, 8, 20],
+            3,
+            4,
+            [0, 2, 1, 1],
+            50.0,
+        ),
+    ];
+    let all = cases
+        .iter()
+        .flat_map(|c| [(c, ConvPath::Winograd), (c, ConvPath::Winograd6)])
+        .chain(narrow.iter().map(|c| (c, ConvPath::Narrow)));
+    for (i, (&(name, [n, c, h, w], o, groups, pad, offset), path)) in all.enumerate() {
         for dtype in [DType::F32, DType::F16] {
             let seed = 1200 + 10 * i as u64;
             let x: Vec<f32> = uniform(n * c * h * w, 1.0, seed)
@@ -619,7 +695,7 @@ fn group_norm_prologue_matches_norm_then_conv() {
                 cv::conv2d_ex(
                     rec,
                     &Conv2dArgs {
-                        path: ConvPath::Winograd,
+                        path,
                         residual: Some(&tr),
                         pre_gn_silu: Some(&st),
                         ..Conv2dArgs::new(&tx, &tw, Some(&tb), &out, 1, pad)
@@ -655,7 +731,7 @@ fn group_norm_prologue_matches_norm_then_conv() {
             let want: Vec<f64> = conv.iter().zip(&rs).map(|(a, b)| a + b).collect();
             let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
             let tol = if dtype == DType::F32 { 1e-6 } else { 5e-4 };
-            assert!(e <= tol, "{name} {dtype:?}: nmse {e:e}");
+            assert!(e <= tol, "{name} {dtype:?} {path:?}: nmse {e:e}");
         }
     }
     // the prologue exists on the Winograd path only: elsewhere it is an error, not an unnormalised conv
@@ -695,6 +771,14 @@ fn upsampled_input_matches_upsample_then_conv() {
             12,
             ConvPath::Winograd,
         ),
+        ("winograd6_scalar_c6", [2, 6, 7, 9], 8, ConvPath::Winograd6),
+        (
+            "winograd6_input6s_c8",
+            [1, 8, 14, 25],
+            12,
+            ConvPath::Winograd6,
+        ),
+        ("narrow_c8_o3", [2, 8, 6, 10], 3, ConvPath::Narrow),
         ("packed_c8", [2, 8, 5, 7], 8, ConvPath::Fast),
         ("direct_c5", [1, 5, 4, 6], 3, ConvPath::Direct),
     ];

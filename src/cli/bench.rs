@@ -1,4 +1,4 @@
-//! `b2dr bench ops [--json] [--filter S]`: times every op case on the chosen device.
+//! `b2dr bench ops [--json] [--filter S] [--profile]`: times every op case on the chosen device.
 use std::collections::BTreeMap;
 
 use anyhow::{bail, Result};
@@ -10,8 +10,9 @@ pub fn run_ops(
     json: bool,
     filter: Option<String>,
     min_time_s: f64,
+    profile: bool,
 ) -> Result<()> {
-    run_cases(device, bench::cases(), json, filter, min_time_s, false)
+    run_cases(device, bench::cases(), json, filter, min_time_s, profile)
 }
 
 /// `b2dr bench model`: the model-level cases of `b2dr::nn::bench`.

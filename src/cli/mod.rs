@@ -67,6 +67,9 @@ pub enum BenchCmd {
         /// Minimum timed seconds per case.
         #[arg(long, default_value_t = 1.0)]
         min_time: f64,
+        /// Print GPU time per op (timestamp queries after every dispatch).
+        #[arg(long)]
+        profile: bool,
     },
 }
 
@@ -82,7 +85,8 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
             json,
             filter,
             min_time,
-        }) => bench::run_ops(cli.device, json, filter, min_time),
+            profile,
+        }) => bench::run_ops(cli.device, json, filter, min_time, profile),
         Command::Bench(BenchCmd::Model {
             json,
             filter,

@@ -10,10 +10,11 @@ pub struct Conv {
     pub w: Tensor,
     /// The weight repacked once at load to (KH, KW, C, O) for the implicit-GEMM kernel (when it applies).
     packed: Option<Tensor>,
-    /// 3x3 stride-1 weights Winograd-transformed once at load ((36, C, O) f32), on CPU devices (where `Auto`
-    /// may pick the Winograd path; whether it does depends on the input size, unknown at load), when that copy
-    /// stays under 16 MiB (larger ones are transformed per call when used).
-    wino: Option<Tensor>,
+    /// 3x3 stride-1 weights Winograd-transformed once at load for F(4x4) ((36, C, O) f32) and F(6x6)
+    /// ((64, C, O)), on CPU devices (where `Auto` may pick the Winograd path; whether it does, and with which
+    /// tile, depends on the input size, unknown at load), when each copy stays under 16 MiB (larger ones are
+    /// transformed per call when used).
+    wino: [Option<Tensor>; 2],
     pub b: Option<Tensor>,
     pub stride: usize,
     pub pad: [usize; 4],
@@ -44,24 +45,27 @@ impl Conv {
                 packed = Some(p);
             }
         }
-        let mut wino = None;
-        let ush = crate::ops::winograd::weight_shape(&s);
-        if dw.ctx.info().is_cpu()
-            && s[2] == 3
-            && s[3] == 3
-            && stride == 1
-            && ush.iter().product::<usize>() * 4 <= 16 << 20
-        {
-            let u = Tensor::empty(
-                &dw.ctx,
-                &ush,
-                DType::F32,
-                &format!("{name}.weight.winograd"),
-            )?;
-            let mut rec = dw.ctx.recorder()?;
-            crate::ops::winograd::transform_weight(&mut rec, &w, &u)?;
-            rec.finish()?.submit_wait()?;
-            wino = Some(u);
+        let mut wino = [None, None];
+        use crate::ops::winograd::{transform_weight, weight_shape, Tile};
+        for (slot, t) in wino.iter_mut().zip([Tile::F4, Tile::F6]) {
+            let ush = weight_shape(&s, t);
+            if dw.ctx.info().is_cpu()
+                && s[2] == 3
+                && s[3] == 3
+                && stride == 1
+                && ush.iter().product::<usize>() * 4 <= 16 << 20
+            {
+                let u = Tensor::empty(
+                    &dw.ctx,
+                    &ush,
+                    DType::F32,
+                    &format!("{name}.weight.winograd{}", t.m()),
+                )?;
+                let mut rec = dw.ctx.recorder()?;
+                transform_weight(&mut rec, &w, &u)?;
+                rec.finish()?.submit_wait()?;
+                *slot = Some(u);
+            }
         }
         Ok(Self {
             w,
@@ -121,7 +125,8 @@ impl Conv {
         let out = f.ws.alloc(&os)?;
         let args = conv2d::Conv2dArgs {
             packed_w: self.packed.as_ref(),
-            wino_w: self.wino.as_ref(),
+            wino_w: self.wino[0].as_ref(),
+            wino_w6: self.wino[1].as_ref(),
             upsample2x: up,
             residual,
             silu,
@@ -315,4 +320,27 @@ impl LayerNorm {
         norm::layer_norm(f.rec, x, &self.gamma, &self.beta, self.eps, &out)?;
         Ok(out)
     }
+}
+
+/// conv(silu(norm(x))) (+ bias) (+ residual): where the conv takes the prologue (Winograd, few-output-channel
+/// kernel; [`Conv::takes_gn_prologue`]), the norm's statistics only and the conv applies GroupNorm + SiLU as it
+/// loads x (the normalised tensor is never written); else GroupNorm + SiLU into a temporary first.
+pub fn norm_silu_conv(
+    f: &mut Fwd,
+    norm: &GroupNorm,
+    conv: &Conv,
+    x: &Tensor,
+    bias: Option<&Tensor>,
+    residual: Option<&Tensor>,
+) -> Result<Tensor> {
+    if conv.takes_gn_prologue(f.rec.context(), x.shape()) {
+        let st = norm.stats(f, x)?;
+        let y = conv.forward_ex(f, x, bias, residual, false, Some(&st))?;
+        f.ws.release(st);
+        return Ok(y);
+    }
+    let h = norm.forward(f, x, true)?;
+    let y = conv.forward_ex(f, &h, bias, residual, false, None)?;
+    f.ws.release(h);
+    Ok(y)
 }

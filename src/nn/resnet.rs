@@ -4,11 +4,11 @@
 //! Both adds are fused into convs (one pass over the activations each instead of a conv and an add): the time
 //! embedding projection, whose bias has conv1's folded in at load, is conv1's per-image bias (N, O); the skip
 //! is the residual of conv2, or conv2's output is the residual of the 1x1 shortcut conv. Where a conv runs
-//! Winograd, its GroupNorm + SiLU is folded into its input loads too (`norm_conv`).
+//! Winograd, its GroupNorm + SiLU is folded into its input loads too (`layers::norm_silu_conv`).
 use anyhow::Result;
 
 use super::device::{DeviceWeights, Fwd};
-use super::layers::{Conv, GroupNorm, Linear};
+use super::layers::{norm_silu_conv, Conv, GroupNorm, Linear};
 use crate::ops::elementwise as ew;
 use crate::tensor::Tensor;
 
@@ -82,13 +82,13 @@ impl Resnet {
             _ => None,
         };
         let bias1 = tp.as_ref().or(self.conv1.b.as_ref());
-        let h1 = self.norm_conv(f, &self.norm1, &self.conv1, x, bias1, None)?;
+        let h1 = norm_silu_conv(f, &self.norm1, &self.conv1, x, bias1, None)?;
         if let Some(t) = tp {
             f.ws.release(t);
         }
         let out = match &self.shortcut {
             Some(sc) => {
-                let h3 = self.norm_conv(
+                let h3 = norm_silu_conv(
                     f,
                     &self.norm2,
                     &self.conv2,
@@ -100,7 +100,7 @@ impl Resnet {
                 f.ws.release(h3);
                 y
             }
-            None => self.norm_conv(
+            None => norm_silu_conv(
                 f,
                 &self.norm2,
                 &self.conv2,
@@ -111,29 +111,5 @@ impl Resnet {
         };
         f.ws.release(h1);
         Ok(out)
-    }
-
-    /// conv(silu(norm(x))) (+ bias) (+ residual): where the conv runs Winograd, the norm's statistics only and the
-    /// conv applies GroupNorm + SiLU as it loads x (the normalised tensor is never written); else GroupNorm + SiLU
-    /// into a temporary first.
-    fn norm_conv(
-        &self,
-        f: &mut Fwd,
-        norm: &GroupNorm,
-        conv: &Conv,
-        x: &Tensor,
-        bias: Option<&Tensor>,
-        residual: Option<&Tensor>,
-    ) -> Result<Tensor> {
-        if conv.takes_gn_prologue(f.rec.context(), x.shape()) {
-            let st = norm.stats(f, x)?;
-            let y = conv.forward_ex(f, x, bias, residual, false, Some(&st))?;
-            f.ws.release(st);
-            return Ok(y);
-        }
-        let h = norm.forward(f, x, true)?;
-        let y = conv.forward_ex(f, &h, bias, residual, false, None)?;
-        f.ws.release(h);
-        Ok(y)
     }
 }

@@ -5,7 +5,7 @@ use anyhow::{ensure, Result};
 
 use super::config::{DownBlock, EncoderConfig, UNetConfig, UpBlock};
 use super::device::{DeviceWeights, Fwd};
-use super::layers::{Conv, GroupNorm, Linear};
+use super::layers::{norm_silu_conv, Conv, GroupNorm, Linear};
 use super::resnet::Resnet;
 use super::transformer::Transformer2D;
 use crate::ops::{cast, elementwise as ew, embedding, resample};
@@ -352,10 +352,15 @@ impl UNet {
                 }
             }
         }
-        let n = self.norm_out.forward(f, &x, true)?;
+        let out = norm_silu_conv(
+            f,
+            &self.norm_out,
+            &self.conv_out,
+            &x,
+            self.conv_out.b.as_ref(),
+            None,
+        )?;
         f.ws.release(x);
-        let out = self.conv_out.forward(f, &n)?;
-        f.ws.release(n);
         f.ws.release(silu_temb);
         Ok(out)
     }

@@ -4,7 +4,7 @@ use anyhow::{ensure, Result};
 
 use super::config::VaeConfig;
 use super::device::{DeviceWeights, Fwd};
-use super::layers::{Conv, GroupNorm};
+use super::layers::{norm_silu_conv, Conv, GroupNorm};
 use super::resnet::Resnet;
 use super::transformer::VaeAttention;
 use crate::tensor::Tensor;
@@ -124,10 +124,15 @@ impl VaeEncoder {
         }
         let m = self.mid.forward(f, &x)?;
         f.ws.release(x);
-        let n = self.norm_out.forward(f, &m, true)?;
+        let o = norm_silu_conv(
+            f,
+            &self.norm_out,
+            &self.conv_out,
+            &m,
+            self.conv_out.b.as_ref(),
+            None,
+        )?;
         f.ws.release(m);
-        let o = self.conv_out.forward(f, &n)?;
-        f.ws.release(n);
         match &self.quant {
             Some(q) => {
                 let y = q.forward(f, &o)?;
@@ -226,10 +231,15 @@ impl VaeDecoder {
                 x = y;
             }
         }
-        let n = self.norm_out.forward(f, &x, true)?;
+        let o = norm_silu_conv(
+            f,
+            &self.norm_out,
+            &self.conv_out,
+            &x,
+            self.conv_out.b.as_ref(),
+            None,
+        )?;
         f.ws.release(x);
-        let o = self.conv_out.forward(f, &n)?;
-        f.ws.release(n);
         Ok(o)
     }
 }

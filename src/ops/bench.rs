@@ -96,18 +96,20 @@ fn matmul_case(dtype: DType) -> BenchCase {
     }
 }
 
-/// conv 3x3, 320 -> 320 channels at 28 x 50, pad 1, bias, batch 1; weights packed (and Winograd-transformed)
-/// once beforehand, as the models do at load time. `path` Auto is the required case; the implicit-GEMM case
-/// (`_implicit`) shows what Winograd gains. FLOP counts are the direct conv's in both.
-fn conv_case(dtype: DType, path: conv2d::ConvPath) -> BenchCase {
-    let (c, h, w) = (320usize, 28usize, 50usize);
-    let suffix = if path == conv2d::ConvPath::Fast {
-        "_implicit"
-    } else {
-        ""
+/// conv 3x3, c -> c channels at h x w, pad 1, bias, batch 1; weights packed (and Winograd-transformed for both
+/// tile sizes) once beforehand, as the models do at load time. 320 channels at 28 x 50 with `path` Auto is the
+/// required case; the implicit-GEMM case (`_implicit`) shows what Winograd gains, `_f4` / `_f6` the two
+/// Winograd tile sizes. FLOP counts are the direct conv's in all.
+fn conv_case(dtype: DType, path: conv2d::ConvPath, (c, h, w): (usize, usize, usize)) -> BenchCase {
+    use conv2d::ConvPath as P;
+    let suffix = match path {
+        P::Fast => "_implicit",
+        P::Winograd => "_f4",
+        P::Winograd6 => "_f6",
+        _ => "",
     };
     BenchCase {
-        name: format!("conv2d_{}_3x3_320to320_28x50{suffix}", dtype.name()),
+        name: format!("conv2d_{}_3x3_{c}to{c}_{h}x{w}{suffix}", dtype.name()),
         flops: 2.0 * (c * c * 9 * h * w) as f64,
         bytes: ((2 * c * h * w + c * c * 9) * dtype.size()) as f64,
         build: Box::new(move |ctx| {
@@ -116,13 +118,20 @@ fn conv_case(dtype: DType, path: conv2d::ConvPath) -> BenchCase {
             let b = random_tensor(ctx, &[c], dtype, 3)?;
             let packed = Tensor::empty(ctx, &[3, 3, c, c], dtype, "packed-w")?;
             record(ctx, |rec| conv2d::pack_weight(rec, &wt, &packed))?.submit_wait()?;
-            let wino = Tensor::empty(
-                ctx,
-                &winograd::weight_shape(wt.shape()),
-                DType::F32,
-                "wino-w",
-            )?;
-            record(ctx, |rec| winograd::transform_weight(rec, &wt, &wino))?.submit_wait()?;
+            let wino = |t| {
+                Tensor::empty(
+                    ctx,
+                    &winograd::weight_shape(wt.shape(), t),
+                    DType::F32,
+                    "wino-w",
+                )
+            };
+            let (wino4, wino6) = (wino(winograd::Tile::F4)?, wino(winograd::Tile::F6)?);
+            record(ctx, |rec| {
+                winograd::transform_weight(rec, &wt, &wino4)?;
+                winograd::transform_weight(rec, &wt, &wino6)
+            })?
+            .submit_wait()?;
             let y = Tensor::empty(ctx, &[1, c, h, w], dtype, "bench-out")?;
             record(ctx, |rec| {
                 conv2d::conv2d_ex(
@@ -130,7 +139,8 @@ fn conv_case(dtype: DType, path: conv2d::ConvPath) -> BenchCase {
                     &conv2d::Conv2dArgs {
                         path,
                         packed_w: Some(&packed),
-                        wino_w: Some(&wino),
+                        wino_w: Some(&wino4),
+                        wino_w6: Some(&wino6),
                         ..conv2d::Conv2dArgs::new(&x, &wt, Some(&b), &y, 1, [1; 4])
                     },
                 )
@@ -163,8 +173,13 @@ pub fn cases() -> Vec<BenchCase> {
     let mut v = vec![];
     for dtype in [DType::F32, DType::F16] {
         v.push(matmul_case(dtype));
-        v.push(conv_case(dtype, conv2d::ConvPath::Auto));
-        v.push(conv_case(dtype, conv2d::ConvPath::Fast));
+        let sd = (320, 28, 50);
+        v.push(conv_case(dtype, conv2d::ConvPath::Auto, sd));
+        v.push(conv_case(dtype, conv2d::ConvPath::Fast, sd));
+        // the VAE decoder's full-resolution conv, with each Winograd tile size
+        for path in [conv2d::ConvPath::Winograd, conv2d::ConvPath::Winograd6] {
+            v.push(conv_case(dtype, path, (32, 224, 400)));
+        }
         v.push(attention_case(dtype, 1400));
         v.push(attention_case(dtype, 77));
         v.push(group_norm_case(dtype));

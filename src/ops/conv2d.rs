@@ -17,7 +17,7 @@ use super::{expect_shape, same_dtype, Recorder};
 use super::{
     SCRATCH_CONV_OUT, SCRATCH_PACKED_W, SCRATCH_UPSAMPLED, SCRATCH_WINO_W, SCRATCH_X_HWNC,
 };
-use crate::kernels::params::{Conv2dParams, PackParams};
+use crate::kernels::params::{Conv2dParams, NarrowParams, PackParams};
 use crate::kernels::KernelId as K;
 use crate::tensor::{DType, Tensor};
 use crate::vk::DeviceInfo;
@@ -41,9 +41,21 @@ pub enum ConvPath {
     /// 1.03 s and 3.00 s -> 2.67 s; the f32 320-channel 3x3 case is equal within noise, f16 is 64 vs 73 ms in
     /// its favour; lavapipe, 2026-11-23).
     FastHwnc,
-    /// Winograd F(4x4, 3x3) (3x3, stride 1 only; see [`super::winograd`]). `Auto` uses it for 3x3 stride-1
-    /// convs when [`winograd_pays`] says so.
+    /// Winograd F(4x4, 3x3) (3x3, stride 1 only; see [`super::winograd`]). `Auto` uses Winograd for 3x3
+    /// stride-1 convs when [`winograd_pays`] says so, with the tile size of [`super::winograd::Tile::best`].
     Winograd,
+    /// Winograd F(6x6, 3x3) (3x3, stride 1 only).
+    Winograd6,
+    /// The few-output-channel kernel (3x3, stride 1, O <= 4: `kernels/conv3x3_narrow.wgsl`). `Auto` uses it
+    /// for such convs on CPU devices ([`narrow_pays`]).
+    Narrow,
+}
+
+/// Whether `Auto` runs a 3x3 conv with O output channels through the few-output-channel kernel: stride 1,
+/// O <= 4, on CPU devices (measured on lavapipe: the VAE decoder's 32 -> 3 conv_out at 224 x 400 took ~50 ms
+/// in the implicit GEMM, whose 16-row register tile idles 13 rows at O = 3).
+pub fn narrow_pays(dev: &DeviceInfo, kh: usize, kw: usize, stride: usize, o: usize) -> bool {
+    dev.is_cpu() && kh == 3 && kw == 3 && stride == 1 && o <= 4
 }
 
 /// Whether `Auto` runs a 3x3 stride-1 conv (batch N, C -> O channels, OH x OW output) through Winograd: only on
@@ -83,9 +95,11 @@ pub struct Conv2dArgs<'a> {
     /// `w` already repacked by [`pack_weight`] ((KH, KW, C, O)); without it the fast path repacks into a
     /// temporary on every call (cheap next to the conv: O C KH KW elements).
     pub packed_w: Option<&'a Tensor>,
-    /// 3x3 `w` already transformed by [`super::winograd::transform_weight`] ((36, C, O), f32); without it the
-    /// Winograd path transforms into a temporary on every call.
+    /// 3x3 `w` already transformed by [`super::winograd::transform_weight`] for F(4x4) ((36, C, O), f32);
+    /// without it the F(4x4) path transforms into a temporary on every call.
     pub wino_w: Option<&'a Tensor>,
+    /// The same for F(6x6) ((64, C, O), f32).
+    pub wino_w6: Option<&'a Tensor>,
     /// (N, O, OH, OW), added to the output (a residual connection; it may be `out` itself). Fused into the
     /// epilogue of the Winograd, packed implicit-GEMM and 1x1 GEMM paths, a separate add elsewhere.
     pub residual: Option<&'a Tensor>,
@@ -94,7 +108,7 @@ pub struct Conv2dArgs<'a> {
     pub silu: bool,
     /// (N, C, 4) f32 from `norm::group_norm_stats`: the conv reads silu(group_norm(x)) instead of x (a ResNet
     /// block's GroupNorm + SiLU folded into the conv's input loads; the normalised tensor is never written).
-    /// Winograd path only ([`pre_gn_fusable`] says where); an error elsewhere.
+    /// Winograd and few-output-channel paths only ([`pre_gn_fusable`] says where); an error elsewhere.
     pub pre_gn_silu: Option<&'a Tensor>,
     /// x (N, C, H, W) is read as its nearest 2x upsampling (N, C, 2H, 2W), the input size the conv's geometry
     /// refers to (an Upsample2D's conv): through the upsampling on the Winograd path (the upsampled tensor is
@@ -123,6 +137,7 @@ impl<'a> Conv2dArgs<'a> {
             path: ConvPath::Auto,
             packed_w: None,
             wino_w: None,
+            wino_w6: None,
             residual: None,
             silu: false,
             pre_gn_silu: None,
@@ -132,7 +147,8 @@ impl<'a> Conv2dArgs<'a> {
 }
 
 /// Whether `Auto` runs this conv where a GroupNorm + SiLU prologue (`Conv2dArgs::pre_gn_silu`) can be fused:
-/// the Winograd path (3x3, stride 1, [`winograd_pays`], subgroups).
+/// the Winograd path (3x3, stride 1, [`winograd_pays`], subgroups) or the few-output-channel kernel
+/// ([`narrow_pays`]).
 pub fn pre_gn_fusable(
     dev: &DeviceInfo,
     x: &[usize],
@@ -149,7 +165,8 @@ pub fn pre_gn_fusable(
         && pad.iter().all(|&p| p <= 2)
         && dev.subgroup_size >= 8
         && dev.subgroup_size <= 64
-        && winograd_pays(dev, x[0], x[1], w[0], os[2], os[3])
+        && (narrow_pays(dev, w[2], w[3], stride, w[0])
+            || winograd_pays(dev, x[0], x[1], w[0], os[2], os[3]))
 }
 
 /// Output shape of x: (N, C, H, W) convolved with w: (O, C, KH, KW), with checks naming the shapes.
@@ -284,29 +301,46 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
     let bias = a.bias.unwrap_or(a.x);
     let fast = match a.path {
         ConvPath::Direct => false,
-        ConvPath::Fast | ConvPath::FastHwnc | ConvPath::Winograd => true,
+        ConvPath::Fast
+        | ConvPath::FastHwnc
+        | ConvPath::Winograd
+        | ConvPath::Winograd6
+        | ConvPath::Narrow => true,
         ConvPath::Auto => tiled_supported(rec),
     };
     let wino_shape = kh == 3 && kw == 3 && a.stride == 1;
-    let wino = match a.path {
-        ConvPath::Winograd => {
+    let narrow = match a.path {
+        ConvPath::Narrow => {
             ensure!(
+                wino_shape && o <= 4 && tiled_supported(rec),
+                "conv2d: the few-output-channel path needs a 3x3 stride-1 conv with O <= 4 and subgroups of 8 to 64 lanes (x {xs:?}, w {ws:?}, stride {})",
+                a.stride
+            );
+            true
+        }
+        ConvPath::Auto => fast && narrow_pays(rec.context().info(), kh, kw, a.stride, o),
+        _ => false,
+    };
+    let wino = !narrow
+        && match a.path {
+            ConvPath::Winograd | ConvPath::Winograd6 => {
+                ensure!(
                 wino_shape,
                 "conv2d: the Winograd path needs a 3x3 stride-1 conv (x {xs:?}, w {ws:?}, stride {})",
                 a.stride
             );
-            ensure!(
-                tiled_supported(rec),
-                "conv2d: the Winograd path needs subgroups of 8 to 64 lanes, which {:?} lacks",
-                rec.context().info().name
-            );
-            true
-        }
-        ConvPath::Auto => {
-            fast && wino_shape && winograd_pays(rec.context().info(), n, c, o, os[2], os[3])
-        }
-        _ => false,
-    };
+                ensure!(
+                    tiled_supported(rec),
+                    "conv2d: the Winograd path needs subgroups of 8 to 64 lanes, which {:?} lacks",
+                    rec.context().info().name
+                );
+                true
+            }
+            ConvPath::Auto => {
+                fast && wino_shape && winograd_pays(rec.context().info(), n, c, o, os[2], os[3])
+            }
+            _ => false,
+        };
     if a.upsample2x && !wino {
         // this path reads x directly: upsample into the recording's scratch first
         let b = rec.scratch(
@@ -325,17 +359,30 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
         );
     }
     ensure!(
-        wino || a.pre_gn_silu.is_none(),
-        "conv2d: a GroupNorm prologue (pre_gn_silu) is fused only on the Winograd path (x {xs:?}, w {ws:?}, stride {}; see conv2d::pre_gn_fusable)",
+        wino || narrow || a.pre_gn_silu.is_none(),
+        "conv2d: a GroupNorm prologue (pre_gn_silu) is fused only on the Winograd and few-output-channel paths (x {xs:?}, w {ws:?}, stride {}; see conv2d::pre_gn_fusable)",
         a.stride
     );
+    if narrow {
+        return conv3x3_narrow(rec, a, &os);
+    }
     if wino {
+        use super::winograd::Tile;
+        let tile = match a.path {
+            ConvPath::Winograd => Tile::F4,
+            ConvPath::Winograd6 => Tile::F6,
+            _ => Tile::best(o, os[2], os[3]),
+        };
+        let given = match tile {
+            Tile::F4 => a.wino_w,
+            Tile::F6 => a.wino_w6,
+        };
         let tmp;
-        let u = match a.wino_w {
+        let u = match given {
             Some(u) => u,
             None => {
                 // transformed per call into the recording's shared scratch
-                let sh = super::winograd::weight_shape(ws);
+                let sh = super::winograd::weight_shape(ws, tile);
                 let b = rec.scratch(SCRATCH_WINO_W, (sh.iter().product::<usize>() * 4) as u64)?;
                 tmp = Tensor::on_buffer(b, &sh, DType::F32)?;
                 super::winograd::transform_weight(rec, a.w, &tmp)?;
@@ -536,4 +583,49 @@ pub fn conv2d(
     out: &Tensor,
 ) -> Result<()> {
     conv2d_ex(rec, &Conv2dArgs::new(x, w, bias, out, stride, pad))
+}
+
+/// The few-output-channel 3x3 conv (`kernels/conv3x3_narrow.wgsl`) with everything of `a` but the upsampling
+/// (resolved by the caller); os: the output shape.
+fn conv3x3_narrow(rec: &mut Recorder, a: &Conv2dArgs, os: &[usize; 4]) -> Result<()> {
+    let xs = a.x.shape();
+    let p = NarrowParams {
+        n: xs[0] as u32,
+        c: xs[1] as u32,
+        h: xs[2] as u32,
+        w: xs[3] as u32,
+        o: os[1] as u32,
+        oh: os[2] as u32,
+        ow: os[3] as u32,
+        pt: a.pad[0] as u32,
+        pl: a.pad[2] as u32,
+        has_bias: match a.bias {
+            Some(b) if b.shape().len() == 2 => 2,
+            Some(_) => 1,
+            None => 0,
+        },
+        has_res: a.residual.is_some() as u32,
+        silu: a.silu as u32,
+        pre: a.pre_gn_silu.is_some() as u32,
+        rows4: (xs[3] % 4 == 0 && a.pad[2] == 1) as u32,
+    };
+    let id = match a.x.dtype() {
+        DType::F32 => K::Conv3x3NarrowF32,
+        DType::F16 => K::Conv3x3NarrowF16,
+    };
+    let bufs = [
+        a.x.buffer(),
+        a.w.buffer(),
+        a.bias.unwrap_or(a.x).buffer(),
+        a.out.buffer(),
+        a.residual.unwrap_or(a.out).buffer(),
+        a.pre_gn_silu.unwrap_or(a.x).buffer(),
+        a.x.buffer(),
+    ];
+    let g = super::grid_1d("conv2d narrow", os[0] * os[2] * os[3].div_ceil(8))?;
+    let label = format!(
+        "conv2d narrow {}x{}x{}x{} -> {}",
+        xs[0], xs[1], xs[2], xs[3], os[1]
+    );
+    rec.dispatch(id, &bufs, bytemuck::bytes_of(&p), g, &label)
 }

@@ -1,8 +1,10 @@
-//! Winograd F(4x4, 3x3) for stride-1 3x3 convs (`kernels/winograd.wgsl`): input transform, 36 batched GEMMs on
-//! the tiled matmul, output transform (+ bias). 4x fewer multiply-adds than the implicit GEMM; the transformed
-//! tensors are f32 in every mode. Tiles are processed in slabs so the two intermediates stay small (they live
-//! in the recorder's scratch buffers, shared by all convs of a recording).
-use anyhow::{ensure, Result};
+//! Winograd F(4x4, 3x3) and F(6x6, 3x3) for stride-1 3x3 convs (`kernels/winograd.wgsl`): input transform,
+//! 36 (or 64) batched GEMMs on the tiled matmul, output transform (+ bias, residual, SiLU). F(4x4) does 4x
+//! fewer multiply-adds than the implicit GEMM, F(6x6) 5.1x; the transformed tensors are f32 in every mode.
+//! Tiles are processed in slabs so the two intermediates stay small (they live in the recorder's scratch
+//! buffers, shared by all convs of a recording). Which tile size a conv runs follows from its transformed
+//! weight: (36, C, O) is F(4x4), (64, C, O) F(6x6) ([`Tile`]).
+use anyhow::{bail, ensure, Result};
 
 use super::matmul::{gemm, Gemm, MatmulPath};
 use super::{expect_shape, Recorder, SCRATCH_WINO_M, SCRATCH_WINO_V};
@@ -13,51 +15,180 @@ use crate::tensor::{DType, Tensor};
 /// Bytes of each intermediate (V or M) per slab at most.
 const SLAB_BYTES: usize = 16 << 20;
 
-/// (input, input4, input4s, output, output4, weight) kernels; `gs`: the inputs with the GroupNorm + SiLU
-/// prologue.
-fn ids(d: DType, gs: bool) -> [K; 6] {
-    match (d, gs) {
-        (DType::F32, true) => [
-            K::WinogradF32InputGs,
-            K::WinogradF32Input4Gs,
-            K::WinogradF32Input4sGs,
-            K::WinogradF32Output,
-            K::WinogradF32Output4,
-            K::WinogradF32Weight,
-        ],
-        (DType::F16, true) => [
-            K::WinogradF16InputGs,
-            K::WinogradF16Input4Gs,
-            K::WinogradF16Input4sGs,
-            K::WinogradF16Output,
-            K::WinogradF16Output4,
-            K::WinogradF16Weight,
-        ],
-        (DType::F32, false) => [
-            K::WinogradF32Input,
-            K::WinogradF32Input4,
-            K::WinogradF32Input4s,
-            K::WinogradF32Output,
-            K::WinogradF32Output4,
-            K::WinogradF32Weight,
-        ],
-        (DType::F16, false) => [
-            K::WinogradF16Input,
-            K::WinogradF16Input4,
-            K::WinogradF16Input4s,
-            K::WinogradF16Output,
-            K::WinogradF16Output4,
-            K::WinogradF16Weight,
-        ],
+/// The Winograd output tile.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Tile {
+    /// F(4x4, 3x3): 6x6 input windows, 36 products.
+    F4,
+    /// F(6x6, 3x3): 8x8 input windows, 64 products.
+    F6,
+}
+
+impl Tile {
+    /// Output tile side.
+    pub fn m(self) -> usize {
+        match self {
+            Tile::F4 => 4,
+            Tile::F6 => 6,
+        }
+    }
+
+    /// Products per tile (the GEMM batch): (m + 2)^2.
+    pub fn products(self) -> usize {
+        (self.m() + 2) * (self.m() + 2)
+    }
+
+    /// The tile size of a transformed weight (products, C, O).
+    pub fn of_weight(u: &Tensor) -> Result<Tile> {
+        match u.shape().first() {
+            Some(36) => Ok(Tile::F4),
+            Some(64) => Ok(Tile::F6),
+            _ => bail!(
+                "conv2d winograd: transformed weight {:?} must be (36 or 64, C, O)",
+                u.shape()
+            ),
+        }
+    }
+
+    /// The tile size `Auto` runs for O output channels of OH x OW: F(6x6) where its output transform stores
+    /// vec4 rows (O % 4 == 0, OW % 4 == 0; with per-pixel stores its transforms cost more than F(4x4)'s, e.g.
+    /// the 320-channel 28 x 50 op case 31 ms against 23) and it moves fewer transformed values (tiles x
+    /// products, partial tiles counted whole, F(6x6) rows padded to whole tile pairs), else F(4x4).
+    pub fn best(o: usize, oh: usize, ow: usize) -> Tile {
+        let cost4 = oh.div_ceil(4) * ow.div_ceil(4) * 36;
+        let cost6 = oh.div_ceil(6) * ow.div_ceil(12) * 2 * 64;
+        if o % 4 == 0 && ow % 4 == 0 && cost6 < cost4 {
+            Tile::F6
+        } else {
+            Tile::F4
+        }
     }
 }
 
-/// Shape of the transformed weight of w: (O, C, 3, 3): (36, C, O), always f32.
-pub fn weight_shape(w: &[usize]) -> [usize; 3] {
-    [36, w[1], w[0]]
+/// Kernels of one dtype, tile size and prologue choice.
+struct Ids {
+    /// one channel per invocation (any C)
+    input: K,
+    /// 4 channels per invocation, rows as vec4 loads (C % 4 == 0, W % 4 == 0, left padding 1, no
+    /// upsampling; F6: a tile pair per invocation)
+    input4: K,
+    /// 4 channels per invocation, scalar loads (C % 4 == 0)
+    input4s: K,
+    output: K,
+    /// 4 output channels per invocation, vec4 rows (O % 4 == 0, OW % 4 == 0; F6: a tile pair per invocation)
+    output4: K,
+    /// F6: 4 output channels per invocation, scalar stores (O % 4 == 0)
+    output4s: Option<K>,
+    weight: K,
 }
 
-/// w: (O, C, 3, 3) -> u: (36, C, O) f32 = G g G^T per (o, c).
+/// `gs`: the input entries with the GroupNorm + SiLU prologue.
+fn ids(d: DType, t: Tile, gs: bool) -> Ids {
+    macro_rules! ids4 {
+        ($i:ident, $i4:ident, $i4s:ident, $o:ident, $o4:ident, $w:ident) => {
+            Ids {
+                input: K::$i,
+                input4: K::$i4,
+                input4s: K::$i4s,
+                output: K::$o,
+                output4: K::$o4,
+                output4s: None,
+                weight: K::$w,
+            }
+        };
+    }
+    macro_rules! ids6 {
+        ($i:ident, $ip:ident, $i4s:ident, $o:ident, $op:ident, $o4s:ident, $w:ident) => {
+            Ids {
+                input: K::$i,
+                input4: K::$ip,
+                input4s: K::$i4s,
+                output: K::$o,
+                output4: K::$op,
+                output4s: Some(K::$o4s),
+                weight: K::$w,
+            }
+        };
+    }
+    use DType::{F16, F32};
+    match (d, t, gs) {
+        (F32, Tile::F4, true) => ids4!(
+            WinogradF32InputGs,
+            WinogradF32Input4Gs,
+            WinogradF32Input4sGs,
+            WinogradF32Output,
+            WinogradF32Output4,
+            WinogradF32Weight
+        ),
+        (F16, Tile::F4, true) => ids4!(
+            WinogradF16InputGs,
+            WinogradF16Input4Gs,
+            WinogradF16Input4sGs,
+            WinogradF16Output,
+            WinogradF16Output4,
+            WinogradF16Weight
+        ),
+        (F32, Tile::F4, false) => ids4!(
+            WinogradF32Input,
+            WinogradF32Input4,
+            WinogradF32Input4s,
+            WinogradF32Output,
+            WinogradF32Output4,
+            WinogradF32Weight
+        ),
+        (F16, Tile::F4, false) => ids4!(
+            WinogradF16Input,
+            WinogradF16Input4,
+            WinogradF16Input4s,
+            WinogradF16Output,
+            WinogradF16Output4,
+            WinogradF16Weight
+        ),
+        (F32, Tile::F6, true) => ids6!(
+            WinogradF32Input6Gs,
+            WinogradF32Input6pGs,
+            WinogradF32Input6sGs,
+            WinogradF32Output6,
+            WinogradF32Output6p,
+            WinogradF32Output6q,
+            WinogradF32Weight6
+        ),
+        (F16, Tile::F6, true) => ids6!(
+            WinogradF16Input6Gs,
+            WinogradF16Input6pGs,
+            WinogradF16Input6sGs,
+            WinogradF16Output6,
+            WinogradF16Output6p,
+            WinogradF16Output6q,
+            WinogradF16Weight6
+        ),
+        (F32, Tile::F6, false) => ids6!(
+            WinogradF32Input6,
+            WinogradF32Input6p,
+            WinogradF32Input6s,
+            WinogradF32Output6,
+            WinogradF32Output6p,
+            WinogradF32Output6q,
+            WinogradF32Weight6
+        ),
+        (F16, Tile::F6, false) => ids6!(
+            WinogradF16Input6,
+            WinogradF16Input6p,
+            WinogradF16Input6s,
+            WinogradF16Output6,
+            WinogradF16Output6p,
+            WinogradF16Output6q,
+            WinogradF16Weight6
+        ),
+    }
+}
+
+/// Shape of the transformed weight of w: (O, C, 3, 3): (products, C, O), always f32.
+pub fn weight_shape(w: &[usize], t: Tile) -> [usize; 3] {
+    [t.products(), w[1], w[0]]
+}
+
+/// w: (O, C, 3, 3) -> u: (products, C, O) f32 = G g G^T per (o, c); the tile size from u's shape.
 pub fn transform_weight(rec: &mut Recorder, w: &Tensor, u: &Tensor) -> Result<()> {
     let ws = w.shape();
     ensure!(
@@ -68,7 +199,8 @@ pub fn transform_weight(rec: &mut Recorder, w: &Tensor, u: &Tensor) -> Result<()
         u.dtype() == DType::F32,
         "conv2d winograd: the transformed weight must be f32"
     );
-    expect_shape("conv2d winograd", "u", u, &weight_shape(ws))?;
+    let t = Tile::of_weight(u)?;
+    expect_shape("conv2d winograd", "u", u, &weight_shape(ws, t))?;
     let p = WinoParams {
         o: ws[0] as u32,
         c: ws[1] as u32,
@@ -76,7 +208,7 @@ pub fn transform_weight(rec: &mut Recorder, w: &Tensor, u: &Tensor) -> Result<()
     };
     let g = super::grid_1d("conv2d winograd weight", ws[0] * ws[1])?;
     rec.dispatch(
-        ids(w.dtype(), false)[5],
+        ids(w.dtype(), t, false).weight,
         &[w.buffer(), u.buffer()],
         bytemuck::bytes_of(&p),
         g,
@@ -85,8 +217,8 @@ pub fn transform_weight(rec: &mut Recorder, w: &Tensor, u: &Tensor) -> Result<()
 }
 
 /// out = conv3x3(x, w) (+ bias (O) or (N, O)) (+ residual) (then SiLU), stride 1, padding (top, bottom, left,
-/// right) each <= 2, with u the transformed weight ([`transform_weight`]); everything but `w` from `a`. Shapes
-/// were checked by the caller (`conv2d_ex`).
+/// right) each <= 2, with u the transformed weight ([`transform_weight`], F(4x4) or F(6x6) by its shape);
+/// everything but `w` from `a`. Shapes were checked by the caller (`conv2d_ex`).
 pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Tensor) -> Result<()> {
     let (x, bias, residual, silu, out, pad) = (a.x, a.bias, a.residual, a.silu, a.out, a.pad);
     let (xs, os) = (x.shape(), out.shape());
@@ -94,29 +226,51 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
     let up = a.upsample2x as usize;
     let [n, c, h, w] = [xs[0], xs[1], xs[2] << up, xs[3] << up];
     let (o, oh, ow) = (os[1], os[2], os[3]);
-    expect_shape("conv2d winograd", "u", u, &[36, c, o])?;
-    let (th, tw) = (oh.div_ceil(4), ow.div_ceil(4));
+    let t = Tile::of_weight(u)?;
+    let np = t.products();
+    expect_shape("conv2d winograd", "u", u, &[np, c, o])?;
+    // F6 runs on horizontal tile pairs: an even tile count per row (a phantom last tile computes on the
+    // padding and stores nothing), slabs of whole pairs
+    let pairs = t == Tile::F6;
+    let (th, mut tw) = (oh.div_ceil(t.m()), ow.div_ceil(t.m()));
+    if pairs {
+        tw += tw % 2;
+    }
     let tiles = n * th * tw;
-    let per_tile = 36 * c.max(o) * 4;
-    let slab = (SLAB_BYTES / per_tile).clamp(1, tiles);
-    let [inp1, inp4, inp4s, outp1, outp4, _] = ids(x.dtype(), a.pre_gn_silu.is_some());
+    let per_tile = np * c.max(o) * 4;
+    let mut slab = (SLAB_BYTES / per_tile).clamp(1, tiles);
+    if pairs {
+        slab = (slab - slab % 2).max(2);
+    }
+    let k = ids(x.dtype(), t, a.pre_gn_silu.is_some());
     // the prologue's statistics (binding 2 of every input entry; x when there is no prologue)
     let ss = a.pre_gn_silu.unwrap_or(x);
-    // vec4 transforms (4 channels per invocation: fewer per-lane access loops on lavapipe) where the layout
-    // allows: input C % 4 == 0 (rows loaded as vec4s too when W % 4 == 0 and the left padding is 1); output
-    // O % 4 == 0, OW % 4 == 0
+    // 4-channel transforms (fewer per-lane access loops on lavapipe) where the layout allows: input
+    // C % 4 == 0 (F4: rows loaded as vec4s too when W % 4 == 0 and the left padding is 1); output O % 4 == 0
+    // (F4: and OW % 4 == 0)
     let in4 = c % 4 == 0 && w % 4 == 0 && pad[2] == 1 && !a.upsample2x;
-    let out4 = o % 4 == 0 && ow % 4 == 0;
+    let per_inv = if pairs { 2 } else { 1 };
+    // (kernel, invocations per slab tile x per_inv)
     let (inp, in_items) = if in4 {
-        (inp4, c / 4)
+        (k.input4, c / 4)
     } else if c % 4 == 0 {
-        (inp4s, c / 4)
+        (k.input4s, c / 4 * per_inv)
     } else {
-        (inp1, c)
+        (k.input, c * per_inv)
     };
-    let (outp, out_items) = if out4 { (outp4, o / 4) } else { (outp1, o) };
-    let vb = rec.scratch(SCRATCH_WINO_V, (36 * slab * c * 4) as u64)?;
-    let mb = rec.scratch(SCRATCH_WINO_M, (36 * slab * o * 4) as u64)?;
+    let (outp, out_items) = if o % 4 == 0 && ow % 4 == 0 {
+        (k.output4, o / 4)
+    } else if let Some(k4s) = k.output4s.filter(|_| o % 4 == 0) {
+        (k4s, o / 4 * per_inv)
+    } else {
+        (k.output, o * per_inv)
+    };
+    // per-kernel labels: `--profile` then splits the transforms' time by kernel and size
+    let info = |id: K| id.info().entry;
+    let in_label = format!("conv2d winograd in {} {c}x{h}x{w}", info(inp));
+    let out_label = format!("conv2d winograd out {} {o}x{oh}x{ow}", info(outp));
+    let vb = rec.scratch(SCRATCH_WINO_V, (np * slab * c * 4) as u64)?;
+    let mb = rec.scratch(SCRATCH_WINO_M, (np * slab * o * 4) as u64)?;
     let bias_t = bias.unwrap_or(x);
     let has_bias = match bias {
         Some(b) if b.shape().len() == 2 => 2,
@@ -146,26 +300,20 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
             silu: silu as u32,
             up: up as u32,
         };
-        let g = super::grid_1d("conv2d winograd", nt * in_items)?;
+        let g = super::grid_1d("conv2d winograd", nt / per_inv * in_items)?;
         // input4 also reads x through a scalar view (binding 3)
         let in_bufs: &[&std::sync::Arc<crate::vk::Buffer>] = if in4 {
             &[x.buffer(), &vb, ss.buffer(), x.buffer()]
         } else {
             &[x.buffer(), &vb, ss.buffer()]
         };
-        rec.dispatch(
-            inp,
-            in_bufs,
-            bytemuck::bytes_of(&p),
-            g,
-            "conv2d winograd in",
-        )?;
-        // 36 GEMMs: (nt, C) . (C, O) -> (nt, O)
+        rec.dispatch(inp, in_bufs, bytemuck::bytes_of(&p), g, &in_label)?;
+        // 36 (64) GEMMs: (nt, C) . (C, O) -> (nt, O)
         let gm = Gemm {
             m: nt,
             n: o,
             k: c,
-            batch: 36,
+            batch: np,
             sa: nt * c,
             sb: c * o,
             trans_b: false,
@@ -181,15 +329,9 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
             [&vb, u.buffer(), &vb, &mb, &mb],
             None,
         )?;
-        let g = super::grid_1d("conv2d winograd", nt * out_items)?;
+        let g = super::grid_1d("conv2d winograd", nt / per_inv * out_items)?;
         let bufs = [&mb, bias_t.buffer(), out.buffer(), res_t.buffer()];
-        rec.dispatch(
-            outp,
-            &bufs,
-            bytemuck::bytes_of(&p),
-            g,
-            "conv2d winograd out",
-        )?;
+        rec.dispatch(outp, &bufs, bytemuck::bytes_of(&p), g, &out_label)?;
         t0 += nt;
     }
     Ok(())
