@@ -1,6 +1,6 @@
 //! variant f32: alias ST = f32;
 //! variant f16: enable f16; alias ST = f16;
-// Softmax over the last dimension. Storage type ST, all arithmetic in f32.
+// Softmax of scale * x over the last dimension. Storage type ST, all arithmetic in f32.
 //
 // One work group of 8 invocations (one lavapipe subgroup) per row; lane l owns columns l, l + 8, l + 16, ...
 // so the 8 lanes read 8 contiguous values per step. Pass 1 keeps a per-lane online (max, sum) pair, rescaling the
@@ -10,7 +10,7 @@
 //
 // On devices whose subgroups are wider than 8 the work group of 8 is still one subgroup (lanes 0..7).
 
-struct SoftmaxParams { rows: u32, n: u32 }
+struct SoftmaxParams { rows: u32, n: u32, scale: f32 }
 
 @group(0) @binding(0) var<storage, read> x: array<ST>;
 @group(0) @binding(1) var<storage, read_write> y: array<ST>;
@@ -32,10 +32,10 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
     var j = lane;
     loop {
         if (j >= p.n) { break; }
-        let a = f32(x[base + j]);
+        let a = p.scale * f32(x[base + j]);
         let j2 = j + 8u;
         let has2 = j2 < p.n;
-        let b = select(NEG_BIG, f32(x[base + min(j2, p.n - 1u)]), has2);
+        let b = select(NEG_BIG, p.scale * f32(x[base + min(j2, p.n - 1u)]), has2);
         let mn = max(m, max(a, b));
         s = s * exp(m - mn) + exp(a - mn) + select(0.0, exp(b - mn), has2);
         m = mn;
@@ -47,7 +47,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
     j = lane;
     loop {
         if (j >= p.n) { break; }
-        y[base + j] = ST(exp(f32(x[base + j]) - mx) * inv);
+        y[base + j] = ST(exp(p.scale * f32(x[base + j]) - mx) * inv);
         j += 8u;
     }
 }

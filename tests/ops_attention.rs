@@ -2,7 +2,7 @@
 //! the VAE mid-block's single head of 512), odd sizes, the loop-budget edge, extreme logits and inputs.
 mod common;
 use b2dr::ops::attention::{
-    attention, attention_with, loop_trips, AttnKernel, KERNELS, LOOP_BUDGET,
+    attention, attention_with, gemm_pays, loop_trips, AttnKernel, KERNELS, LOOP_BUDGET,
 };
 use b2dr::ops::reference::attention::{self as r, AttnShape};
 use b2dr::tensor::DType;
@@ -48,6 +48,14 @@ const CASES: &[Case] = &[
     // The VAE mid block at 224 x 400: one head of 512 over 28 x 50 tokens (the sliced `wide` kernel: 4 slices of
     // 128 columns, 175 key tiles x 65 trips each; a truncated loop would show here).
     case("vae_mid_1400_h1_d512", 1, 1400, 1400, 1, 512),
+    // Single heads of d >= 64 with >= 256 queries run as GEMMs + softmax in f32 on CPU devices
+    // (attention::gemm_pays): b2dr-tiny's VAE mid block, a batch with Lq != Lk, large logits.
+    case("vae_tiny_mid_1400_h1_d128", 1, 1400, 1400, 1, 128),
+    case("gemm_batch2_300x261_h1_d64", 2, 300, 261, 1, 64),
+    Case {
+        qk: 30.0,
+        ..case("gemm_logits_7e3_256x77_h1_d64", 1, 256, 77, 1, 64)
+    },
     // Keys up to the loop budget of the d = 160 kernel (625 tiles x 81 trips ~ 50,600 of 65,535).
     case("long_keys_5000_h1_d160", 1, 16, 5000, 1, 160),
     // 55,000 key tiles: fits only because the d <= 80 kernels' chunk loops are unrolled (else 21 trips a tile).
@@ -135,6 +143,14 @@ fn attention_matches_reference() {
                 c.name
             );
             let e = check(&ctx, c, dtype, 1000 + 10 * i as u64, None);
+            if c.name.starts_with("gemm") && dtype == DType::F32 && ctx.info().is_cpu() {
+                let rec = ctx.recorder().unwrap();
+                assert!(
+                    gemm_pays(&rec, dtype, c.b, c.heads, c.lq, c.lk, c.d),
+                    "{}: meant to run the GEMM form",
+                    c.name
+                );
+            }
             let tol = if dtype == DType::F32 {
                 TOL_F32
             } else {

@@ -10,8 +10,9 @@
 //! 7,300 at d = 512 (the VAE at 224 x 400 has 1,400)).
 use anyhow::{ensure, Result};
 
-use super::softmax::fold_groups;
-use super::{same_dtype, Recorder};
+use super::matmul::{matmul, matmul_ex, tiled_supported, MatmulArgs, MatmulPath};
+use super::softmax::{fold_groups, softmax_scaled};
+use super::{same_dtype, Recorder, SCRATCH_ATTN_P, SCRATCH_ATTN_S};
 use crate::kernels::params::AttnParams;
 use crate::kernels::KernelId as K;
 use crate::tensor::{DType, Tensor};
@@ -178,6 +179,9 @@ pub fn attention_with(
         d % 4 == 0 && (d <= 160 || d % 8 == 0),
         "attention: head dim {d} must be a multiple of 4 (of 8 above 160): {shapes}"
     );
+    if kernel.is_none() && gemm_pays(rec, dtype, b, heads, lq, lk, d) {
+        return attention_gemm(rec, q, k, v, out, scale);
+    }
     let kn = kernel.unwrap_or_else(|| choose(dtype, d));
     ensure!(
         kn.dtype == dtype && kn.fits(d),
@@ -213,4 +217,70 @@ pub fn attention_with(
         fold_groups("attention", groups)?,
         &format!("attention {b}x{heads}x{lq}x{lk}x{d}"),
     )
+}
+
+/// Largest score matrix (B Lq Lk f32, bytes) [`attention`] materialises for the single-head GEMM form.
+pub const GEMM_SCORES_MAX_BYTES: usize = 64 << 20;
+
+/// Whether [`attention`] runs the single-head GEMM form ([`attention_gemm`]): f32 on CPU devices with subgroups
+/// for the tiled GEMM, one head of d >= 64, >= 256 queries, scores within [`GEMM_SCORES_MAX_BYTES`]. There
+/// the fused kernel keeps a wide head's output in per-lane registers (the VAE's d = 128 at 28 x 50: ~55 ms on
+/// lavapipe), while the two GEMMs and the softmax take ~30 ms.
+pub fn gemm_pays(
+    rec: &Recorder,
+    dtype: DType,
+    b: usize,
+    heads: usize,
+    lq: usize,
+    lk: usize,
+    d: usize,
+) -> bool {
+    rec.context().info().is_cpu()
+        && tiled_supported(rec)
+        && dtype == DType::F32
+        && heads == 1
+        && d >= 64
+        && lq >= 256
+        && b * lq * lk * 4 <= GEMM_SCORES_MAX_BYTES
+}
+
+/// Single-head attention as S = q k^T, P = softmax(scale S) row-wise, out = P v; q: (B, Lq, d), k, v:
+/// (B, Lk, d), out: (B, Lq, d). The scores live in the recording's scratch (B Lq Lk values twice): meant for
+/// moderate Lq Lk (see [`gemm_pays`]). Storage dtype as the inputs (f32 scores overflow nothing; f16 scores
+/// could, so models run this in f32 only).
+pub fn attention_gemm(
+    rec: &mut Recorder,
+    q: &Tensor,
+    k: &Tensor,
+    v: &Tensor,
+    out: &Tensor,
+    scale: Option<f32>,
+) -> Result<()> {
+    let dtype = same_dtype("attention gemm", &[q, k, v, out])?;
+    let (sq, sk) = (q.shape(), k.shape());
+    ensure!(
+        sq.len() == 3 && sk.len() == 3 && v.shape() == sk && out.shape() == sq && sk[0] == sq[0] && sk[2] == sq[2],
+        "attention gemm: q {sq:?}, k {sk:?}, v {:?}, out {:?} must be (B, Lq, d), (B, Lk, d), (B, Lk, d), (B, Lq, d)",
+        v.shape(),
+        out.shape()
+    );
+    let (b, lq, lk, d) = (sq[0], sq[1], sk[1], sq[2]);
+    let bytes = (b * lq * lk * dtype.size()) as u64;
+    let s = Tensor::on_buffer(rec.scratch(SCRATCH_ATTN_S, bytes)?, &[b, lq, lk], dtype)?;
+    let pm = Tensor::on_buffer(rec.scratch(SCRATCH_ATTN_P, bytes)?, &[b, lq, lk], dtype)?;
+    matmul_ex(
+        rec,
+        &MatmulArgs {
+            a: q,
+            b: k,
+            bias: None,
+            out: &s,
+            transpose_b: true,
+            path: MatmulPath::Auto,
+            overflow: None,
+            residual: None,
+        },
+    )?;
+    softmax_scaled(rec, &s, scale.unwrap_or(1.0 / (d as f32).sqrt()), &pm)?;
+    matmul(rec, &pm, v, None, out)
 }

@@ -29,6 +29,9 @@ pub(crate) const SCRATCH_PACKED_W: usize = 4;
 pub(crate) const SCRATCH_CONV_OUT: usize = 5;
 /// conv2d input upsampled 2x, on paths that cannot read through the upsampling
 pub(crate) const SCRATCH_UPSAMPLED: usize = 6;
+/// attention scores (B, Lq, Lk) of the single-head GEMM attention, and their softmax
+pub(crate) const SCRATCH_ATTN_S: usize = 7;
+pub(crate) const SCRATCH_ATTN_P: usize = 8;
 
 use crate::kernels::KernelId;
 use crate::tensor::{DType, Tensor};

@@ -24,6 +24,12 @@ pub(crate) fn fold_groups(op: &str, n: usize) -> Result<[u32; 3]> {
 
 /// x: (.., n) -> out: (.., n) = exp(x - max) / sum exp(x - max) along the last dimension.
 pub fn softmax(rec: &mut Recorder, x: &Tensor, out: &Tensor) -> Result<()> {
+    softmax_scaled(rec, x, 1.0, out)
+}
+
+/// [`softmax`] of scale * x (attention scores with their 1 / sqrt(d)).
+pub fn softmax_scaled(rec: &mut Recorder, x: &Tensor, scale: f32, out: &Tensor) -> Result<()> {
+    ensure!(scale.is_finite(), "softmax: scale {scale} must be finite");
     let d = same_dtype("softmax", &[x, out])?;
     expect_shape("softmax", "out", out, x.shape())?;
     let n = *x.shape().last().unwrap_or(&0);
@@ -37,6 +43,7 @@ pub fn softmax(rec: &mut Recorder, x: &Tensor, out: &Tensor) -> Result<()> {
     let p = SoftmaxParams {
         rows: rows as u32,
         n: n as u32,
+        scale,
     };
     rec.dispatch(
         pick(d, K::SoftmaxF32, K::SoftmaxF16),
