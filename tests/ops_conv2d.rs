@@ -782,7 +782,11 @@ fn upsampled_input_matches_upsample_then_conv() {
         ("packed_c8", [2, 8, 5, 7], 8, ConvPath::Fast),
         ("direct_c5", [1, 5, 4, 6], 3, ConvPath::Direct),
     ];
-    for (i, &(name, [n, c, h, w], o, path)) in cases.iter().enumerate() {
+    // padding 1 starts every F(6x6) window at an odd upsampled coordinate; these start at even ones (and mixed)
+    let pads = [("", [1; 4]), ("_pad0", [0; 4]), ("_pad2020", [2, 0, 2, 0])];
+    let all = cases.iter().flat_map(|c| pads.iter().map(move |p| (c, p)));
+    for (i, (&(name, [n, c, h, w], o, path), &(pname, pad))) in all.enumerate() {
+        let name = format!("{name}{pname}");
         for dtype in [DType::F32, DType::F16] {
             let seed = 1500 + 10 * i as u64;
             let x = uniform(n * c * h * w, 1.0, seed);
@@ -791,14 +795,15 @@ fn upsampled_input_matches_upsample_then_conv() {
             let tx = upload(&ctx, &[n, c, h, w], dtype, &x);
             let tw = upload(&ctx, &[o, c, 3, 3], dtype, &wt);
             let tb = upload(&ctx, &[o], dtype, &b);
-            let out = empty(&ctx, &[n, o, 2 * h, 2 * w], dtype);
+            let os = cv::conv2d_out_shape(&[n, c, 2 * h, 2 * w], &[o, c, 3, 3], 1, pad).unwrap();
+            let out = empty(&ctx, &os, dtype);
             run(&ctx, |rec| {
                 cv::conv2d_ex(
                     rec,
                     &Conv2dArgs {
                         path,
                         upsample2x: true,
-                        ..Conv2dArgs::new(&tx, &tw, Some(&tb), &out, 1, [1; 4])
+                        ..Conv2dArgs::new(&tx, &tw, Some(&tb), &out, 1, pad)
                     },
                 )
             });
@@ -815,7 +820,7 @@ fn upsampled_input_matches_upsample_then_conv() {
                 kh: 3,
                 kw: 3,
                 stride: 1,
-                pad: [1; 4],
+                pad,
             };
             let want = rc::conv2d(
                 &xu,
