@@ -283,3 +283,37 @@ fn gn_stats(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
         gstats[ob + c] = vec4<f32>(g, f32(beta[cbase + c]) - st.y * g, x0, 0.0);
     }
 }
+
+// Group-norm statistics (as `gn_stats`) from per-slot partials written by the conv that produced x (winograd
+// `output6p` with p.stats: one slot per tile pair): parts (N S, C) of (count, mean, M2, -). Here p.len = S
+// (slots per image), p.inner = C, p.segs_per_item = G, p.ch_per_seg = C / G; one work group per (n, group).
+// The partials are merged with Chan et al.'s update on means shifted by x0 = the group's first partial mean,
+// the value the prologue subtracts (as `gn_stats`'s first element).
+@group(0) @binding(0) var<storage, read> parts: array<vec4<f32>>;
+
+@compute @workgroup_size(256)
+fn gn_stats_parts(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>,
+                  @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32) {
+    let seg = wid.y * nwg.x + wid.x;
+    let l = lid.x;
+    let n = seg / p.segs_per_item;
+    let cbase = (seg % p.segs_per_item) * p.ch_per_seg;
+    let pb = n * p.len * p.inner;
+    let x0 = parts[pb + cbase].y;
+    var a = vec3<f32>(0.0);
+    let total = p.len * p.ch_per_seg;
+    for (var i = l; i < total; i += 256u) {
+        let b = parts[pb + (i / p.ch_per_seg) * p.inner + cbase + i % p.ch_per_seg];
+        let nn = a.x + b.x;
+        let f = b.x / max(nn, 1.0);
+        let d = (b.y - x0) - a.y;
+        a = vec3<f32>(nn, a.y + d * f, a.z + b.z + d * d * a.x * f);
+    }
+    let st = reduce_welford(a, l, lane, sg);
+    let rstd = inverseSqrt(st.z / st.x + p.eps);
+    let ob = n * p.segs_per_item * p.ch_per_seg + cbase;
+    for (var c = l; c < p.ch_per_seg; c += 256u) {
+        let g = rstd * f32(gamma[cbase + c]);
+        gstats[ob + c] = vec4<f32>(g, f32(beta[cbase + c]) - st.y * g, x0, 0.0);
+    }
+}

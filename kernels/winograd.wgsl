@@ -28,6 +28,8 @@ struct WinoParams {
     // 1: x is stored at half the conv's input size (h, w), read through a nearest 2x upsampling (`input`,
     // `input4s` only): the upsampled tensor is never written
     up: u32,
+    // 1: `output6p` also writes per-tile-pair statistics of its output to `part` (see there)
+    stats: u32,
 }
 
 @group(0) @binding(0) var<storage, read> x: array<ST>;
@@ -792,6 +794,10 @@ fn output6p(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
     let ps = p.oh * p.ow / 4u;
     let pb = (tc.x * p.o + o0) * ps;
     let x0 = 6u * tc.z;
+    sh = vec4<f32>(0.0);
+    ss1 = array<vec4<f32>, 4>(vec4<f32>(0.0), vec4<f32>(0.0), vec4<f32>(0.0), vec4<f32>(0.0));
+    ss2 = ss1;
+    cnt = 0.0;
     for (var r = 0u; r < 6u; r++) {
         let pa = at8v(array<vec4<f32>, 8>(ca[0][r], ca[1][r], ca[2][r], ca[3][r], ca[4][r], ca[5][r], ca[6][r], ca[7][r]));
         let pc = at8v(array<vec4<f32>, 8>(cb[0][r], cb[1][r], cb[2][r], cb[3][r], cb[4][r], cb[5][r], cb[6][r], cb[7][r]));
@@ -822,12 +828,59 @@ fn output6p(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
                         v2 = v2 / (1.0 + exp(-v2));
                         v3 = v3 / (1.0 + exp(-v3));
                     }
-                    y4[e] = vec4<ST>(out4(v0));
-                    y4[e + ps] = vec4<ST>(out4(v1));
-                    y4[e + 2u * ps] = vec4<ST>(out4(v2));
-                    y4[e + 3u * ps] = vec4<ST>(out4(v3));
+                    let s0 = vec4<ST>(out4(v0));
+                    let s1 = vec4<ST>(out4(v1));
+                    let s2 = vec4<ST>(out4(v2));
+                    let s3 = vec4<ST>(out4(v3));
+                    y4[e] = s0;
+                    y4[e + ps] = s1;
+                    y4[e + 2u * ps] = s2;
+                    y4[e + 3u * ps] = s3;
+                    if (p.stats == 1u) {
+                        // the values as stored (f16 rounding included), shifted by each channel's first value
+                        let f0 = vec4<f32>(s0);
+                        let f1 = vec4<f32>(s1);
+                        let f2 = vec4<f32>(s2);
+                        let f3 = vec4<f32>(s3);
+                        if (r == 0u && q == 0u) { sh = vec4<f32>(f0.x, f1.x, f2.x, f3.x); }
+                        let d0 = f0 - sh.x;
+                        let d1 = f1 - sh.y;
+                        let d2 = f2 - sh.z;
+                        let d3 = f3 - sh.w;
+                        ss1[0] += d0;
+                        ss1[1] += d1;
+                        ss1[2] += d2;
+                        ss1[3] += d3;
+                        ss2[0] = fma(d0, d0, ss2[0]);
+                        ss2[1] = fma(d1, d1, ss2[1]);
+                        ss2[2] = fma(d2, d2, ss2[2]);
+                        ss2[3] = fma(d3, d3, ss2[3]);
+                        cnt += 4.0;
+                    }
                 }
             }
         }
     }
+    if (p.stats == 1u) {
+        // slot = global tile pair (t0 and tl are even)
+        let slot = (p.t0 + tl) / 2u;
+        for (var k = 0u; k < 4u; k++) {
+            let a = dot(ss1[k], vec4<f32>(1.0));
+            let m2 = max(dot(ss2[k], vec4<f32>(1.0)) - a * a / cnt, 0.0);
+            part[slot * p.o + o0 + k] = vec4<f32>(cnt, sh[k] + a / cnt, m2, 0.0);
+        }
+    }
 }
+
+// ---- Group-norm statistics in `output6p`'s epilogue (p.stats): per tile pair and output channel, the count,
+// mean and M2 (sum of squared deviations) of the values it stored, to `part` (slots, O) of (count, mean, M2,
+// -), slots numbered over the global tile pairs (n, ty, pair). `norm::group_norm_stats_parts` merges them into
+// a group norm's statistics without reading the output again. The sums run on the values shifted by the
+// channel's first value in the pair (a value of the data: no cancellation however large the mean, as long as
+// the pair's own spread is representable); the merge across pairs uses Chan et al.'s update.
+@group(0) @binding(4) var<storage, read_write> part: array<vec4<f32>>;
+// per channel of the invocation: the shift, and the per-pixel-lane sums of the shifted values and their squares
+var<private> sh: vec4<f32>;
+var<private> ss1: array<vec4<f32>, 4>;
+var<private> ss2: array<vec4<f32>, 4>;
+var<private> cnt: f32;

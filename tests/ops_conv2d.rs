@@ -837,3 +837,114 @@ fn upsampled_input_matches_upsample_then_conv() {
     }
     assert_no_validation_errors();
 }
+
+/// Group-norm statistics from the F(6x6) conv's epilogue partials (`Conv2dArgs::stats_parts` +
+/// `norm::group_norm_stats_parts`): the normalisation they define, applied to the conv's stored output, against
+/// the f64 group norm of that output. Partial tile pairs (OH % 6, OW % 12 != 0), a batch of 2, bias and
+/// residual, an output far from zero (the mean 1e3 times the spread: the shifted merge must not cancel), f32 and
+/// f16 (the partials see the f16-rounded values).
+#[test]
+fn group_norm_stats_from_conv_partials_match_reference() {
+    let Some(ctx) = ctx() else { return };
+    // (name, x shape, O, groups, residual offset)
+    let cases: &[(&str, [usize; 4], usize, usize, f32)] = &[
+        ("partial_pairs_14x20_batch2", [2, 8, 14, 20], 12, 3, 0.0),
+        ("one_pair_6x8", [1, 4, 6, 8], 8, 8, 0.0),
+        ("offset_1e3_13x28", [1, 8, 13, 28], 8, 2, 1e3),
+    ];
+    for (i, &(name, [n, c, h, w], o, groups, offset)) in cases.iter().enumerate() {
+        for dtype in [DType::F32, DType::F16] {
+            let seed = 1700 + 10 * i as u64;
+            let x = uniform(n * c * h * w, 1.0, seed);
+            let wt = uniform(o * c * 9, 0.3, seed + 1);
+            let b = uniform(o, 1.0, seed + 2);
+            let r: Vec<f32> = uniform(n * o * h * w, 1.0, seed + 3)
+                .iter()
+                .map(|v| v + offset)
+                .collect();
+            let gamma = uniform(o, 1.0, seed + 4);
+            let beta = uniform(o, 1.0, seed + 5);
+            let tx = upload(&ctx, &[n, c, h, w], dtype, &x);
+            let tw = upload(&ctx, &[o, c, 3, 3], dtype, &wt);
+            let tb = upload(&ctx, &[o], dtype, &b);
+            let tr = upload(&ctx, &[n, o, h, w], dtype, &r);
+            let tg = upload(&ctx, &[o], dtype, &gamma);
+            let tbe = upload(&ctx, &[o], dtype, &beta);
+            let out = empty(&ctx, &[n, o, h, w], dtype);
+            let ps = cv::stats_parts_shape(ctx.info(), &[n, c, h, w], &[o, c, 3, 3], 1, [1; 4])
+                .unwrap_or([n * h.div_ceil(6) * w.div_ceil(12), o, 4]);
+            let parts = empty(&ctx, &ps, DType::F32);
+            let st = empty(&ctx, &[n, o, 4], DType::F32);
+            run(&ctx, |rec| {
+                cv::conv2d_ex(
+                    rec,
+                    &Conv2dArgs {
+                        path: ConvPath::Winograd6,
+                        residual: Some(&tr),
+                        stats_parts: Some(&parts),
+                        ..Conv2dArgs::new(&tx, &tw, Some(&tb), &out, 1, [1; 4])
+                    },
+                )?;
+                b2dr::ops::norm::group_norm_stats_parts(
+                    rec,
+                    &parts,
+                    &[n, o, h, w],
+                    groups,
+                    &tg,
+                    &tbe,
+                    1e-5,
+                    &st,
+                )
+            });
+            // the normalisation the statistics define, on the stored output, against the f64 group norm of it
+            let y: Vec<f64> = out
+                .to_f32(&ctx)
+                .unwrap()
+                .iter()
+                .map(|&v| v as f64)
+                .collect();
+            let s = st.to_f32(&ctx).unwrap();
+            let hw = h * w;
+            let got: Vec<f32> = y
+                .iter()
+                .enumerate()
+                .map(|(j, &v)| {
+                    let k = (j / hw) * 4; // (n, o) of element j
+                    ((v - s[k + 2] as f64) * s[k] as f64 + s[k + 1] as f64) as f32
+                })
+                .collect();
+            let want = b2dr::ops::reference::image::group_norm(
+                &y,
+                n,
+                o,
+                hw,
+                groups,
+                &stored(&gamma, dtype),
+                &stored(&beta, dtype),
+                1e-5,
+                false,
+            );
+            let e = nmse(&got, &want);
+            eprintln!("{name} {dtype:?}: nmse {e:.2e}");
+            assert!(e <= 1e-9, "{name} {dtype:?}: nmse {e:e}");
+        }
+    }
+    // where the path cannot write partials, asking for them is an error
+    let x = empty(&ctx, &[1, 8, 6, 10], DType::F32);
+    let w = empty(&ctx, &[8, 8, 3, 3], DType::F32);
+    let out = empty(&ctx, &[1, 8, 6, 10], DType::F32);
+    let parts = empty(&ctx, &[1, 8, 4], DType::F32);
+    let mut rec = ctx.recorder().unwrap();
+    let e = cv::conv2d_ex(
+        &mut rec,
+        &Conv2dArgs {
+            path: ConvPath::Winograd,
+            stats_parts: Some(&parts),
+            ..Conv2dArgs::new(&x, &w, None, &out, 1, [1; 4])
+        },
+    )
+    .unwrap_err();
+    assert!(format!("{e:#}").contains("partials"), "{e:#}");
+    drop(rec);
+    assert_no_validation_errors();
+}

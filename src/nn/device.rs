@@ -63,6 +63,9 @@ pub struct Workspace {
     live: u64,
     peak: u64,
     total: u64,
+    /// Group-norm statistics partials written together with an activation by its conv
+    /// (`conv2d::stats_parts_shape`), keyed by the activation's buffer and shape; released with it.
+    parts: Vec<(*const Buffer, Vec<usize>, Tensor)>,
 }
 
 impl Workspace {
@@ -74,6 +77,7 @@ impl Workspace {
             live: 0,
             peak: 0,
             total: 0,
+            parts: vec![],
         }
     }
 
@@ -101,14 +105,39 @@ impl Workspace {
         };
         self.live += buf.size();
         self.peak = self.peak.max(self.live);
+        // a reused buffer carries no partials of its earlier contents (release drops them; defensive)
+        self.parts.retain(|(b, _, _)| *b != Arc::as_ptr(&buf));
         Tensor::on_buffer(buf, shape, dtype)
     }
 
-    /// Returns `t`'s buffer for reuse by later allocations.
+    /// Returns `t`'s buffer for reuse by later allocations (and the statistics partials attached to it).
     pub fn release(&mut self, t: Tensor) {
         let b = t.buffer().clone();
         self.live = self.live.saturating_sub(b.size());
+        let key = Arc::as_ptr(&b);
         self.free.push(b);
+        let (gone, keep): (Vec<_>, Vec<_>) = std::mem::take(&mut self.parts)
+            .into_iter()
+            .partition(|(k, _, _)| *k == key);
+        self.parts = keep;
+        for (_, _, p) in gone {
+            self.release(p);
+        }
+    }
+
+    /// Attaches statistics partials that the op writing `t` produced (see `conv2d::Conv2dArgs::stats_parts`).
+    pub fn attach_parts(&mut self, t: &Tensor, parts: Tensor) {
+        self.parts
+            .push((Arc::as_ptr(t.buffer()), t.shape().to_vec(), parts));
+    }
+
+    /// The statistics partials written with `t`, if any.
+    pub fn parts_of(&self, t: &Tensor) -> Option<&Tensor> {
+        let key = Arc::as_ptr(t.buffer());
+        self.parts
+            .iter()
+            .find(|(k, s, _)| *k == key && s.as_slice() == t.shape())
+            .map(|(_, _, p)| p)
     }
 
     /// Bytes of activation buffers allocated (all of them stay allocated while the plan lives).

@@ -123,10 +123,22 @@ impl Conv {
         let os = conv2d::conv2d_out_shape(&xs, self.w.shape(), self.stride, self.pad)
             .with_context(|| format!("conv {}", self.name))?;
         let out = f.ws.alloc(&os)?;
+        // statistics partials for a following group norm, where this conv's path writes them
+        let parts = match conv2d::stats_parts_shape(
+            f.rec.context().info(),
+            &xs,
+            self.w.shape(),
+            self.stride,
+            self.pad,
+        ) {
+            Some(ps) => Some(f.ws.alloc_dtype(&ps, DType::F32)?),
+            None => None,
+        };
         let args = conv2d::Conv2dArgs {
             packed_w: self.packed.as_ref(),
             wino_w: self.wino[0].as_ref(),
             wino_w6: self.wino[1].as_ref(),
+            stats_parts: parts.as_ref(),
             upsample2x: up,
             residual,
             silu,
@@ -134,6 +146,9 @@ impl Conv {
             ..conv2d::Conv2dArgs::new(x, &self.w, bias, &out, self.stride, self.pad)
         };
         conv2d::conv2d_ex(f.rec, &args).with_context(|| format!("conv {}", self.name))?;
+        if let Some(p) = parts {
+            f.ws.attach_parts(&out, p);
+        }
         Ok(out)
     }
 
@@ -252,6 +267,20 @@ impl GroupNorm {
     pub fn stats(&self, f: &mut Fwd, x: &Tensor) -> Result<Tensor> {
         let s = x.shape();
         let out = f.ws.alloc_dtype(&[s[0], s[1], 4], DType::F32)?;
+        if let Some(parts) = f.ws.parts_of(x) {
+            // from the partials x's conv wrote: x is not read again
+            norm::group_norm_stats_parts(
+                f.rec,
+                parts,
+                s,
+                self.groups,
+                &self.gamma,
+                &self.beta,
+                self.eps,
+                &out,
+            )?;
+            return Ok(out);
+        }
         norm::group_norm_stats(
             f.rec,
             x,

@@ -100,6 +100,10 @@ pub struct Conv2dArgs<'a> {
     pub wino_w: Option<&'a Tensor>,
     /// The same for F(6x6) ((64, C, O), f32).
     pub wino_w6: Option<&'a Tensor>,
+    /// Also write per-slot statistics partials of the output ((N S, O, 4) f32, see [`stats_parts_shape`]) for
+    /// a following group norm (`norm::group_norm_stats_parts`): F(6x6) Winograd with vec4 output rows only; an
+    /// error elsewhere.
+    pub stats_parts: Option<&'a Tensor>,
     /// (N, O, OH, OW), added to the output (a residual connection; it may be `out` itself). Fused into the
     /// epilogue of the Winograd, packed implicit-GEMM and 1x1 GEMM paths, a separate add elsewhere.
     pub residual: Option<&'a Tensor>,
@@ -138,6 +142,7 @@ impl<'a> Conv2dArgs<'a> {
             packed_w: None,
             wino_w: None,
             wino_w6: None,
+            stats_parts: None,
             residual: None,
             silu: false,
             pre_gn_silu: None,
@@ -167,6 +172,31 @@ pub fn pre_gn_fusable(
         && dev.subgroup_size <= 64
         && (narrow_pays(dev, w[2], w[3], stride, w[0])
             || winograd_pays(dev, x[0], x[1], w[0], os[2], os[3]))
+}
+
+/// The shape of the statistics partials (`Conv2dArgs::stats_parts`) that an `Auto` conv of x (N, C, H, W; the
+/// size the conv reads, i.e. after an upsampling) with w writes, or None where its path cannot write them
+/// (anything but F(6x6) Winograd with vec4 output rows): (N S, O, 4) with S = ceil(OH / 6) ceil(OW / 12)
+/// slots (tile pairs) per image.
+pub fn stats_parts_shape(
+    dev: &DeviceInfo,
+    x: &[usize],
+    w: &[usize],
+    stride: usize,
+    pad: [usize; 4],
+) -> Option<[usize; 3]> {
+    let os = conv2d_out_shape(x, w, stride, pad).ok()?;
+    let (o, oh, ow) = (os[1], os[2], os[3]);
+    let wino = w[2] == 3
+        && w[3] == 3
+        && stride == 1
+        && pad.iter().all(|&p| p <= 2)
+        && dev.subgroup_size >= 8
+        && dev.subgroup_size <= 64
+        && !narrow_pays(dev, w[2], w[3], stride, o)
+        && winograd_pays(dev, x[0], x[1], o, oh, ow);
+    let f6 = super::winograd::Tile::best(o, oh, ow) == super::winograd::Tile::F6;
+    (wino && f6).then(|| [x[0] * oh.div_ceil(6) * ow.div_ceil(12), o, 4])
 }
 
 /// Output shape of x: (N, C, H, W) convolved with w: (O, C, KH, KW), with checks naming the shapes.
@@ -341,6 +371,10 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
             }
             _ => false,
         };
+    ensure!(
+        wino || a.stats_parts.is_none(),
+        "conv2d: statistics partials come from the F(6x6) Winograd path only (x {xs:?}, w {ws:?}; see conv2d::stats_parts_shape)"
+    );
     if a.upsample2x && !wino {
         // this path reads x directly: upsample into the recording's scratch first
         let b = rec.scratch(

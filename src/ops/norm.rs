@@ -260,3 +260,79 @@ pub fn group_norm_stats(
         op,
     )
 }
+
+/// [`group_norm_stats`] of x: (N, C, H, W) from the per-slot partials its producer wrote (`parts`: (N S, C, 4)
+/// f32 of (count, mean, M2, -), S slots per image; the Winograd F(6x6) conv writes them with
+/// `Conv2dArgs::stats_parts`, see `conv2d::stats_parts_shape`): x itself is not read. Same output as
+/// [`group_norm_stats`] up to rounding.
+#[allow(clippy::too_many_arguments)] // the norm's parameters, as group_norm_stats, plus the partials
+pub fn group_norm_stats_parts(
+    rec: &mut Recorder,
+    parts: &Tensor,
+    x_shape: &[usize],
+    groups: usize,
+    gamma: &Tensor,
+    beta: &Tensor,
+    eps: f32,
+    out: &Tensor,
+) -> Result<()> {
+    let op = "group_norm_stats_parts";
+    let s = x_shape;
+    ensure!(s.len() == 4, "{op}: x must be (N, C, H, W), got {s:?}");
+    ensure!(
+        groups > 0 && s[1] % groups == 0,
+        "{op}: {groups} groups do not divide {} channels of {s:?}",
+        s[1]
+    );
+    same_dtype(op, &[gamma, beta])?;
+    expect_shape(op, "gamma", gamma, &[s[1]])?;
+    expect_shape(op, "beta", beta, &[s[1]])?;
+    expect_shape(op, "out", out, &[s[0], s[1], 4])?;
+    let ps = parts.shape();
+    ensure!(
+        ps.len() == 3 && ps[0] % s[0] == 0 && ps[0] > 0 && ps[1] == s[1] && ps[2] == 4,
+        "{op}: parts {ps:?} must be (N S, C, 4) for x {s:?}"
+    );
+    ensure!(
+        out.dtype() == crate::tensor::DType::F32 && parts.dtype() == crate::tensor::DType::F32,
+        "{op}: parts and out must be f32"
+    );
+    ensure!(
+        eps.is_finite() && eps >= 0.0,
+        "{op}: eps {eps} must be finite and >= 0"
+    );
+    let k = pick(
+        gamma.dtype(),
+        K::NormF32GnStatsParts,
+        K::NormF16GnStatsParts,
+    );
+    ensure!(
+        rec.context().supports(k),
+        "{op}: needs subgroup operations, which {:?} lacks",
+        rec.context().info().name
+    );
+    let p = NormParams {
+        len: (ps[0] / s[0]) as u32,
+        segs_per_item: groups as u32,
+        ch_per_seg: (s[1] / groups) as u32,
+        inner: s[1] as u32,
+        eps,
+        silu: 0,
+        tokens: 0,
+    };
+    // one work group per (n, group), tiled exactly (the kernel has no bounds check on them)
+    let segs = s[0] * groups;
+    let gx = segs.min(65535);
+    ensure!(
+        segs % gx == 0,
+        "{op}: {segs} segments cannot be tiled over the grid"
+    );
+    let grid = [gx as u32, (segs / gx) as u32, 1];
+    rec.dispatch(
+        k,
+        &[parts.buffer(), gamma.buffer(), beta.buffer(), out.buffer()],
+        bytemuck::bytes_of(&p),
+        grid,
+        op,
+    )
+}

@@ -269,6 +269,18 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
     let info = |id: K| id.info().entry;
     let in_label = format!("conv2d winograd in {} {c}x{h}x{w}", info(inp));
     let out_label = format!("conv2d winograd out {} {o}x{oh}x{ow}", info(outp));
+    if let Some(pt) = a.stats_parts {
+        ensure!(
+            outp == k.output4 && pairs,
+            "conv2d winograd: statistics partials need the F(6x6) vec4-row output (O % 4 == 0, OW % 4 == 0; x {xs:?}, out {os:?})"
+        );
+        ensure!(
+            pt.dtype() == DType::F32,
+            "conv2d winograd: statistics partials must be f32"
+        );
+        expect_shape("conv2d winograd", "stats_parts", pt, &[tiles / 2, o, 4])?;
+    }
+    let parts_t = a.stats_parts.unwrap_or(out);
     let vb = rec.scratch(SCRATCH_WINO_V, (np * slab * c * 4) as u64)?;
     let mb = rec.scratch(SCRATCH_WINO_M, (np * slab * o * 4) as u64)?;
     let bias_t = bias.unwrap_or(x);
@@ -299,6 +311,7 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
             has_res: residual.is_some() as u32,
             silu: silu as u32,
             up: up as u32,
+            stats: a.stats_parts.is_some() as u32,
         };
         let g = super::grid_1d("conv2d winograd", nt / per_inv * in_items)?;
         // input4 also reads x through a scalar view (binding 3)
@@ -330,8 +343,16 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
             None,
         )?;
         let g = super::grid_1d("conv2d winograd", nt / per_inv * out_items)?;
-        let bufs = [&mb, bias_t.buffer(), out.buffer(), res_t.buffer()];
-        rec.dispatch(outp, &bufs, bytemuck::bytes_of(&p), g, &out_label)?;
+        // m, bias, y, residual, the statistics partials (output6p): as many as the kernel binds
+        let bufs = [
+            &mb,
+            bias_t.buffer(),
+            out.buffer(),
+            res_t.buffer(),
+            parts_t.buffer(),
+        ];
+        let nb = outp.info().bindings.len();
+        rec.dispatch(outp, &bufs[..nb], bytemuck::bytes_of(&p), g, &out_label)?;
         t0 += nt;
     }
     Ok(())
