@@ -884,3 +884,47 @@ var<private> sh: vec4<f32>;
 var<private> ss1: array<vec4<f32>, 4>;
 var<private> ss2: array<vec4<f32>, 4>;
 var<private> cnt: f32;
+
+// ---- F(4x4) output for 4 output channels per invocation with per-pixel stores (O % 4 == 0, any OW: the vec4
+// rows of `output4` need OW % 4 == 0): m read as 36 vec4s instead of 144 scalars.
+@compute @workgroup_size(256)
+fn output4q(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
+    let i = flat_index(wid, nwg, lid);
+    let oq = p.o / 4u;
+    if (i >= p.nt * oq) { return; }
+    let o0 = 4u * (i % oq);
+    let tl = i / oq;
+    let tc = tile(tl);
+    let st = p.nt * oq;
+    let mo = tl * oq + o0 / 4u;
+    // columns j of A^T M over the 4 channels
+    var cols: array<array<vec4<f32>, 4>, 6>;
+    for (var j = 0u; j < 6u; j++) {
+        cols[j] = at4(array<vec4<f32>, 6>(m4[(0u + j) * st + mo], m4[(6u + j) * st + mo], m4[(12u + j) * st + mo],
+                                          m4[(18u + j) * st + mo], m4[(24u + j) * st + mo], m4[(30u + j) * st + mo]));
+    }
+    var b = vec4<f32>(0.0);
+    if (p.has_bias != 0u) {
+        let bo = select(o0, tc.x * p.o + o0, p.has_bias == 2u);
+        b = vec4<f32>(f32(bias[bo]), f32(bias[bo + 1u]), f32(bias[bo + 2u]), f32(bias[bo + 3u]));
+    }
+    let plane = p.oh * p.ow;
+    let ybase = (tc.x * p.o + o0) * plane;
+    for (var r = 0u; r < 4u; r++) {
+        // row r of the tile: its 4 pixels, each a vec4 over the channels
+        let px = at4(array<vec4<f32>, 6>(cols[0][r], cols[1][r], cols[2][r], cols[3][r], cols[4][r], cols[5][r]));
+        let yy = 4u * tc.y + r;
+        if (yy < p.oh) {
+            for (var s = 0u; s < 4u; s++) {
+                let xx = 4u * tc.z + s;
+                if (xx < p.ow) {
+                    let yi = ybase + yy * p.ow + xx;
+                    put_y(yi, px[s].x, b.x);
+                    put_y(yi + plane, px[s].y, b.y);
+                    put_y(yi + 2u * plane, px[s].z, b.z);
+                    put_y(yi + 3u * plane, px[s].w, b.w);
+                }
+            }
+        }
+    }
+}

@@ -77,22 +77,22 @@ struct Ids {
     output: K,
     /// 4 output channels per invocation, vec4 rows (O % 4 == 0, OW % 4 == 0; F6: a tile pair per invocation)
     output4: K,
-    /// F6: 4 output channels per invocation, scalar stores (O % 4 == 0)
-    output4s: Option<K>,
+    /// 4 output channels per invocation, per-pixel stores (O % 4 == 0)
+    output4s: K,
     weight: K,
 }
 
 /// `gs`: the input entries with the GroupNorm + SiLU prologue.
 fn ids(d: DType, t: Tile, gs: bool) -> Ids {
     macro_rules! ids4 {
-        ($i:ident, $i4:ident, $i4s:ident, $o:ident, $o4:ident, $w:ident) => {
+        ($i:ident, $i4:ident, $i4s:ident, $o:ident, $o4:ident, $o4s:ident, $w:ident) => {
             Ids {
                 input: K::$i,
                 input4: K::$i4,
                 input4s: K::$i4s,
                 output: K::$o,
                 output4: K::$o4,
-                output4s: None,
+                output4s: K::$o4s,
                 weight: K::$w,
             }
         };
@@ -105,7 +105,7 @@ fn ids(d: DType, t: Tile, gs: bool) -> Ids {
                 input4s: K::$i4s,
                 output: K::$o,
                 output4: K::$op,
-                output4s: Some(K::$o4s),
+                output4s: K::$o4s,
                 weight: K::$w,
             }
         };
@@ -118,6 +118,7 @@ fn ids(d: DType, t: Tile, gs: bool) -> Ids {
             WinogradF32Input4sGs,
             WinogradF32Output,
             WinogradF32Output4,
+            WinogradF32Output4q,
             WinogradF32Weight
         ),
         (F16, Tile::F4, true) => ids4!(
@@ -126,6 +127,7 @@ fn ids(d: DType, t: Tile, gs: bool) -> Ids {
             WinogradF16Input4sGs,
             WinogradF16Output,
             WinogradF16Output4,
+            WinogradF16Output4q,
             WinogradF16Weight
         ),
         (F32, Tile::F4, false) => ids4!(
@@ -134,6 +136,7 @@ fn ids(d: DType, t: Tile, gs: bool) -> Ids {
             WinogradF32Input4s,
             WinogradF32Output,
             WinogradF32Output4,
+            WinogradF32Output4q,
             WinogradF32Weight
         ),
         (F16, Tile::F4, false) => ids4!(
@@ -142,6 +145,7 @@ fn ids(d: DType, t: Tile, gs: bool) -> Ids {
             WinogradF16Input4s,
             WinogradF16Output,
             WinogradF16Output4,
+            WinogradF16Output4q,
             WinogradF16Weight
         ),
         (F32, Tile::F6, true) => ids6!(
@@ -260,8 +264,8 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
     };
     let (outp, out_items) = if o % 4 == 0 && ow % 4 == 0 {
         (k.output4, o / 4)
-    } else if let Some(k4s) = k.output4s.filter(|_| o % 4 == 0) {
-        (k4s, o / 4 * per_inv)
+    } else if o % 4 == 0 {
+        (k.output4s, o / 4 * per_inv)
     } else {
         (k.output, o * per_inv)
     };
