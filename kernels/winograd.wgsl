@@ -837,7 +837,7 @@ fn output6p(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
                     y4[e + 2u * ps] = s2;
                     y4[e + 3u * ps] = s3;
                     if (p.stats == 1u) {
-                        // the values as stored (f16 rounding included), shifted by each channel's first value
+                        // the values as stored, shifted by each channel's first value
                         let f0 = vec4<f32>(s0);
                         let f1 = vec4<f32>(s1);
                         let f2 = vec4<f32>(s2);

@@ -871,8 +871,9 @@ fn group_norm_stats_from_conv_partials_match_reference() {
             let tg = upload(&ctx, &[o], dtype, &gamma);
             let tbe = upload(&ctx, &[o], dtype, &beta);
             let out = empty(&ctx, &[n, o, h, w], dtype);
-            let ps = cv::stats_parts_shape(ctx.info(), &[n, c, h, w], &[o, c, 3, 3], 1, [1; 4])
-                .unwrap_or([n * h.div_ceil(6) * w.div_ceil(12), o, 4]);
+            let ps =
+                cv::stats_parts_shape(ctx.info(), dtype, &[n, c, h, w], &[o, c, 3, 3], 1, [1; 4])
+                    .unwrap_or([n * h.div_ceil(6) * w.div_ceil(12), o, 4]);
             let parts = empty(&ctx, &ps, DType::F32);
             let st = empty(&ctx, &[n, o, 4], DType::F32);
             run(&ctx, |rec| {

@@ -126,6 +126,7 @@ impl Conv {
         // statistics partials for a following group norm, where this conv's path writes them
         let parts = match conv2d::stats_parts_shape(
             f.rec.context().info(),
+            x.dtype(),
             &xs,
             self.w.shape(),
             self.stride,

@@ -175,11 +175,12 @@ pub fn pre_gn_fusable(
 }
 
 /// The shape of the statistics partials (`Conv2dArgs::stats_parts`) that an `Auto` conv of x (N, C, H, W; the
-/// size the conv reads, i.e. after an upsampling) with w writes, or None where its path cannot write them
+/// size the conv reads, i.e. after an upsampling; stored in `dtype`) with w writes, or None where its path cannot write them
 /// (anything but F(6x6) Winograd with vec4 output rows): (N S, O, 4) with S = ceil(OH / 6) ceil(OW / 12)
 /// slots (tile pairs) per image.
 pub fn stats_parts_shape(
     dev: &DeviceInfo,
+    dtype: DType,
     x: &[usize],
     w: &[usize],
     stride: usize,
@@ -195,7 +196,7 @@ pub fn stats_parts_shape(
         && dev.subgroup_size <= 64
         && !narrow_pays(dev, w[2], w[3], stride, o)
         && winograd_pays(dev, x[0], x[1], o, oh, ow);
-    let f6 = super::winograd::Tile::best(o, oh, ow) == super::winograd::Tile::F6;
+    let f6 = super::winograd::Tile::best(dtype, o, oh, ow) == super::winograd::Tile::F6;
     (wino && f6).then(|| [x[0] * oh.div_ceil(6) * ow.div_ceil(12), o, 4])
 }
 
@@ -405,7 +406,7 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
         let tile = match a.path {
             ConvPath::Winograd => Tile::F4,
             ConvPath::Winograd6 => Tile::F6,
-            _ => Tile::best(o, os[2], os[3]),
+            _ => Tile::best(d, o, os[2], os[3]),
         };
         let given = match tile {
             Tile::F4 => a.wino_w,

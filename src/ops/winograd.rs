@@ -50,14 +50,17 @@ impl Tile {
         }
     }
 
-    /// The tile size `Auto` runs for O output channels of OH x OW: F(6x6) where its output transform stores
-    /// vec4 rows (O % 4 == 0, OW % 4 == 0; with per-pixel stores its transforms cost more than F(4x4)'s, e.g.
-    /// the 320-channel 28 x 50 op case 31 ms against 23) and it moves fewer transformed values (tiles x
-    /// products, partial tiles counted whole, F(6x6) rows padded to whole tile pairs), else F(4x4).
-    pub fn best(o: usize, oh: usize, ow: usize) -> Tile {
+    /// The tile size `Auto` runs for O output channels of OH x OW stored in `dtype`: F(6x6) where its output
+    /// transform stores vec4 rows (O % 4 == 0, OW % 4 == 0; with per-pixel stores its transforms cost more
+    /// than F(4x4)'s, e.g. the 320-channel 28 x 50 op case 31 ms against 23) and it moves fewer transformed
+    /// values (tiles x products, partial tiles counted whole, F(6x6) rows padded to whole tile pairs), else
+    /// F(4x4). f16 storage keeps F(4x4): the F(6x6) tile-pair output ran 2.3x slower in f16 than in f32 on
+    /// lavapipe 22.3 (b2dr-tiny decode, 32 x 224 x 400 outputs: 172 ms against 69-76; its per-pixel-store
+    /// form 76 ms), cause not found, and with per-pixel stores F(6x6) gains nothing over F(4x4).
+    pub fn best(dtype: DType, o: usize, oh: usize, ow: usize) -> Tile {
         let cost4 = oh.div_ceil(4) * ow.div_ceil(4) * 36;
         let cost6 = oh.div_ceil(6) * ow.div_ceil(12) * 2 * 64;
-        if o % 4 == 0 && ow % 4 == 0 && cost6 < cost4 {
+        if dtype == DType::F32 && o % 4 == 0 && ow % 4 == 0 && cost6 < cost4 {
             Tile::F6
         } else {
             Tile::F4
