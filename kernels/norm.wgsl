@@ -139,11 +139,16 @@ fn merge_sg(v: vec3<f32>) -> vec3<f32> {
 // barrier, a few shared accesses per lane (a barrier tree would need 8 rounds of per-lane shared loads and
 // stores, which on lavapipe cost as much as a pass over a small group's data).
 fn reduce_welford(v: vec3<f32>, l: u32, lane: u32, sg: u32) -> vec3<f32> {
+    return reduce_welford_wg(v, l, lane, sg, 256u);
+}
+
+// `reduce_welford` for a work group of `wg` invocations (a literal: the loop bound folds).
+fn reduce_welford_wg(v: vec3<f32>, l: u32, lane: u32, sg: u32, wg: u32) -> vec3<f32> {
     let s = merge_sg(v);
     if (lane == 0u) { red4[l / sg] = vec4<f32>(s, 0.0); }
     workgroupBarrier();
     var a = vec3<f32>(0.0);
-    for (var i = lane; i < 256u / sg; i += sg) {
+    for (var i = lane; i < wg / sg; i += sg) {
         // pairwise merge of this lane's share (Chan et al.)
         let b = red4[i].xyz;
         let n = a.x + b.x;
@@ -176,12 +181,22 @@ fn welford4(b4: u32, n4: u32, x0: f32, start: u32, stride: u32) -> vec3<f32> {
 @compute @workgroup_size(256)
 fn gn4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>,
        @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32) {
-    let seg = wid.y * nwg.x + wid.x;
-    let l = lid.x;
+    gn4_impl(wid.y * nwg.x + wid.x, lid.x, lane, sg, 256u);
+}
+
+// `gn4` with work groups of 64 (small segments: fewer idle invocations per group on lavapipe).
+@compute @workgroup_size(64)
+fn gn4_64(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>,
+          @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32) {
+    gn4_impl(wid.y * nwg.x + wid.x, lid.x, lane, sg, 64u);
+}
+
+// One (image, group) segment per work group of `wg` invocations.
+fn gn4_impl(seg: u32, l: u32, lane: u32, sg: u32, wg: u32) {
     let base = seg * p.len;
     let b4 = base / 4u;
     let x0 = f32(x4[b4].x);
-    let st = reduce_welford(welford4(b4, p.len / 4u, x0, l, 256u), l, lane, sg);
+    let st = reduce_welford_wg(welford4(b4, p.len / 4u, x0, l, wg), l, lane, sg, wg);
     let mean = st.y; // mean of the shifted values
     let rstd = inverseSqrt(st.z / f32(p.len) + p.eps);
     let cbase = (seg % p.segs_per_item) * p.ch_per_seg;
@@ -193,7 +208,7 @@ fn gn4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
             let b = f32(beta[cbase + c]) - mean * g;
             let cb = b4 + c * in4;
             let tb = (seg / p.segs_per_item) * p.inner * ctot + cbase + c;
-            for (var j = l; j < in4; j += 256u) {
+            for (var j = l; j < in4; j += wg) {
                 var v = (vec4<f32>(x4[cb + j]) - x0) * g + b;
                 if (p.silu == 1u) { v = v / (1.0 + exp(-v)); }
                 if (p.tokens == 1u) {
@@ -214,7 +229,7 @@ fn gn4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3
             let b = f32(beta[cbase + c]) - mean * g;
             let cb = base + c * p.inner;
             let tb = (seg / p.segs_per_item) * p.inner * ctot + cbase + c;
-            for (var j = l; j < p.inner; j += 256u) {
+            for (var j = l; j < p.inner; j += wg) {
                 var v = (f32(xs[cb + j]) - x0) * g + b;
                 if (p.silu == 1u) { v = silu(v); }
                 ys[select(cb + j, tb + j * ctot, p.tokens == 1u)] = ST(v);
@@ -253,19 +268,28 @@ fn layer_norm_sg4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
 @compute @workgroup_size(256)
 fn gn_stats(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>,
             @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32) {
-    let seg = wid.y * nwg.x + wid.x;
-    let l = lid.x;
+    gn_stats_impl(wid.y * nwg.x + wid.x, lid.x, lane, sg, 256u);
+}
+
+// `gn_stats` with work groups of 64 (small segments).
+@compute @workgroup_size(64)
+fn gn_stats_64(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>,
+               @builtin(subgroup_invocation_id) lane: u32, @builtin(subgroup_size) sg: u32) {
+    gn_stats_impl(wid.y * nwg.x + wid.x, lid.x, lane, sg, 64u);
+}
+
+fn gn_stats_impl(seg: u32, l: u32, lane: u32, sg: u32, wg: u32) {
     let base = seg * p.len;
     let x0 = f32(xs[base]);
     var lane_st: vec3<f32>;
     if (p.len % 4u == 0u) {
-        lane_st = welford4(base / 4u, p.len / 4u, x0, l, 256u);
+        lane_st = welford4(base / 4u, p.len / 4u, x0, l, wg);
     } else {
         // scalar Welford (the vec4 one with a single stream)
         var k = 0.0;
         var m = 0.0;
         var q = 0.0;
-        for (var i = l; i < p.len; i += 256u) {
+        for (var i = l; i < p.len; i += wg) {
             let d = f32(xs[base + i]) - x0;
             k += 1.0;
             let dm = d - m;
@@ -274,11 +298,11 @@ fn gn_stats(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
         }
         lane_st = vec3<f32>(k, m, q);
     }
-    let st = reduce_welford(lane_st, l, lane, sg);
+    let st = reduce_welford_wg(lane_st, l, lane, sg, wg);
     let rstd = inverseSqrt(st.z / f32(p.len) + p.eps);
     let cbase = (seg % p.segs_per_item) * p.ch_per_seg;
     let ob = (seg / p.segs_per_item) * p.segs_per_item * p.ch_per_seg + cbase;
-    for (var c = l; c < p.ch_per_seg; c += 256u) {
+    for (var c = l; c < p.ch_per_seg; c += wg) {
         let g = rstd * f32(gamma[cbase + c]);
         gstats[ob + c] = vec4<f32>(g, f32(beta[cbase + c]) - st.y * g, x0, 0.0);
     }
