@@ -3,6 +3,15 @@
 //! distance and polyline projection (shapely `LineString.project`).
 use glam::DVec2;
 
+use crate::scene::geometry as sg;
+/// shapely `polygon.distance(Point)`: 0 inside (the boundary included: its distance is 0 anyway), else the
+/// distance to the boundary; infinite for an empty polygon.
+pub use sg::point_polygon_distance as dist_point_polygon;
+/// Distance from a point to the segment [a, b].
+pub use sg::point_segment_distance as dist_point_segment;
+/// Intersection test for two convex polygons (any winding), touching counts; false if either is empty.
+pub use sg::{convex_intersect, wrap_angle};
+
 /// An oriented rectangle given by its centre (nuPlan `OrientedBox`).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct OrientedBox {
@@ -59,95 +68,19 @@ pub fn boxes_intersect(a: &OrientedBox, b: &OrientedBox) -> bool {
     convex_intersect(&a.corners(), &b.corners())
 }
 
-/// Intersection test for two convex polygons (any winding), touching counts.
-pub fn convex_intersect(a: &[DVec2], b: &[DVec2]) -> bool {
-    fn separated(a: &[DVec2], b: &[DVec2]) -> bool {
-        let n = a.len();
-        for i in 0..n {
-            let e = a[(i + 1) % n] - a[i];
-            let axis = DVec2::new(-e.y, e.x);
-            if axis == DVec2::ZERO {
-                continue;
-            }
-            let (amin, amax) = project(a, axis);
-            let (bmin, bmax) = project(b, axis);
-            if amax < bmin || bmax < amin {
-                return true;
-            }
-        }
-        false
-    }
-    fn project(p: &[DVec2], axis: DVec2) -> (f64, f64) {
-        let mut lo = f64::INFINITY;
-        let mut hi = f64::NEG_INFINITY;
-        for q in p {
-            let d = q.dot(axis);
-            lo = lo.min(d);
-            hi = hi.max(d);
-        }
-        (lo, hi)
-    }
-    if a.is_empty() || b.is_empty() {
-        return false;
-    }
-    !(separated(a, b) || separated(b, a))
-}
-
 /// shapely `LineString([p, q]).intersects(polygon)` for a convex polygon: the segment is a degenerate convex
 /// polygon, so the separating-axis test applies (the segment's own normal is one of the axes).
 pub fn segment_intersects_convex(p: DVec2, q: DVec2, poly: &[DVec2]) -> bool {
     convex_intersect(&[p, q], poly)
 }
 
-/// Point in a simple polygon (even-odd rule); points on the boundary count as inside.
+/// Point in a simple polygon (even-odd rule); points on the boundary count as inside (the scene module's ray
+/// cast leaves them either way).
 pub fn point_in_polygon(p: DVec2, poly: &[DVec2]) -> bool {
     let n = poly.len();
-    if n < 3 {
-        return false;
-    }
-    let mut inside = false;
-    let mut j = n - 1;
-    for i in 0..n {
-        let a = poly[i];
-        let b = poly[j];
-        if dist_point_segment(p, a, b) == 0.0 {
-            return true;
-        }
-        if (a.y > p.y) != (b.y > p.y) {
-            let x = a.x + (p.y - a.y) * (b.x - a.x) / (b.y - a.y);
-            if p.x < x {
-                inside = !inside;
-            }
-        }
-        j = i;
-    }
-    inside
-}
-
-/// Distance from `p` to the segment [a, b].
-pub fn dist_point_segment(p: DVec2, a: DVec2, b: DVec2) -> f64 {
-    let ab = b - a;
-    let len2 = ab.length_squared();
-    let t = if len2 > 0.0 {
-        ((p - a).dot(ab) / len2).clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    (a + ab * t).distance(p)
-}
-
-/// shapely `polygon.distance(Point)`: 0 inside, else the distance to the boundary.
-pub fn dist_point_polygon(p: DVec2, poly: &[DVec2]) -> f64 {
-    if poly.is_empty() {
-        return f64::INFINITY;
-    }
-    if point_in_polygon(p, poly) {
-        return 0.0;
-    }
-    let n = poly.len();
-    (0..n)
-        .map(|i| dist_point_segment(p, poly[i], poly[(i + 1) % n]))
-        .fold(f64::INFINITY, f64::min)
+    n >= 3
+        && ((0..n).any(|i| dist_point_segment(p, poly[i], poly[(i + 1) % n]) == 0.0)
+            || sg::point_in_polygon(p, poly))
 }
 
 /// Length of a polyline.
@@ -179,12 +112,6 @@ pub fn polyline_project(line: &[DVec2], p: DVec2) -> f64 {
         s0 += seg_len;
     }
     best_s
-}
-
-/// Wrap an angle to [-pi, pi).
-pub fn wrap_angle(a: f64) -> f64 {
-    let two_pi = 2.0 * std::f64::consts::PI;
-    (a + std::f64::consts::PI).rem_euclid(two_pi) - std::f64::consts::PI
 }
 
 #[cfg(test)]

@@ -219,8 +219,13 @@ pub fn point_polygon_distance(p: DVec2, poly: &[DVec2]) -> f64 {
     }
 }
 
-/// Separating-axis test for two convex polygons (any orientation). Touching counts as intersecting.
+/// Separating-axis test for two convex polygons (any orientation; a segment or a point is a degenerate one:
+/// zero-length edges give a zero axis, which separates nothing). Touching counts as intersecting; an empty
+/// polygon intersects nothing.
 pub fn convex_intersect(a: &[DVec2], b: &[DVec2]) -> bool {
+    if a.is_empty() || b.is_empty() {
+        return false;
+    }
     fn separated(a: &[DVec2], b: &[DVec2]) -> bool {
         let n = a.len();
         for i in 0..n {
