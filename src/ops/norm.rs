@@ -218,25 +218,8 @@ pub fn group_norm_stats(
 ) -> Result<()> {
     let op = "group_norm_stats";
     let s = x.shape();
-    ensure!(s.len() == 4, "{op}: x must be (N, C, H, W), got {s:?}");
-    ensure!(
-        groups > 0 && s[1] % groups == 0,
-        "{op}: {groups} groups do not divide {} channels of {s:?}",
-        s[1]
-    );
     same_dtype(op, &[x, gamma, beta])?;
-    expect_shape(op, "gamma", gamma, &[s[1]])?;
-    expect_shape(op, "beta", beta, &[s[1]])?;
-    expect_shape(op, "out", out, &[s[0], s[1], 4])?;
-    ensure!(
-        out.dtype() == crate::tensor::DType::F32,
-        "{op}: out must be f32, got {}",
-        out.dtype().name()
-    );
-    ensure!(
-        eps.is_finite() && eps >= 0.0,
-        "{op}: eps {eps} must be finite and >= 0"
-    );
+    check_stats_args(op, s, groups, gamma, beta, eps, out)?;
     let k = if cpg_len(s, groups) <= SMALL_SEGMENT as usize {
         pick(x.dtype(), K::NormF32GnStats64, K::NormF16GnStats64)
     } else {
@@ -296,28 +279,16 @@ pub fn group_norm_stats_parts(
 ) -> Result<()> {
     let op = "group_norm_stats_parts";
     let s = x_shape;
-    ensure!(s.len() == 4, "{op}: x must be (N, C, H, W), got {s:?}");
-    ensure!(
-        groups > 0 && s[1] % groups == 0,
-        "{op}: {groups} groups do not divide {} channels of {s:?}",
-        s[1]
-    );
     same_dtype(op, &[gamma, beta])?;
-    expect_shape(op, "gamma", gamma, &[s[1]])?;
-    expect_shape(op, "beta", beta, &[s[1]])?;
-    expect_shape(op, "out", out, &[s[0], s[1], 4])?;
+    check_stats_args(op, s, groups, gamma, beta, eps, out)?;
     let ps = parts.shape();
     ensure!(
         ps.len() == 3 && ps[0] % s[0] == 0 && ps[0] > 0 && ps[1] == s[1] && ps[2] == 4,
         "{op}: parts {ps:?} must be (N S, C, 4) for x {s:?}"
     );
     ensure!(
-        out.dtype() == crate::tensor::DType::F32 && parts.dtype() == crate::tensor::DType::F32,
-        "{op}: parts and out must be f32"
-    );
-    ensure!(
-        eps.is_finite() && eps >= 0.0,
-        "{op}: eps {eps} must be finite and >= 0"
+        parts.dtype() == crate::tensor::DType::F32,
+        "{op}: parts must be f32"
     );
     let k = pick(
         gamma.dtype(),
@@ -353,4 +324,36 @@ pub fn group_norm_stats_parts(
         grid,
         op,
     )
+}
+
+/// The checks [`group_norm_stats`] and [`group_norm_stats_parts`] share: x shape s (N, C, H, W), groups dividing
+/// C, gamma and beta (C), out (N, C, 4) f32, eps finite and >= 0.
+fn check_stats_args(
+    op: &str,
+    s: &[usize],
+    groups: usize,
+    gamma: &Tensor,
+    beta: &Tensor,
+    eps: f32,
+    out: &Tensor,
+) -> Result<()> {
+    ensure!(s.len() == 4, "{op}: x must be (N, C, H, W), got {s:?}");
+    ensure!(
+        groups > 0 && s[1] % groups == 0,
+        "{op}: {groups} groups do not divide {} channels of {s:?}",
+        s[1]
+    );
+    expect_shape(op, "gamma", gamma, &[s[1]])?;
+    expect_shape(op, "beta", beta, &[s[1]])?;
+    expect_shape(op, "out", out, &[s[0], s[1], 4])?;
+    ensure!(
+        out.dtype() == crate::tensor::DType::F32,
+        "{op}: out must be f32, got {}",
+        out.dtype().name()
+    );
+    ensure!(
+        eps.is_finite() && eps >= 0.0,
+        "{op}: eps {eps} must be finite and >= 0"
+    );
+    Ok(())
 }
