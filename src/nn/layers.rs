@@ -10,8 +10,8 @@ pub struct Conv {
     pub w: Tensor,
     /// The weight repacked once at load to (KH, KW, C, O) for the implicit-GEMM kernel (when it applies).
     packed: Option<Tensor>,
-    /// 3x3 stride-1 weights Winograd-transformed once at load for F(4x4) ((36, C, O) f32) and F(6x6)
-    /// ((64, C, O)), on CPU devices (where `Auto` may pick the Winograd path; whether it does, and with which
+    /// 3x3 stride-1 weights Winograd-transformed once at load for F(4x4) ((36, C, O) f32) and, for f32
+    /// weights, F(6x6) ((64, C, O)), on CPU devices (where `Auto` may pick the Winograd path; whether it does, and with which
     /// tile, depends on the input size, unknown at load), when each copy stays under 16 MiB (larger ones are
     /// transformed per call when used).
     wino: [Option<Tensor>; 2],
@@ -49,7 +49,10 @@ impl Conv {
         use crate::ops::winograd::{transform_weight, weight_shape, Tile};
         for (slot, t) in wino.iter_mut().zip([Tile::F4, Tile::F6]) {
             let ush = weight_shape(&s, t);
-            if dw.ctx.info().is_cpu()
+            // (`Auto` never runs F(6x6) on f16 storage: no copy for it)
+            let used = t == Tile::F4 || w.dtype() == DType::F32;
+            if used
+                && dw.ctx.info().is_cpu()
                 && s[2] == 3
                 && s[3] == 3
                 && stride == 1
