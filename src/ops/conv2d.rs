@@ -2,8 +2,11 @@
 //! (top, bottom, left, right), fused bias; f32 or f16 storage with f32 accumulation.
 //!
 //! Paths: 1x1 stride-1 unpadded convs run as a GEMM (`matmul::gemm`, weights shared over the batch). On CPU
-//! devices, 3x3 stride-1 convs where it pays ([`winograd_pays`]) run Winograd F(4x4, 3x3)
-//! ([`super::winograd`]). Other convs with O % 4 == 0 run an implicit GEMM on weights repacked to
+//! devices, 3x3 stride-1 convs with O <= 4 run the few-output-channel kernel ([`narrow_pays`],
+//! `kernels/conv3x3_narrow.wgsl`), and others where it pays ([`winograd_pays`]) run Winograd F(4x4, 3x3) or
+//! F(6x6, 3x3) ([`super::winograd`], tile by `winograd::Tile::best`; F(6x6) can also write group-norm
+//! statistics partials of its output, [`stats_parts_shape`]). Other convs with O % 4 == 0 run an implicit GEMM
+//! on weights repacked to
 //! (KH, KW, C, O) (`kernels/conv2d_packed.wgsl`; with `FastHwnc` (or wide f16 inputs) the input is also
 //! transposed to (H, W, N, C) first, entry `hwnc`). Per-call repacks, transposes and Winograd intermediates
 //! live in the recording's shared scratch buffers (`Recorder::scratch`), not in one allocation per call.
