@@ -14,7 +14,7 @@
 use std::time::{Duration, Instant};
 
 use b2dr::ops::conv2d::{self, Conv2dArgs, ConvPath};
-use b2dr::ops::matmul::{self, MatmulArgs, MatmulPath};
+use b2dr::ops::matmul::{self, MatmulArgs};
 use b2dr::tensor::{DType, Tensor};
 use b2dr::vk::{Context, ContextOptions, Recording};
 use criterion::{criterion_group, criterion_main, Criterion};
@@ -44,14 +44,9 @@ fn matmul_case(ctx: &Context, dt: DType, m: usize, n: usize, k: usize, trans: bo
     matmul::matmul_ex(
         &mut rec,
         &MatmulArgs {
-            a: &a,
-            b: &b,
             bias: Some(&bias),
-            out: &out,
             transpose_b: trans,
-            path: MatmulPath::Auto,
-            overflow: None,
-            residual: None,
+            ..MatmulArgs::new(&a, &b, &out)
         },
     )
     .expect("matmul");

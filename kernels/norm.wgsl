@@ -149,14 +149,29 @@ fn reduce_welford_wg(v: vec3<f32>, l: u32, lane: u32, sg: u32, wg: u32) -> vec3<
     workgroupBarrier();
     var a = vec3<f32>(0.0);
     for (var i = lane; i < wg / sg; i += sg) {
-        // pairwise merge of this lane's share (Chan et al.)
-        let b = red4[i].xyz;
-        let n = a.x + b.x;
-        let f = b.x / max(n, 1.0);
-        let d = b.y - a.y;
-        a = vec3<f32>(n, a.y + d * f, a.z + b.z + d * d * a.x * f);
+        a = chan_merge(a, red4[i].xyz);
     }
     return merge_sg(a);
+}
+
+// Pairwise merge of two (count, mean, M2) (Chan et al.).
+fn chan_merge(a: vec3<f32>, b: vec3<f32>) -> vec3<f32> {
+    let n = a.x + b.x;
+    let f = b.x / max(n, 1.0);
+    let d = b.y - a.y;
+    return vec3<f32>(n, a.y + d * f, a.z + b.z + d * d * a.x * f);
+}
+
+// gstats for segment seg (image, group) from its statistics st = (count, mean of the values shifted by x0, M2)
+// over len values: per channel (scale = gamma rstd, shift = beta - mean scale, x0, 0); lanes l, l + wg, ..
+fn put_gstats(seg: u32, st: vec3<f32>, len: f32, x0: f32, l: u32, wg: u32) {
+    let rstd = inverseSqrt(st.z / len + p.eps);
+    let cbase = (seg % p.segs_per_item) * p.ch_per_seg;
+    let ob = (seg / p.segs_per_item) * p.segs_per_item * p.ch_per_seg + cbase;
+    for (var c = l; c < p.ch_per_seg; c += wg) {
+        let g = rstd * f32(gamma[cbase + c]);
+        gstats[ob + c] = vec4<f32>(g, f32(beta[cbase + c]) - st.y * g, x0, 0.0);
+    }
 }
 
 // Welford over the vec4s x4[b4 + i] for i = start, start + stride, .. < n4, on the values shifted by x0 (each
@@ -298,14 +313,7 @@ fn gn_stats_impl(seg: u32, l: u32, lane: u32, sg: u32, wg: u32) {
         }
         lane_st = vec3<f32>(k, m, q);
     }
-    let st = reduce_welford_wg(lane_st, l, lane, sg, wg);
-    let rstd = inverseSqrt(st.z / f32(p.len) + p.eps);
-    let cbase = (seg % p.segs_per_item) * p.ch_per_seg;
-    let ob = (seg / p.segs_per_item) * p.segs_per_item * p.ch_per_seg + cbase;
-    for (var c = l; c < p.ch_per_seg; c += wg) {
-        let g = rstd * f32(gamma[cbase + c]);
-        gstats[ob + c] = vec4<f32>(g, f32(beta[cbase + c]) - st.y * g, x0, 0.0);
-    }
+    put_gstats(seg, reduce_welford_wg(lane_st, l, lane, sg, wg), f32(p.len), x0, l, wg);
 }
 
 // Group-norm statistics (as `gn_stats`) from per-slot partials written by the conv that produced x (winograd
@@ -328,16 +336,8 @@ fn gn_stats_parts(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups
     let total = p.len * p.ch_per_seg;
     for (var i = l; i < total; i += 256u) {
         let b = parts[pb + (i / p.ch_per_seg) * p.inner + cbase + i % p.ch_per_seg];
-        let nn = a.x + b.x;
-        let f = b.x / max(nn, 1.0);
-        let d = (b.y - x0) - a.y;
-        a = vec3<f32>(nn, a.y + d * f, a.z + b.z + d * d * a.x * f);
+        a = chan_merge(a, vec3<f32>(b.x, b.y - x0, b.z));
     }
     let st = reduce_welford(a, l, lane, sg);
-    let rstd = inverseSqrt(st.z / st.x + p.eps);
-    let ob = n * p.segs_per_item * p.ch_per_seg + cbase;
-    for (var c = l; c < p.ch_per_seg; c += 256u) {
-        let g = rstd * f32(gamma[cbase + c]);
-        gstats[ob + c] = vec4<f32>(g, f32(beta[cbase + c]) - st.y * g, x0, 0.0);
-    }
+    put_gstats(seg, st, st.x, x0, l, 256u);
 }

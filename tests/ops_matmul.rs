@@ -115,14 +115,10 @@ fn run_case(ctx: &b2dr::vk::Context, c: &Case, dtype: DType, path: MatmulPath, s
         mm::matmul_ex(
             rec,
             &MatmulArgs {
-                a: &ta,
-                b: &tb,
                 bias: c.bias.then_some(&tbias),
-                out: &out,
                 transpose_b: c.trans_b,
                 path,
-                overflow: None,
-                residual: None,
+                ..MatmulArgs::new(&ta, &tb, &out)
             },
         )
     });
@@ -245,14 +241,10 @@ fn f16_overflow_saturates_and_is_flagged() {
                     mm::matmul_ex(
                         rec,
                         &MatmulArgs {
-                            a: &ta,
-                            b: &tb,
-                            bias: None,
-                            out: &out,
                             transpose_b: true,
                             path,
                             overflow: checked.then_some(&flag),
-                            residual: None,
+                            ..MatmulArgs::new(&ta, &tb, &out)
                         },
                     )
                 });
@@ -343,14 +335,8 @@ fn bad_inputs_are_errors() {
         mm::matmul_ex(
             &mut rec,
             &MatmulArgs {
-                a: &a,
-                b: &b,
-                bias: None,
-                out: &o,
-                transpose_b: false,
-                path: MatmulPath::Auto,
                 overflow: Some(&t(&[1], DType::F32)),
-                residual: None,
+                ..MatmulArgs::new(&a, &b, &o)
             },
         ),
         "overflow flag",
@@ -399,14 +385,11 @@ fn fused_residual_matches_reference() {
                         mm::matmul_ex(
                             rec,
                             &MatmulArgs {
-                                a: &ta,
-                                b: &tb,
                                 bias: Some(&tbias),
-                                out: &out,
                                 transpose_b: trans_b,
                                 path,
-                                overflow: None,
                                 residual: Some(&tr),
+                                ..MatmulArgs::new(&ta, &tb, &out)
                             },
                         )
                     });

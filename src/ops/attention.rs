@@ -10,7 +10,7 @@
 //! 7,300 at d = 512 (the VAE at 224 x 400 has 1,400)).
 use anyhow::{ensure, Result};
 
-use super::matmul::{matmul, matmul_ex, tiled_supported, MatmulArgs, MatmulPath};
+use super::matmul::{matmul, matmul_ex, tiled_supported, MatmulArgs};
 use super::softmax::{fold_groups, softmax_scaled};
 use super::{same_dtype, Recorder, SCRATCH_ATTN_P, SCRATCH_ATTN_S};
 use crate::kernels::params::AttnParams;
@@ -271,14 +271,8 @@ pub fn attention_gemm(
     matmul_ex(
         rec,
         &MatmulArgs {
-            a: q,
-            b: k,
-            bias: None,
-            out: &s,
             transpose_b: true,
-            path: MatmulPath::Auto,
-            overflow: None,
-            residual: None,
+            ..MatmulArgs::new(q, k, &s)
         },
     )?;
     softmax_scaled(rec, &s, scale.unwrap_or(1.0 / (d as f32).sqrt()), &pm)?;

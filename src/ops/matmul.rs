@@ -245,6 +245,23 @@ pub struct MatmulArgs<'a> {
     pub residual: Option<&'a Tensor>,
 }
 
+impl<'a> MatmulArgs<'a> {
+    /// out = a b: no bias, b not transposed, path `Auto`, no overflow flag or residual (set those with struct
+    /// update syntax: `MatmulArgs { transpose_b: true, ..MatmulArgs::new(a, b, out) }`).
+    pub fn new(a: &'a Tensor, b: &'a Tensor, out: &'a Tensor) -> Self {
+        Self {
+            a,
+            b,
+            bias: None,
+            out,
+            transpose_b: false,
+            path: MatmulPath::Auto,
+            overflow: None,
+            residual: None,
+        }
+    }
+}
+
 /// out = a b (+ bias), see [`MatmulArgs`] for shapes. Batched operands broadcast against unbatched ones.
 pub fn matmul_ex(rec: &mut Recorder, x: &MatmulArgs) -> Result<()> {
     let op = if x.transpose_b {
@@ -337,14 +354,8 @@ pub fn matmul(
     matmul_ex(
         rec,
         &MatmulArgs {
-            a,
-            b,
             bias,
-            out,
-            transpose_b: false,
-            path: MatmulPath::Auto,
-            overflow: None,
-            residual: None,
+            ..MatmulArgs::new(a, b, out)
         },
     )
 }
@@ -380,23 +391,20 @@ pub fn linear_residual(
     *os.last_mut().expect("non-empty") = ws[0];
     expect_shape("linear", "out", out, &os)?;
     let rows = x.numel() / ws[1];
+    let (a, o) = (x.reshape(&[rows, ws[1]])?, out.reshape(&[rows, ws[0]])?);
+    let r = residual
+        .map(|r| {
+            expect_shape("linear", "residual", r, &os)?;
+            r.reshape(&[rows, ws[0]])
+        })
+        .transpose()?;
     matmul_ex(
         rec,
         &MatmulArgs {
-            a: &x.reshape(&[rows, ws[1]])?,
-            b: w,
             bias,
-            out: &out.reshape(&[rows, ws[0]])?,
             transpose_b: true,
-            path: MatmulPath::Auto,
-            overflow: None,
-            residual: residual
-                .map(|r| {
-                    expect_shape("linear", "residual", r, &os)?;
-                    r.reshape(&[rows, ws[0]])
-                })
-                .transpose()?
-                .as_ref(),
+            residual: r.as_ref(),
+            ..MatmulArgs::new(&a, w, &o)
         },
     )
 }
