@@ -8,7 +8,8 @@
 //!   after the file alone. Snippets hold `enable f16;`, `alias` and `const` declarations (dtype, tile sizes).
 //! - `kernels/common.wgsl` is appended to every kernel (shared helpers); errors in it are reported there.
 //! - Every `@compute` entry point becomes a registry entry `<file>_<variant>[_<entry>]` (entry `main` omitted).
-//! - Storage buffers are `@group(0) @binding(0..n)` (contiguous). Parameters are one `var<immediate>` struct of
+//! - Storage buffers are `@group(0) @binding(0..n)` (contiguous); a binding may also be a
+//!   `texture_storage_2d<rgba32float, read>`: a texel view of the buffer bound there (src/vk/image.rs). Parameters are one `var<immediate>` struct of
 //!   4-byte scalars; the matching `#[repr(C)]` Rust struct is generated here with a compile-time size assert.
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
@@ -30,6 +31,7 @@ struct Entry {
     entry: String,
     spv_file: PathBuf,
     bindings: Vec<bool>, // read_only per binding
+    images: Vec<bool>,   // storage-image (texel view) binding
     workgroup: [u32; 3],
     params: Option<String>,
     params_size: u32,
@@ -215,6 +217,7 @@ fn collect_entries(
         }
         let fi = info.get_entry_point(ei);
         let mut bindings: BTreeMap<u32, bool> = BTreeMap::new();
+        let mut images: BTreeMap<u32, bool> = BTreeMap::new();
         let mut params = None;
         let mut params_size = 0;
         for (h, var) in module.global_variables.iter() {
@@ -231,6 +234,30 @@ fn collect_entries(
                         return Err(format!("{}: bindings must be in group 0", ep.name));
                     }
                     bindings.insert(b.binding, !access.contains(naga::StorageAccess::STORE));
+                    images.insert(b.binding, false);
+                }
+                naga::AddressSpace::Handle => {
+                    // only read-only rgba32f storage images: texel views of buffers (src/vk/image.rs)
+                    let b = var.binding.as_ref().ok_or("image without binding")?;
+                    let ok = matches!(
+                        module.types[var.ty].inner,
+                        naga::TypeInner::Image {
+                            dim: naga::ImageDimension::D2,
+                            arrayed: false,
+                            class: naga::ImageClass::Storage {
+                                format: naga::StorageFormat::Rgba32Float,
+                                access,
+                            },
+                        } if access == naga::StorageAccess::LOAD
+                    );
+                    if !ok || b.group != 0 {
+                        return Err(format!(
+                            "{}: binding {} must be a group-0 texture_storage_2d<rgba32float, read>",
+                            ep.name, b.binding
+                        ));
+                    }
+                    bindings.insert(b.binding, true);
+                    images.insert(b.binding, true);
                 }
                 naga::AddressSpace::Immediate => {
                     let ty = &module.types[var.ty];
@@ -305,6 +332,7 @@ fn collect_entries(
             entry: ep.name.clone(),
             spv_file,
             bindings: bindings.values().copied().collect(),
+            images: images.values().copied().collect(),
             workgroup: ep.workgroup_size,
             params,
             params_size,
@@ -408,13 +436,14 @@ fn generate(entries: &[Entry], structs: &BTreeMap<String, (String, u32)>) -> Str
         let _ = writeln!(
             s,
             "    KernelInfo {{ name: {:?}, file: {:?}, variant: {:?}, entry: {:?}, spirv: include_bytes!({:?}), \
-             bindings: &{:?}, workgroup_size: {:?}, params: {:?}, params_size: {}, f16: {}, subgroup: {}, coop_matrix: {} }},",
+             bindings: &{:?}, images: &{:?}, workgroup_size: {:?}, params: {:?}, params_size: {}, f16: {}, subgroup: {}, coop_matrix: {} }},",
             e.id,
             format!("kernels/{}.wgsl", e.file),
             e.variant,
             e.entry,
             e.spv_file.display().to_string(),
             e.bindings,
+            e.images,
             e.workgroup,
             e.params,
             e.params_size,

@@ -1,6 +1,7 @@
 //! variant f32: alias ST = f32; const IS_F16: bool = false; fn note_overflow() {} fn ld4(i: u32) -> vec4<f32> { return vec4<f32>(b4[i]); } fn ld8(i: u32) -> mat2x4<f32> { return mat2x4<f32>(vec4<f32>(b4[2u * i]), vec4<f32>(b4[2u * i + 1u])); } fn lda4(i: u32) -> vec4<f32> { return vec4<f32>(a4[i]); }
 //! variant f16: enable f16; alias ST = f16; const IS_F16: bool = true; fn note_overflow() {} fn ld4(i: u32) -> vec4<f32> { let q = bq2[i]; return vec4<f32>(f16x2(q.x), f16x2(q.y)); } fn ld8(i: u32) -> mat2x4<f32> { let q = bq4[i]; return mat2x4<f32>(vec4<f32>(f16x2(q.x), f16x2(q.y)), vec4<f32>(f16x2(q.z), f16x2(q.w))); } fn lda4(i: u32) -> vec4<f32> { let q = aq2[i]; return vec4<f32>(f16x2(q.x), f16x2(q.y)); }
 //! variant f16chk: enable f16; alias ST = f16; const IS_F16: bool = true; @group(0) @binding(5) var<storage, read_write> flag: array<u32>; fn note_overflow() { flag[0] = 0x3f800000u; } fn ld4(i: u32) -> vec4<f32> { let q = bq2[i]; return vec4<f32>(f16x2(q.x), f16x2(q.y)); } fn ld8(i: u32) -> mat2x4<f32> { let q = bq4[i]; return mat2x4<f32>(vec4<f32>(f16x2(q.x), f16x2(q.y)), vec4<f32>(f16x2(q.z), f16x2(q.w))); } fn lda4(i: u32) -> vec4<f32> { let q = aq2[i]; return vec4<f32>(f16x2(q.x), f16x2(q.y)); }
+//! variant f32t: alias ST = f32; const IS_F16: bool = false; fn note_overflow() {} fn ld4(i: u32) -> vec4<f32> { return textureLoad(bt, texel_xy(i)); } fn ld8(i: u32) -> mat2x4<f32> { return mat2x4<f32>(textureLoad(bt, texel_xy(2u * i)), textureLoad(bt, texel_xy(2u * i + 1u))); } fn lda4(i: u32) -> vec4<f32> { return textureLoad(at, texel_xy(i)); }
 // Batched matmul C = A B (+ bias), register-tiled for llvmpipe (lavapipe), storage ST, arithmetic f32.
 //
 // Mapping: the invocations of one subgroup (SG lanes; 8 on lavapipe = one llvmpipe SIMD vector) share TM
@@ -32,6 +33,10 @@ struct MatmulParams {
 // vector views of A for the 32-k-chunk kernels: lda4(i) = elements 4i..4i+3 (per variant, like ld4)
 @group(0) @binding(0) var<storage, read> a4: array<vec4<ST>>;
 @group(0) @binding(0) var<storage, read> aq2: array<vec2<u32>>;
+// variant f32t: the vector views of A and B read through the buffers' texel views instead (src/vk/image.rs:
+// one 16-byte fetch per lane on lavapipe instead of four bounds-checked scalar loads)
+@group(0) @binding(0) var at: texture_storage_2d<rgba32float, read>;
+@group(0) @binding(1) var bt: texture_storage_2d<rgba32float, read>;
 @group(0) @binding(1) var<storage, read> b: array<ST>;
 // vector views of B: ld4(i) = elements 4i..4i+3, ld8(i) = 8i..8i+7 (defined per variant; f16 reads packed u32
 // pairs, halving the load instructions, which dominate on lavapipe)

@@ -1,5 +1,7 @@
-//! variant f32: alias ST = f32; const IS_F16: bool = false;
-//! variant f16: enable f16; alias ST = f16; const IS_F16: bool = true;
+//! variant f32: alias ST = f32; const IS_F16: bool = false; fn ldm(i: u32) -> vec4<f32> { return m4[i]; } fn ldx4(i: u32) -> vec4<f32> { return vec4<f32>(x4[i]); }
+//! variant f16: enable f16; alias ST = f16; const IS_F16: bool = true; fn ldm(i: u32) -> vec4<f32> { return m4[i]; } fn ldx4(i: u32) -> vec4<f32> { return vec4<f32>(x4[i]); }
+//! variant f32t: alias ST = f32; const IS_F16: bool = false; fn ldm(i: u32) -> vec4<f32> { return textureLoad(mt, texel_xy(i)); } fn ldx4(i: u32) -> vec4<f32> { return textureLoad(xt, texel_xy(i)); }
+//! variant f16t: enable f16; alias ST = f16; const IS_F16: bool = true; fn ldm(i: u32) -> vec4<f32> { return textureLoad(mt, texel_xy(i)); } fn ldx4(i: u32) -> vec4<f32> { return vec4<f32>(x4[i]); }
 // Winograd F(4x4, 3x3) for stride-1 3x3 convs (Lavin & Gray 2015): y = A^T [ (G g G^T) * (B^T d B) ] A per 4x4
 // output tile, d the 6x6 input window. The 36 products over channels form 36 independent GEMMs
 // (tiles x C) . (C x O), run by the tiled matmul between the `input` and `output` transforms here; on lavapipe
@@ -235,6 +237,10 @@ fn weight(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
 @group(0) @binding(0) var<storage, read> x4: array<vec4<ST>>;
 @group(0) @binding(1) var<storage, read_write> v4: array<vec4<f32>>;
 @group(0) @binding(0) var<storage, read> m4: array<vec4<f32>>;
+// variants f32t / f16t read m4 (and f32t x4) through the buffer's texel view instead (`ldm`, `ldx4`;
+// src/vk/image.rs): one 16-byte fetch per lane on lavapipe instead of four bounds-checked scalar loads
+@group(0) @binding(0) var mt: texture_storage_2d<rgba32float, read>;
+@group(0) @binding(0) var xt: texture_storage_2d<rgba32float, read>;
 @group(0) @binding(2) var<storage, read_write> y4: array<vec4<ST>>;
 @group(0) @binding(3) var<storage, read> res4: array<vec4<ST>>;
 // scalar view of x for `input4` (bound a second time by the launcher: naga refuses two views of one binding in
@@ -263,7 +269,7 @@ fn at4(s: array<vec4<f32>, 6>) -> array<vec4<f32>, 4> {
 fn xq(base: u32, iy: i32, q4: i32, pre: bool, a: vec4<f32>) -> vec4<f32> {
     let ok = iy >= 0 && iy < i32(p.h) && q4 >= 0 && 4 * q4 < i32(p.w);
     let o = (base + u32(clamp(iy, 0, i32(p.h) - 1)) * p.w) / 4u + u32(clamp(q4, 0, i32(p.w / 4u) - 1));
-    return select(vec4<f32>(0.0), act4(vec4<f32>(x4[o]), pre, a), ok);
+    return select(vec4<f32>(0.0), act4(ldx4(o), pre, a), ok);
 }
 
 // Window row iy, columns 4 tx - 1 .. 4 tx + 4 (left padding 1) of one channel plane: the middle 4 as one vec4
@@ -357,8 +363,8 @@ fn output4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
     // columns j of A^T M over the 4 channels
     var cols: array<array<vec4<f32>, 4>, 6>;
     for (var j = 0u; j < 6u; j++) {
-        cols[j] = at4(array<vec4<f32>, 6>(m4[(0u + j) * st + mo], m4[(6u + j) * st + mo], m4[(12u + j) * st + mo],
-                                          m4[(18u + j) * st + mo], m4[(24u + j) * st + mo], m4[(30u + j) * st + mo]));
+        cols[j] = at4(array<vec4<f32>, 6>(ldm((0u + j) * st + mo), ldm((6u + j) * st + mo), ldm((12u + j) * st + mo),
+                                          ldm((18u + j) * st + mo), ldm((24u + j) * st + mo), ldm((30u + j) * st + mo)));
     }
     var b = vec4<f32>(0.0);
     if (p.has_bias != 0u) {
@@ -701,9 +707,9 @@ fn weight6(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
 fn xrow14(base: u32, iy: i32, x0: u32, pre: bool, pa: vec4<f32>) -> array<f32, 14> {
     let ok = iy >= 0 && iy < i32(p.h);
     let rb = base + u32(clamp(iy, 0, i32(p.h) - 1)) * p.w;
-    let q0 = select(vec4<f32>(0.0), act4(vec4<f32>(x4[(rb + x0) / 4u]), pre, pa), ok);
-    let q1 = select(vec4<f32>(0.0), act4(vec4<f32>(x4[(rb + min(x0 + 4u, p.w - 4u)) / 4u]), pre, pa), ok && x0 + 4u < p.w);
-    let q2 = select(vec4<f32>(0.0), act4(vec4<f32>(x4[(rb + min(x0 + 8u, p.w - 4u)) / 4u]), pre, pa), ok && x0 + 8u < p.w);
+    let q0 = select(vec4<f32>(0.0), act4(ldx4((rb + x0) / 4u), pre, pa), ok);
+    let q1 = select(vec4<f32>(0.0), act4(ldx4((rb + min(x0 + 4u, p.w - 4u)) / 4u), pre, pa), ok && x0 + 4u < p.w);
+    let q2 = select(vec4<f32>(0.0), act4(ldx4((rb + min(x0 + 8u, p.w - 4u)) / 4u), pre, pa), ok && x0 + 8u < p.w);
     let l = select(0.0, act(f32(xs[rb + max(x0, 1u) - 1u]), pre, pa), ok && x0 >= 1u);
     let r = select(0.0, act(f32(xs[rb + min(x0 + 12u, p.w - 1u)]), pre, pa), ok && x0 + 12u < p.w);
     return array<f32, 14>(l, q0.x, q0.y, q0.z, q0.w, q1.x, q1.y, q1.z, q1.w, q2.x, q2.y, q2.z, q2.w, r);
@@ -768,7 +774,7 @@ fn m_cols(tl: u32, oq: u32, o0: u32, st: u32) -> array<array<vec4<f32>, 6>, 8> {
     for (var j = 0u; j < 8u; j++) {
         var s: array<vec4<f32>, 8>;
         for (var i2 = 0u; i2 < 8u; i2++) {
-            s[i2] = m4[(i2 * 8u + j) * st + mo];
+            s[i2] = ldm((i2 * 8u + j) * st + mo);
         }
         cols[j] = at8v(s);
     }
@@ -900,8 +906,8 @@ fn output4q(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
     // columns j of A^T M over the 4 channels
     var cols: array<array<vec4<f32>, 4>, 6>;
     for (var j = 0u; j < 6u; j++) {
-        cols[j] = at4(array<vec4<f32>, 6>(m4[(0u + j) * st + mo], m4[(6u + j) * st + mo], m4[(12u + j) * st + mo],
-                                          m4[(18u + j) * st + mo], m4[(24u + j) * st + mo], m4[(30u + j) * st + mo]));
+        cols[j] = at4(array<vec4<f32>, 6>(ldm((0u + j) * st + mo), ldm((6u + j) * st + mo), ldm((12u + j) * st + mo),
+                                          ldm((18u + j) * st + mo), ldm((24u + j) * st + mo), ldm((30u + j) * st + mo)));
     }
     var b = vec4<f32>(0.0);
     if (p.has_bias != 0u) {

@@ -12,6 +12,8 @@ pub struct KernelInfo {
     pub spirv: &'static [u8],
     /// One entry per binding 0..n: `true` when the buffer is read-only.
     pub bindings: &'static [bool],
+    /// One entry per binding: `true` when the kernel reads the buffer through its texel view (a storage image).
+    pub images: &'static [bool],
     pub workgroup_size: [u32; 3],
     /// The WGSL parameter struct's name (see [`params`]).
     pub params: Option<&'static str>,

@@ -553,3 +553,62 @@ fn linear_geglu_matches_linear_then_geglu() {
     assert!(format!("{e:#}").contains("K % 8"), "{e:#}");
     assert_no_validation_errors();
 }
+
+/// The tiled kernels' texel-view variants (`vk::image`: operands of 64 KiB or more read through linear
+/// storage images on CPU devices) must read every operand value exactly: A . I == A and I . B == B bit for
+/// bit (multiplying by 1 and adding zeros is exact in f32), with sizes that are not whole image rows (the
+/// buffers are padded, lavapipe pads linear images further) and both the nn4a and the nt8a4 kernels.
+#[test]
+fn texel_view_operands_are_read_exactly() {
+    let Some(ctx) = ctx() else { return };
+    let info = ctx.info();
+    let views = info.linear_images && info.is_cpu();
+    if !views {
+        eprintln!(
+            "skipped: {} has no texel views (not a CPU device with linear storage images)",
+            info.name
+        );
+    }
+    // below one image row: never viewed (the plain kernels run)
+    assert!(!upload(&ctx, &[1000], DType::F32, &[0.5; 1000])
+        .buffer()
+        .has_texel_view());
+    let eye = |n: usize| {
+        let mut v = vec![0.0f32; n * n];
+        for i in 0..n {
+            v[i * n + i] = 1.0;
+        }
+        v
+    };
+    // (M, K): A of 66,560 bytes (1.02 image rows), and 4.6 rows
+    for (m, k) in [(130usize, 128usize), (300, 256)] {
+        let a = uniform(m * k, 1.0, 11);
+        let ta = upload(&ctx, &[m, k], DType::F32, &a);
+        let ti = upload(&ctx, &[k, k], DType::F32, &eye(k));
+        assert_eq!(ta.buffer().has_texel_view(), views, "A {m}x{k}");
+        for trans_b in [false, true] {
+            let out = empty(&ctx, &[m, k], DType::F32);
+            run(&ctx, |rec| {
+                mm::matmul_ex(
+                    rec,
+                    &MatmulArgs {
+                        transpose_b: trans_b,
+                        ..MatmulArgs::new(&ta, &ti, &out)
+                    },
+                )
+            });
+            assert!(
+                out.to_f32(&ctx).unwrap() == a,
+                "A . I != A ({m}x{k}, transposed I: {trans_b})"
+            );
+        }
+        // I (M x M) . B (M x K) == B: B through the view
+        let tim = upload(&ctx, &[m, m], DType::F32, &eye(m));
+        let out = empty(&ctx, &[m, k], DType::F32);
+        run(&ctx, |rec| {
+            mm::matmul_ex(rec, &MatmulArgs::new(&tim, &ta, &out))
+        });
+        assert!(out.to_f32(&ctx).unwrap() == a, "I . B != B ({m}x{k})");
+    }
+    assert_no_validation_errors();
+}

@@ -188,6 +188,8 @@ pub(crate) fn gemm(
         "{op}: an overflow flag is only meaningful for f16 outputs"
     );
     let id = ids(g.dtype, flag.is_some(), tiled, g.trans_b, width);
+    // A and B through their texel views where the kernel has such a variant (CPU devices)
+    let id = super::texel_variant(rec, id, &[bufs[0], bufs[1]]).unwrap_or(id);
     let p = MatmulParams {
         m: g.m as u32,
         n: g.n as u32,

@@ -48,6 +48,35 @@ pub(crate) fn grid_1d(op: &str, n: usize) -> Result<[u32; 3]> {
     Ok([x as u32, groups.div_ceil(x) as u32, 1])
 }
 
+/// The texel-view variant of a kernel (`<file>_f32t_<entry>` for `<file>_f32_<entry>`, f16 likewise): the same
+/// kernel reading some bindings through the buffers' texel views (`vk::image`; one fetch per lane per vec4 on
+/// lavapipe). Taken when it exists, reads through at least one image, the device supports it and every buffer
+/// it reads as an image (`bufs[i]` for binding i) has a texel view.
+pub(crate) fn texel_variant(
+    rec: &Recorder,
+    id: KernelId,
+    bufs: &[&crate::vk::Buffer],
+) -> Option<KernelId> {
+    let info = id.info();
+    let v = match info.variant {
+        "f32" => "f32t",
+        "f16" => "f16t",
+        _ => return None,
+    };
+    let name = info
+        .name
+        .replacen(&format!("_{}_", info.variant), &format!("_{v}_"), 1);
+    let t = KernelId::by_name(&name)?;
+    let images = t.info().images;
+    let ok = images.contains(&true)
+        && images
+            .iter()
+            .enumerate()
+            .all(|(i, &img)| !img || bufs.get(i).is_some_and(|b| b.has_texel_view()))
+        && rec.context().supports(t);
+    ok.then_some(t)
+}
+
 /// Checks that all tensors share one dtype and returns it.
 pub(crate) fn same_dtype(op: &str, ts: &[&Tensor]) -> Result<DType> {
     let d = ts[0].dtype();

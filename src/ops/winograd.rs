@@ -327,6 +327,8 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
         } else {
             &[x.buffer(), &vb, ss.buffer()]
         };
+        let bufs: Vec<&crate::vk::Buffer> = in_bufs.iter().map(|b| b.as_ref()).collect();
+        let inp = super::texel_variant(rec, inp, &bufs).unwrap_or(inp);
         rec.dispatch(inp, in_bufs, bytemuck::bytes_of(&p), g, &in_label)?;
         // 36 (64) GEMMs: (nt, C) . (C, O) -> (nt, O)
         let gm = Gemm {
@@ -358,6 +360,8 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
             res_t.buffer(),
             parts_t.buffer(),
         ];
+        // m through its texel view where the device has them (CPU devices: one fetch per lane per vec4)
+        let outp = super::texel_variant(rec, outp, &[&mb]).unwrap_or(outp);
         let nb = outp.info().bindings.len();
         rec.dispatch(outp, &bufs[..nb], bytemuck::bytes_of(&p), g, &out_label)?;
         t0 += nt;

@@ -13,6 +13,8 @@ use crate::kernels::KernelId;
 
 const SETS_PER_POOL: u32 = 512;
 const MAX_BINDINGS: u32 = 8;
+// texel-view bindings a dispatch may average (a pool holds SETS_PER_POOL * this; see `descriptor_set`)
+const MAX_IMAGE_BINDINGS: u32 = 2;
 
 /// GPU time of one labelled dispatch (from timestamp queries).
 #[derive(Clone, Debug)]
@@ -155,9 +157,14 @@ impl Recorder {
     fn descriptor_set(&mut self, layout: vk::DescriptorSetLayout) -> Result<vk::DescriptorSet> {
         let d = &self.ctx.inner.device;
         if self.sets_left == 0 {
-            let sizes = [vk::DescriptorPoolSize::default()
-                .ty(vk::DescriptorType::STORAGE_BUFFER)
-                .descriptor_count(SETS_PER_POOL * MAX_BINDINGS)];
+            let sizes = [
+                vk::DescriptorPoolSize::default()
+                    .ty(vk::DescriptorType::STORAGE_BUFFER)
+                    .descriptor_count(SETS_PER_POOL * MAX_BINDINGS),
+                vk::DescriptorPoolSize::default()
+                    .ty(vk::DescriptorType::STORAGE_IMAGE)
+                    .descriptor_count(SETS_PER_POOL * MAX_IMAGE_BINDINGS),
+            ];
             let pci = vk::DescriptorPoolCreateInfo::default()
                 .max_sets(SETS_PER_POOL)
                 .pool_sizes(&sizes);
@@ -223,6 +230,11 @@ impl Recorder {
             }
         }
         self.barrier_if_needed(&reads, &writes);
+        ensure!(
+            info.images.iter().filter(|&&i| i).count() as u32 <= MAX_IMAGE_BINDINGS,
+            "kernel {}: more than {MAX_IMAGE_BINDINGS} texel-view bindings",
+            info.name
+        );
         let set = self.descriptor_set(p.set_layout)?;
         let infos: Vec<[vk::DescriptorBufferInfo; 1]> = buffers
             .iter()
@@ -233,15 +245,31 @@ impl Recorder {
                     .range(vk::WHOLE_SIZE)]
             })
             .collect();
+        let mut image_infos: Vec<[vk::DescriptorImageInfo; 1]> = vec![];
+        for (b, &img) in buffers.iter().zip(info.images) {
+            let view = if img {
+                b.texel_view()?
+            } else {
+                vk::ImageView::null()
+            };
+            image_infos.push([vk::DescriptorImageInfo::default()
+                .image_view(view)
+                .image_layout(vk::ImageLayout::GENERAL)]);
+        }
         let writes_ds: Vec<_> = infos
             .iter()
+            .zip(&image_infos)
             .enumerate()
-            .map(|(i, bi)| {
-                vk::WriteDescriptorSet::default()
+            .map(|(i, (bi, ii))| {
+                let w = vk::WriteDescriptorSet::default()
                     .dst_set(set)
                     .dst_binding(i as u32)
-                    .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
-                    .buffer_info(bi)
+                    .descriptor_type(super::pipeline::descriptor_type(info, i));
+                if info.images[i] {
+                    w.image_info(ii)
+                } else {
+                    w.buffer_info(bi)
+                }
             })
             .collect();
         let d = &self.ctx.inner.device;

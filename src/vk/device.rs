@@ -26,6 +26,11 @@ pub struct DeviceInfo {
     pub max_push_constants: u32,
     pub timestamp_period_ns: f32,
     pub timestamps: bool,
+    /// Linear-tiled rgba32f storage images of 16384 x 16384 texels: kernels can read a buffer through a storage
+    /// image aliasing its memory ([`crate::vk::IMAGE_ROW_TEXELS`] texels a row); used on CPU devices, where
+    /// an image load fetches a whole texel per lane (see `Buffer::texel_view`). `B2DR_TEXEL_VIEWS=0` turns
+    /// them off (A/B measurements, or a driver that misbehaves).
+    pub linear_images: bool,
 }
 
 impl DeviceInfo {
@@ -80,6 +85,10 @@ pub(super) fn describe(
         )
     };
     let p = p2.properties;
+    // SAFETY: plain query on a valid physical device.
+    let fmt = unsafe {
+        instance.get_physical_device_format_properties(pd, vk::Format::R32G32B32A32_SFLOAT)
+    };
     let has_ext = |n: &CStr| exts.iter().any(|e| e.extension_name_as_c_str() == Ok(n));
     let needed = vk::SubgroupFeatureFlags::BASIC
         | vk::SubgroupFeatureFlags::ARITHMETIC
@@ -115,6 +124,11 @@ pub(super) fn describe(
             || qf.iter().any(|q| {
                 q.queue_flags.contains(vk::QueueFlags::COMPUTE) && q.timestamp_valid_bits > 0
             }),
+        linear_images: fmt
+            .linear_tiling_features
+            .contains(vk::FormatFeatureFlags::STORAGE_IMAGE)
+            && p.limits.max_image_dimension2_d >= 16384
+            && std::env::var("B2DR_TEXEL_VIEWS").map_or(true, |v| v != "0"),
     }
 }
 

@@ -1,12 +1,13 @@
 //! Device buffers: a buffer owns its gpu-allocator allocation; upload/download go through the mapping when the
 //! memory is host-visible and coherent (lavapipe, integrated GPUs), else through a staging buffer.
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 
 use anyhow::{ensure, Context as _, Result};
 use ash::vk;
 use gpu_allocator::vulkan::{Allocation, AllocationCreateDesc, AllocationScheme};
 use gpu_allocator::MemoryLocation;
 
+use super::image::{TexelView, IMAGE_ROW_BYTES};
 use super::{vk_err, Context, Inner};
 
 /// A storage buffer with its memory.
@@ -16,6 +17,8 @@ pub struct Buffer {
     alloc: Option<Allocation>,
     size: u64,
     name: String,
+    // the storage-image view of this buffer's bytes, created at first use (see `vk::image`)
+    texels: Mutex<Option<TexelView>>,
 }
 
 impl std::fmt::Debug for Buffer {
@@ -41,8 +44,14 @@ impl Buffer {
             "buffer {name:?}: {size} bytes exceeds the device's maxStorageBufferRange ({range} bytes); \
              split the batch or use a smaller resolution"
         );
-        // whole 16-byte units: a kernel may read the vec4 that holds any element (elementwise.wgsl binary4)
-        let size = size.next_multiple_of(16);
+        // whole 16-byte units: a kernel may read the vec4 that holds any element (elementwise.wgsl binary4);
+        // on devices that read through texel views, buffers of a row or more take whole image rows (at most
+        // 64 KiB - 16 bytes more) so any of them can be viewed as an image
+        let size = if Self::texel_sized(ctx, size, loc) {
+            size.next_multiple_of(IMAGE_ROW_BYTES)
+        } else {
+            size.next_multiple_of(16)
+        };
         let d = &ctx.inner.device;
         let bci = vk::BufferCreateInfo::default().size(size).usage(
             vk::BufferUsageFlags::STORAGE_BUFFER
@@ -52,7 +61,14 @@ impl Buffer {
         // SAFETY: valid device and create info.
         let raw = unsafe { d.create_buffer(&bci, None) }.map_err(vk_err("vkCreateBuffer"))?;
         // SAFETY: raw is a fresh buffer of this device.
-        let req = unsafe { d.get_buffer_memory_requirements(raw) };
+        let mut req = unsafe { d.get_buffer_memory_requirements(raw) };
+        if Self::texel_sized(ctx, size, loc) {
+            // room for the texel view's image too (it may want a few rows more than the buffer)
+            let ir = super::image::memory_requirements(d, size);
+            req.size = req.size.max(ir.size);
+            req.alignment = req.alignment.max(ir.alignment);
+            req.memory_type_bits &= ir.memory_type_bits;
+        }
         let alloc = {
             let mut a = ctx.inner.allocator.lock().expect("allocator lock");
             a.as_mut()
@@ -84,7 +100,45 @@ impl Buffer {
             alloc: Some(alloc),
             size,
             name: name.to_string(),
+            texels: Mutex::new(None),
         })
+    }
+
+    fn texel_sized(ctx: &Context, size: u64, loc: MemoryLocation) -> bool {
+        let i = &ctx.inner.info;
+        i.linear_images && i.is_cpu() && loc == MemoryLocation::GpuOnly && size >= IMAGE_ROW_BYTES
+    }
+
+    /// Whether kernels can read this buffer through a storage-image binding (see `vk::image`): CPU devices
+    /// with linear rgba32f storage images, buffers of at least one image row.
+    pub fn has_texel_view(&self) -> bool {
+        let i = &self.ctx.info;
+        i.linear_images && i.is_cpu() && self.size % IMAGE_ROW_BYTES == 0
+    }
+
+    /// The storage-image view of the buffer's bytes (created on first use).
+    pub(crate) fn texel_view(&self) -> Result<vk::ImageView> {
+        ensure!(
+            self.has_texel_view(),
+            "buffer {:?} ({} bytes) cannot be read through an image on this device",
+            self.name,
+            self.size
+        );
+        let mut t = self.texels.lock().expect("texel view lock");
+        if t.is_none() {
+            let a = self.alloc.as_ref().expect("allocation alive");
+            // SAFETY: memory handle of this buffer's live allocation.
+            let mem = unsafe { a.memory() };
+            *t = Some(TexelView::new(
+                &self.ctx,
+                mem,
+                a.offset(),
+                self.size,
+                a.size(),
+                &self.name,
+            )?);
+        }
+        Ok(t.as_ref().expect("created").view)
     }
 
     pub fn size(&self) -> u64 {
@@ -183,6 +237,10 @@ impl Buffer {
 
 impl Drop for Buffer {
     fn drop(&mut self) {
+        if let Some(t) = self.texels.get_mut().ok().and_then(|t| t.take()) {
+            // SAFETY: recordings keep an Arc of every buffer they use, so no pending GPU work uses the image.
+            unsafe { t.destroy(&self.ctx.device) };
+        }
         if let Some(a) = self.alloc.take() {
             if let Ok(mut al) = self.ctx.allocator.lock() {
                 if let Some(al) = al.as_mut() {

@@ -5,6 +5,7 @@
 //! shared device state, so the device outlives all of them, and the allocator is dropped before the device.
 mod command;
 mod device;
+mod image;
 mod instance;
 mod memory;
 mod pipeline;
@@ -17,6 +18,7 @@ use ash::vk;
 
 pub use command::{Recorder, Recording, Timing};
 pub use device::DeviceInfo;
+pub use image::{IMAGE_ROW_BYTES, IMAGE_ROW_TEXELS};
 pub use instance::{validation_errors, validation_requested};
 pub use memory::Buffer;
 

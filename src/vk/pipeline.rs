@@ -29,12 +29,24 @@ impl Pipeline {
     }
 }
 
+/// Storage buffer, or storage image for a texel-view binding.
+pub(crate) fn descriptor_type(info: &KernelInfo, binding: usize) -> vk::DescriptorType {
+    if info.images[binding] {
+        vk::DescriptorType::STORAGE_IMAGE
+    } else {
+        vk::DescriptorType::STORAGE_BUFFER
+    }
+}
+
 impl Context {
     /// Whether the device can run a kernel (f16 / subgroup / cooperative-matrix requirements).
     pub fn supports(&self, id: KernelId) -> bool {
         let k = &KERNELS[id as usize];
         let i = &self.inner.info;
-        (!k.f16 || i.f16) && (!k.subgroup || i.subgroup) && (!k.coop_matrix || i.cooperative_matrix)
+        (!k.f16 || i.f16)
+            && (!k.subgroup || i.subgroup)
+            && (!k.coop_matrix || i.cooperative_matrix)
+            && (!k.images.contains(&true) || (i.linear_images && i.is_cpu()))
     }
 
     pub(crate) fn pipeline(&self, id: KernelId) -> Result<Arc<Pipeline>> {
@@ -73,7 +85,7 @@ impl Context {
             .map(|b| {
                 vk::DescriptorSetLayoutBinding::default()
                     .binding(b)
-                    .descriptor_type(vk::DescriptorType::STORAGE_BUFFER)
+                    .descriptor_type(descriptor_type(info, b as usize))
                     .descriptor_count(1)
                     .stage_flags(vk::ShaderStageFlags::COMPUTE)
             })
