@@ -1,7 +1,7 @@
-//! variant f32: alias ST = f32; const IS_F16: bool = false; fn ldm(i: u32) -> vec4<f32> { return m4[i]; } fn ldx4(i: u32) -> vec4<f32> { return vec4<f32>(x4[i]); }
-//! variant f16: enable f16; alias ST = f16; const IS_F16: bool = true; fn ldm(i: u32) -> vec4<f32> { return m4[i]; } fn ldx4(i: u32) -> vec4<f32> { return vec4<f32>(x4[i]); }
-//! variant f32t: alias ST = f32; const IS_F16: bool = false; fn ldm(i: u32) -> vec4<f32> { return textureLoad(mt, texel_xy(i)); } fn ldx4(i: u32) -> vec4<f32> { return textureLoad(xt, texel_xy(i)); }
-//! variant f16t: enable f16; alias ST = f16; const IS_F16: bool = true; fn ldm(i: u32) -> vec4<f32> { return textureLoad(mt, texel_xy(i)); } fn ldx4(i: u32) -> vec4<f32> { return vec4<f32>(x4[i]); }
+//! variant f32: alias ST = f32; const IS_F16: bool = false; fn ldm(i: u32) -> vec4<f32> { return m4[i]; } fn ldx4(i: u32) -> vec4<f32> { return vec4<f32>(x4[i]); } fn ldr4(i: u32) -> vec4<f32> { return vec4<f32>(res4[i]); }
+//! variant f16: enable f16; alias ST = f16; const IS_F16: bool = true; fn ldm(i: u32) -> vec4<f32> { return m4[i]; } fn ldx4(i: u32) -> vec4<f32> { return vec4<f32>(x4[i]); } fn ldr4(i: u32) -> vec4<f32> { return vec4<f32>(res4[i]); }
+//! variant f32t: alias ST = f32; const IS_F16: bool = false; fn ldm(i: u32) -> vec4<f32> { return textureLoad(mt, texel_xy(i)); } fn ldx4(i: u32) -> vec4<f32> { return textureLoad(xt, texel_xy(i)); } fn ldr4(i: u32) -> vec4<f32> { return textureLoad(rt, texel_xy(i)); }
+//! variant f16t: enable f16; alias ST = f16; const IS_F16: bool = true; fn ldm(i: u32) -> vec4<f32> { return textureLoad(mt, texel_xy(i)); } fn ldx4(i: u32) -> vec4<f32> { return vec4<f32>(x4[i]); } fn ldr4(i: u32) -> vec4<f32> { return vec4<f32>(res4[i]); }
 // Winograd F(4x4, 3x3) for stride-1 3x3 convs (Lavin & Gray 2015): y = A^T [ (G g G^T) * (B^T d B) ] A per 4x4
 // output tile, d the 6x6 input window. The 36 products over channels form 36 independent GEMMs
 // (tiles x C) . (C x O), run by the tiled matmul between the `input` and `output` transforms here; on lavapipe
@@ -237,10 +237,12 @@ fn weight(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
 @group(0) @binding(0) var<storage, read> x4: array<vec4<ST>>;
 @group(0) @binding(1) var<storage, read_write> v4: array<vec4<f32>>;
 @group(0) @binding(0) var<storage, read> m4: array<vec4<f32>>;
-// variants f32t / f16t read m4 (and f32t x4) through the buffer's texel view instead (`ldm`, `ldx4`;
-// src/vk/image.rs): one 16-byte fetch per lane on lavapipe instead of four bounds-checked scalar loads
+// variants f32t / f16t read m4 (and f32t x4 and res4) through the buffers' texel views instead (`ldm`, `ldx4`,
+// `ldr4`; src/vk/image.rs): one 16-byte fetch per lane on lavapipe instead of four bounds-checked scalar loads.
+// res may be y itself: each element is read by the invocation that then writes it, read first.
 @group(0) @binding(0) var mt: texture_storage_2d<rgba32float, read>;
 @group(0) @binding(0) var xt: texture_storage_2d<rgba32float, read>;
+@group(0) @binding(3) var rt: texture_storage_2d<rgba32float, read>;
 @group(0) @binding(2) var<storage, read_write> y4: array<vec4<ST>>;
 @group(0) @binding(3) var<storage, read> res4: array<vec4<ST>>;
 // scalar view of x for `input4` (bound a second time by the launcher: naga refuses two views of one binding in
@@ -385,10 +387,10 @@ fn output4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: 
             var v2 = vec4<f32>(px[0].z, px[1].z, px[2].z, px[3].z) + b.z;
             var v3 = vec4<f32>(px[0].w, px[1].w, px[2].w, px[3].w) + b.w;
             if (p.has_res == 1u) {
-                v0 += vec4<f32>(res4[pb + e]);
-                v1 += vec4<f32>(res4[pb + ps + e]);
-                v2 += vec4<f32>(res4[pb + 2u * ps + e]);
-                v3 += vec4<f32>(res4[pb + 3u * ps + e]);
+                v0 += ldr4(pb + e);
+                v1 += ldr4(pb + ps + e);
+                v2 += ldr4(pb + 2u * ps + e);
+                v3 += ldr4(pb + 3u * ps + e);
             }
             if (p.silu == 1u) {
                 v0 = v0 / (1.0 + exp(-v0));
@@ -823,10 +825,10 @@ fn output6p(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
                     var v2 = vec4<f32>(p0.z, p1.z, p2.z, p3.z) + b.z;
                     var v3 = vec4<f32>(p0.w, p1.w, p2.w, p3.w) + b.w;
                     if (p.has_res == 1u) {
-                        v0 += vec4<f32>(res4[e]);
-                        v1 += vec4<f32>(res4[e + ps]);
-                        v2 += vec4<f32>(res4[e + 2u * ps]);
-                        v3 += vec4<f32>(res4[e + 3u * ps]);
+                        v0 += ldr4(e);
+                        v1 += ldr4(e + ps);
+                        v2 += ldr4(e + 2u * ps);
+                        v3 += ldr4(e + 3u * ps);
                     }
                     if (p.silu == 1u) {
                         v0 = v0 / (1.0 + exp(-v0));

@@ -495,7 +495,8 @@ fn fused_bias_per_image_and_residual_match_reference() {
     // out = conv(x) + bias[n, o] + residual[n, o, y, x] (a ResNet block's conv1 with its time embedding and
     // conv2 with its skip), on every path: Winograd with scalar and vec4 transforms, the packed implicit GEMM
     // (fused), the O % 4 != 0 implicit GEMM and the direct kernel (separate adds), the 1x1 GEMM. Also with the
-    // residual being `out` itself (in place), with a per-channel bias, and with SiLU on the result.
+    // residual being `out` itself (in place), with a per-channel bias, and with SiLU on the result, and with
+    // residuals large enough to be read through texel views.
     let cases: &[(&str, [usize; 4], usize, usize, ConvPath)] = &[
         (
             "winograd_scalar_28x50",
@@ -529,6 +530,22 @@ fn fused_bias_per_image_and_residual_match_reference() {
             "winograd6_quad_14x25",
             [2, 8, 14, 25],
             12,
+            3,
+            ConvPath::Winograd6,
+        ),
+        // outputs of 64 KiB and more: on CPU devices the residual (also in place) is read through its texel
+        // view (`vk::image`)
+        (
+            "winograd_vec4_texel_40x48",
+            [1, 8, 40, 48],
+            12,
+            3,
+            ConvPath::Winograd,
+        ),
+        (
+            "winograd6_pairs_texel_56x100",
+            [1, 8, 56, 100],
+            8,
             3,
             ConvPath::Winograd6,
         ),

@@ -362,8 +362,10 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
             res_t.buffer(),
             parts_t.buffer(),
         ];
-        // m through its texel view where the device has them (CPU devices: one fetch per lane per vec4)
-        let outp = super::texel_variant(rec, outp, &[&mb]).unwrap_or(outp);
+        // m (and the residual) through texel views where the device has them (CPU devices: one fetch per
+        // lane per vec4)
+        let views: Vec<&crate::vk::Buffer> = bufs.iter().map(|b| b.as_ref()).collect();
+        let outp = super::texel_variant(rec, outp, &views).unwrap_or(outp);
         let nb = outp.info().bindings.len();
         rec.dispatch(outp, &bufs[..nb], bytemuck::bytes_of(&p), g, &out_label)?;
         t0 += nt;
