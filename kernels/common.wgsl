@@ -5,9 +5,9 @@ fn flat_index(wid: vec3<u32>, nwg: vec3<u32>, lid: vec3<u32>) -> u32 {
     return (wid.y * nwg.x + wid.x) * 256u + lid.x;
 }
 
-// Texel coordinates of vec4 i of a buffer read through its texel view (src/vk/image.rs: 4096 texels a row).
+// Texel coordinates of vec4 i of a buffer read through its texel view (src/vk/image.rs: 1024 texels a row).
 fn texel_xy(i: u32) -> vec2<i32> {
-    return vec2<i32>(i32(i & 4095u), i32(i >> 12u));
+    return vec2<i32>(i32(i & 1023u), i32(i >> 10u));
 }
 
 // erf(x), Abramowitz & Stegun 7.1.26 refined: max abs error 1.5e-7.

@@ -43,8 +43,8 @@ fn run_cases(
 ) -> Result<()> {
     let ctx = Context::new(&ContextOptions {
         device,
-        validation: None,
         profile,
+        ..Default::default()
     })?;
     let cases: Vec<_> = all
         .into_iter()

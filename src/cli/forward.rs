@@ -42,8 +42,8 @@ pub fn run(device: Option<String>, a: ForwardArgs) -> Result<()> {
     let inputs = Weights::from_bytes_unchecked(&ib, &a.inputs.display().to_string())?.tensors;
     let ctx = Context::new(&ContextOptions {
         device,
-        validation: None,
         profile: false,
+        ..Default::default()
     })?;
     let t = std::time::Instant::now();
     let out = forward_component(&ctx, a.component, cfg, &w, &inputs, a.dtype)

@@ -14,8 +14,8 @@ pub fn run(device: Option<String>) -> Result<()> {
     }
     let ctx = Context::new(&ContextOptions {
         device,
-        validation: None,
         profile: false,
+        ..Default::default()
     })?;
     let i = ctx.info();
     let yes = |b: bool| if b { "yes" } else { "no" };

@@ -77,8 +77,8 @@ pub fn run(device: Option<String>, a: SampleArgs) -> Result<()> {
     ensure!(a.steps >= 1, "--steps must be >= 1");
     let ctx = Context::new(&ContextOptions {
         device,
-        validation: None,
         profile: false,
+        ..Default::default()
     })?;
     let dt = a.dtype;
     // Components: a diffusers folder or b2dr-tiny with seeded weights (seeds 1, 2, 3 as in the goldens).

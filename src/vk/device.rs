@@ -28,8 +28,9 @@ pub struct DeviceInfo {
     pub timestamps: bool,
     /// Linear-tiled rgba32f storage images of 16384 x 16384 texels: kernels can read a buffer through a storage
     /// image aliasing its memory ([`crate::vk::IMAGE_ROW_TEXELS`] texels a row); used on CPU devices, where
-    /// an image load fetches a whole texel per lane (see `Buffer::texel_view`). `B2DR_TEXEL_VIEWS=0` turns
-    /// them off (A/B measurements, or a driver that misbehaves).
+    /// an image load fetches a whole texel per lane (see `Buffer::texel_view`). Off with
+    /// `ContextOptions::texel_views` = false or `B2DR_TEXEL_VIEWS=0` (A/B measurements, or a driver that
+    /// misbehaves).
     pub linear_images: bool,
 }
 
@@ -127,8 +128,7 @@ pub(super) fn describe(
         linear_images: fmt
             .linear_tiling_features
             .contains(vk::FormatFeatureFlags::STORAGE_IMAGE)
-            && p.limits.max_image_dimension2_d >= 16384
-            && std::env::var("B2DR_TEXEL_VIEWS").map_or(true, |v| v != "0"),
+            && p.limits.max_image_dimension2_d >= 16384,
     }
 }
 

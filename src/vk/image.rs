@@ -1,7 +1,9 @@
 //! Storage-image views of buffers ("texel views"): a linear-tiled rgba32f image bound to a buffer's own memory,
-//! [`IMAGE_ROW_TEXELS`] texels (64 KiB) a row, so texel t of the image is bytes 16 t .. 16 t + 15 of the buffer.
+//! [`IMAGE_ROW_TEXELS`] texels (16 KiB) a row, so texel t of the image is bytes 16 t .. 16 t + 15 of the buffer.
 //! Kernels declare such a binding as `texture_storage_2d<rgba32float, read>` and read vec4 t at
-//! `(t % 4096, t / 4096)`; the launcher binds the buffer itself.
+//! `(t % 1024, t / 1024)` (`texel_xy` in common.wgsl); the launcher binds the buffer itself. 16 KiB rows keep
+//! the padding small (lavapipe also rounds a linear image's height up to a multiple of 4 rows) and still reach
+//! 256 MiB at the 16384-row limit, more than maxStorageBufferRange.
 //!
 //! Why: lavapipe 22.3 compiles every storage-buffer load to a loop over the 8 lanes with one bounds-checked
 //! scalar load per component, but an image load to one 16-byte fetch per lane. Measured here (2026-11-23,
@@ -14,8 +16,8 @@ use ash::vk;
 
 use super::{vk_err, Inner};
 
-/// Texels per image row (16 bytes each): 64 KiB rows.
-pub const IMAGE_ROW_TEXELS: u64 = 4096;
+/// Texels per image row (16 bytes each): 16 KiB rows (`texel_xy` in kernels/common.wgsl matches).
+pub const IMAGE_ROW_TEXELS: u64 = 1024;
 /// Bytes per image row; buffers that can be viewed as images have sizes that are multiples of this.
 pub const IMAGE_ROW_BYTES: u64 = IMAGE_ROW_TEXELS * 16;
 

@@ -45,8 +45,8 @@ impl Buffer {
              split the batch or use a smaller resolution"
         );
         // whole 16-byte units: a kernel may read the vec4 that holds any element (elementwise.wgsl binary4);
-        // on devices that read through texel views, buffers of a row or more take whole image rows (at most
-        // 64 KiB - 16 bytes more) so any of them can be viewed as an image
+        // on devices that read through texel views, buffers of an image row or more take whole rows (at most
+        // 16 KiB - 16 bytes more) so any of them can be viewed as an image
         let size = if Self::texel_sized(ctx, size, loc) {
             size.next_multiple_of(IMAGE_ROW_BYTES)
         } else {

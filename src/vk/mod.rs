@@ -38,6 +38,9 @@ pub struct ContextOptions {
     pub validation: Option<bool>,
     /// Every recorder writes a GPU timestamp after each dispatch (per-op profiles, `--profile`).
     pub profile: bool,
+    /// Read large buffers through texel views where the device has them (`DeviceInfo::linear_images`);
+    /// default: on unless `B2DR_TEXEL_VIEWS=0`. Results are bitwise the same either way.
+    pub texel_views: Option<bool>,
 }
 
 /// Handles a library user passes in to run b2dr on their own Vulkan objects ("explicit Vulkan control").
@@ -100,7 +103,10 @@ impl Context {
             .device
             .clone()
             .or_else(|| std::env::var("B2DR_DEVICE").ok());
-        let (pd, info) = device::choose(&parts.instance, &devices, sel.as_deref())?;
+        let (pd, mut info) = device::choose(&parts.instance, &devices, sel.as_deref())?;
+        info.linear_images &= opts
+            .texel_views
+            .unwrap_or_else(|| std::env::var("B2DR_TEXEL_VIEWS").map_or(true, |v| v != "0"));
         let family = device::compute_queue_family(&parts.instance, pd)?;
         let dev = device::create_device(&parts.instance, pd, &info, family)?;
         // SAFETY: the queue family index was used at device creation with one queue.

@@ -12,9 +12,8 @@ static CTX: OnceLock<Option<Context>> = OnceLock::new();
 pub fn ctx() -> Option<Context> {
     CTX.get_or_init(|| {
         match Context::new(&ContextOptions {
-            device: None,
             validation: Some(true),
-            profile: false,
+            ..Default::default()
         }) {
             Ok(c) => {
                 eprintln!(
