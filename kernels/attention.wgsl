@@ -1,32 +1,44 @@
-//! variant f32_d8: alias ST = f32; const D4: u32 = 2u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f32_d8r4: alias ST = f32; const D4: u32 = 2u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f32_d40: alias ST = f32; const D4: u32 = 10u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f32_d40r2: alias ST = f32; const D4: u32 = 10u; const R: u32 = 2u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f32_d40r4: alias ST = f32; const D4: u32 = 10u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f32_d80: alias ST = f32; const D4: u32 = 20u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f32_d80r2: alias ST = f32; const D4: u32 = 20u; const R: u32 = 2u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f32_d160: alias ST = f32; const D4: u32 = 40u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f32_w128: alias ST = f32; const D4: u32 = 32u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f16_d8: enable f16; alias ST = f16; const D4: u32 = 2u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f16_d8r4: enable f16; alias ST = f16; const D4: u32 = 2u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f16_d40: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f16_d40r2: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 2u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f16_d40r4: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f16_d80: enable f16; alias ST = f16; const D4: u32 = 20u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f16_d80r2: enable f16; alias ST = f16; const D4: u32 = 20u; const R: u32 = 2u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f16_d160: enable f16; alias ST = f16; const D4: u32 = 40u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f16_w128: enable f16; alias ST = f16; const D4: u32 = 32u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f16p_d8r4: enable f16; alias ST = f16; const D4: u32 = 2u; const R: u32 = 4u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); }
-//! variant f16p_d40r2: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 2u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); }
-//! variant f16p_d40r4: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 4u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); }
-//! variant f16p_d80r2: enable f16; alias ST = f16; const D4: u32 = 20u; const R: u32 = 2u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); }
-//! variant f32_d8r8: alias ST = f32; const D4: u32 = 2u; const R: u32 = 8u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f32_d16r4: alias ST = f32; const D4: u32 = 4u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f32_d32r4: alias ST = f32; const D4: u32 = 8u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f16_d16r4: enable f16; alias ST = f16; const D4: u32 = 4u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f16_d32r4: enable f16; alias ST = f16; const D4: u32 = 8u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); }
-//! variant f16p_d16r4: enable f16; alias ST = f16; const D4: u32 = 4u; const R: u32 = 4u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); }
-//! variant f16p_d32r4: enable f16; alias ST = f16; const D4: u32 = 8u; const R: u32 = 4u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); }
+//! variant f32_d8: alias ST = f32; const D4: u32 = 2u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f32_d8r4: alias ST = f32; const D4: u32 = 2u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f32_d40: alias ST = f32; const D4: u32 = 10u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f32_d40r2: alias ST = f32; const D4: u32 = 10u; const R: u32 = 2u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f32_d40r4: alias ST = f32; const D4: u32 = 10u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f32_d80: alias ST = f32; const D4: u32 = 20u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f32_d80r2: alias ST = f32; const D4: u32 = 20u; const R: u32 = 2u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f32_d160: alias ST = f32; const D4: u32 = 40u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f32_w128: alias ST = f32; const D4: u32 = 32u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f16_d8: enable f16; alias ST = f16; const D4: u32 = 2u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f16_d8r4: enable f16; alias ST = f16; const D4: u32 = 2u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f16_d40: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f16_d40r2: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 2u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f16_d40r4: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f16_d80: enable f16; alias ST = f16; const D4: u32 = 20u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f16_d80r2: enable f16; alias ST = f16; const D4: u32 = 20u; const R: u32 = 2u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f16_d160: enable f16; alias ST = f16; const D4: u32 = 40u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f16_w128: enable f16; alias ST = f16; const D4: u32 = 32u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f16p_d8r4: enable f16; alias ST = f16; const D4: u32 = 2u; const R: u32 = 4u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f16p_d40r2: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 2u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f16p_d40r4: enable f16; alias ST = f16; const D4: u32 = 10u; const R: u32 = 4u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f16p_d80r2: enable f16; alias ST = f16; const D4: u32 = 20u; const R: u32 = 2u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f32_d8r8: alias ST = f32; const D4: u32 = 2u; const R: u32 = 8u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f32_d16r4: alias ST = f32; const D4: u32 = 4u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f32_d32r4: alias ST = f32; const D4: u32 = 8u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f16_d16r4: enable f16; alias ST = f16; const D4: u32 = 4u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f16_d32r4: enable f16; alias ST = f16; const D4: u32 = 8u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f16p_d16r4: enable f16; alias ST = f16; const D4: u32 = 4u; const R: u32 = 4u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f16p_d32r4: enable f16; alias ST = f16; const D4: u32 = 8u; const R: u32 = 4u; alias KT = vec4<u32>; const CPL: u32 = 2u; fn unpack(x: KT, part: u32) -> vec4<f32> { let w = select(x.xy, x.zw, vec2<bool>(part == 1u)); return halves_to_f32(vec4<u32>(w.x & 0xffffu, w.x >> 16u, w.y & 0xffffu, w.y >> 16u)); } fn ldk(i: u32) -> KT { return k[i]; } fn ldv(i: u32) -> KT { return v[i]; }
+//! variant f32t_d8: alias ST = f32; const D4: u32 = 2u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return textureLoad(kt, texel_xy(i)); } fn ldv(i: u32) -> KT { return textureLoad(vt, texel_xy(i)); }
+//! variant f32t_d8r4: alias ST = f32; const D4: u32 = 2u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return textureLoad(kt, texel_xy(i)); } fn ldv(i: u32) -> KT { return textureLoad(vt, texel_xy(i)); }
+//! variant f32t_d40: alias ST = f32; const D4: u32 = 10u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return textureLoad(kt, texel_xy(i)); } fn ldv(i: u32) -> KT { return textureLoad(vt, texel_xy(i)); }
+//! variant f32t_d40r2: alias ST = f32; const D4: u32 = 10u; const R: u32 = 2u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return textureLoad(kt, texel_xy(i)); } fn ldv(i: u32) -> KT { return textureLoad(vt, texel_xy(i)); }
+//! variant f32t_d40r4: alias ST = f32; const D4: u32 = 10u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return textureLoad(kt, texel_xy(i)); } fn ldv(i: u32) -> KT { return textureLoad(vt, texel_xy(i)); }
+//! variant f32t_d80: alias ST = f32; const D4: u32 = 20u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return textureLoad(kt, texel_xy(i)); } fn ldv(i: u32) -> KT { return textureLoad(vt, texel_xy(i)); }
+//! variant f32t_d80r2: alias ST = f32; const D4: u32 = 20u; const R: u32 = 2u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return textureLoad(kt, texel_xy(i)); } fn ldv(i: u32) -> KT { return textureLoad(vt, texel_xy(i)); }
+//! variant f32t_d160: alias ST = f32; const D4: u32 = 40u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return textureLoad(kt, texel_xy(i)); } fn ldv(i: u32) -> KT { return textureLoad(vt, texel_xy(i)); }
+//! variant f32t_w128: alias ST = f32; const D4: u32 = 32u; const R: u32 = 1u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return textureLoad(kt, texel_xy(i)); } fn ldv(i: u32) -> KT { return textureLoad(vt, texel_xy(i)); }
+//! variant f32t_d8r8: alias ST = f32; const D4: u32 = 2u; const R: u32 = 8u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return textureLoad(kt, texel_xy(i)); } fn ldv(i: u32) -> KT { return textureLoad(vt, texel_xy(i)); }
+//! variant f32t_d16r4: alias ST = f32; const D4: u32 = 4u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return textureLoad(kt, texel_xy(i)); } fn ldv(i: u32) -> KT { return textureLoad(vt, texel_xy(i)); }
+//! variant f32t_d32r4: alias ST = f32; const D4: u32 = 8u; const R: u32 = 4u; alias KT = vec4<ST>; const CPL: u32 = 1u; fn unpack(x: KT, part: u32) -> vec4<f32> { return vec4<f32>(x); } fn ldk(i: u32) -> KT { return textureLoad(kt, texel_xy(i)); } fn ldv(i: u32) -> KT { return textureLoad(vt, texel_xy(i)); }
 // Multi-head attention, flash style (online softmax), storage type ST, all arithmetic in f32.
 //
 // Layout (token-major, as the UNet's linear projections produce it; heads interleaved in the last dim):
@@ -83,6 +95,10 @@ struct AttnParams {
 @group(0) @binding(0) var<storage, read> q: array<vec4<ST>>;
 @group(0) @binding(1) var<storage, read> k: array<KT>;
 @group(0) @binding(2) var<storage, read> v: array<KT>;
+// the f32t variants read k and v through the buffers' texel views (`ldk`, `ldv`; src/vk/image.rs): one 16-byte
+// fetch per lane on lavapipe instead of four bounds-checked scalar loads
+@group(0) @binding(1) var kt: texture_storage_2d<rgba32float, read>;
+@group(0) @binding(2) var vt: texture_storage_2d<rgba32float, read>;
 @group(0) @binding(3) var<storage, read_write> o: array<vec4<ST>>;
 
 var<immediate> a: AttnParams;
@@ -171,7 +187,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
         var raw: KT;
         for (var c = 0u; c < D4; c++) {
             // CPL chunks per load; c is a constant after unrolling, so the branch and the unpack part fold.
-            if (c % CPL == 0u) { raw = k[(krow + min(c, last)) / CPL]; }
+            if (c % CPL == 0u) { raw = ldk((krow + min(c, last)) / CPL); }
             let kc = unpack(raw, c % CPL);
             for (var r = 0u; r < R; r++) {
                 s0[r] += logits_lo(qr[r][c], kc);
@@ -185,7 +201,7 @@ fn main(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
             l[r] = st[r].l;
         }
         for (var c = 0u; c < D4; c++) {
-            if (c % CPL == 0u) { raw = v[(krow + min(c, last)) / CPL]; }
+            if (c % CPL == 0u) { raw = ldv((krow + min(c, last)) / CPL); }
             let vc = unpack(raw, c % CPL);
             for (var r = 0u; r < R; r++) {
                 acc[r][c] = values_step(acc[r][c], st[r].alpha, st[r].p0, st[r].p1, vc);
@@ -235,9 +251,9 @@ fn wide(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
         // Two chunks per trip halves this loop's share of the budget (nc is even: d % 8 == 0).
         for (var c = 0u; c < a.nc; c += 2u) {
             let qa = vec4<f32>(q[qrow + c]) * a.scale;
-            let ka = unpack(k[(krow + c) / CPL], (krow + c) % CPL);
+            let ka = unpack(ldk((krow + c) / CPL), (krow + c) % CPL);
             let qb2 = vec4<f32>(q[qrow + c + 1u]) * a.scale;
-            let kb = unpack(k[(krow + c + 1u) / CPL], (krow + c + 1u) % CPL);
+            let kb = unpack(ldk((krow + c + 1u) / CPL), (krow + c + 1u) % CPL);
             s0 += logits_lo(qa, ka) + logits_lo(qb2, kb);
             s1 += logits_hi(qa, ka) + logits_hi(qb2, kb);
         }
@@ -245,7 +261,7 @@ fn wide(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec
         m = st.m;
         l = st.l;
         for (var c = 0u; c < D4; c++) {
-            acc[c] = values_step(acc[c], st.alpha, st.p0, st.p1, unpack(v[(krow + min(c0 + c, last)) / CPL], (krow + min(c0 + c, last)) % CPL));
+            acc[c] = values_step(acc[c], st.alpha, st.p0, st.p1, unpack(ldv((krow + min(c0 + c, last)) / CPL), (krow + min(c0 + c, last)) % CPL));
         }
     }
     if (i < a.lq) {

@@ -210,8 +210,11 @@ pub fn attention_with(
         // log2(e) folded in: the kernel's softmax uses exp2 (attention.wgsl `online_step`)
         scale: scale.unwrap_or(1.0 / (d as f32).sqrt()) * std::f32::consts::LOG2_E,
     };
+    // k and v through their texel views where the device has them
+    let id =
+        super::texel_variant(rec, kn.id, &[q.buffer(), k.buffer(), v.buffer()]).unwrap_or(kn.id);
     rec.dispatch(
-        kn.id,
+        id,
         &[q.buffer(), k.buffer(), v.buffer(), out.buffer()],
         bytemuck::bytes_of(&p),
         fold_groups("attention", groups)?,

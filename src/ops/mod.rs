@@ -48,7 +48,7 @@ pub(crate) fn grid_1d(op: &str, n: usize) -> Result<[u32; 3]> {
     Ok([x as u32, groups.div_ceil(x) as u32, 1])
 }
 
-/// The texel-view variant of a kernel (`<file>_f32t_<entry>` for `<file>_f32_<entry>`, f16 likewise): the same
+/// The texel-view variant of a kernel (`<file>_f32t[_x]_<entry>` for `<file>_f32[_x]_<entry>`, f16 likewise): the same
 /// kernel reading some bindings through the buffers' texel views (`vk::image`; one fetch per lane per vec4 on
 /// lavapipe). Taken when it exists, reads through at least one image, the device supports it and every buffer
 /// it reads as an image (`bufs[i]` for binding i) has a texel view.
@@ -58,14 +58,17 @@ pub(crate) fn texel_variant(
     bufs: &[&crate::vk::Buffer],
 ) -> Option<KernelId> {
     let info = id.info();
-    let v = match info.variant {
-        "f32" => "f32t",
-        "f16" => "f16t",
-        _ => return None,
-    };
-    let name = info
-        .name
-        .replacen(&format!("_{}_", info.variant), &format!("_{v}_"), 1);
+    // variant "f32" -> "f32t", "f32_d8r8" -> "f32t_d8r8" (f16 likewise)
+    let (dt, rest) = info.variant.split_at(info.variant.len().min(3));
+    if dt != "f32" && dt != "f16" || !(rest.is_empty() || rest.starts_with('_')) {
+        return None;
+    }
+    let stem = info
+        .file
+        .trim_start_matches("kernels/")
+        .trim_end_matches(".wgsl");
+    let from = format!("{stem}_{}", info.variant);
+    let name = info.name.replacen(&from, &format!("{stem}_{dt}t{rest}"), 1);
     let t = KernelId::by_name(&name)?;
     let images = t.info().images;
     let ok = images.contains(&true)
