@@ -1,5 +1,6 @@
 //! variant f32: alias ST = f32; const IS_F16: bool = false; fn ld4(i: u32) -> vec4<f32> { return vec4<f32>(w4[i]); } fn ldx4(i: u32) -> vec4<f32> { return vec4<f32>(x4[i]); }
 //! variant f16: enable f16; alias ST = f16; const IS_F16: bool = true; fn ld4(i: u32) -> vec4<f32> { let q = wq2[i]; return vec4<f32>(f16x2(q.x), f16x2(q.y)); } fn ldx4(i: u32) -> vec4<f32> { let q = xq2[i]; return vec4<f32>(f16x2(q.x), f16x2(q.y)); }
+//! variant f32t: alias ST = f32; const IS_F16: bool = false; fn ld4(i: u32) -> vec4<f32> { return textureLoad(wt, texel_xy(i)); } fn ldx4(i: u32) -> vec4<f32> { return textureLoad(xt, texel_xy(i)); }
 // conv2d as an implicit GEMM with pre-packed weights: the fast path for 3x3 (and any non-1x1) convs.
 // Roles are swapped relative to conv2d.wgsl: rows = output positions p (TM per subgroup; lanes 0..7 load the
 // input at 8 channels c0 + lane, subgroupBroadcast gives each value to all lanes), columns = output channels
@@ -27,6 +28,10 @@ struct PackParams { o: u32, c: u32, kk: u32 }
 @group(0) @binding(0) var<storage, read> xq2: array<vec2<u32>>;
 @group(0) @binding(1) var<storage, read> w4: array<vec4<ST>>;
 @group(0) @binding(1) var<storage, read> wq2: array<vec2<u32>>;
+// variant f32t: the vector views of x and the packed weights read through the buffers' texel views (`ldx4`,
+// `ld4`; src/vk/image.rs): one 16-byte fetch per lane on lavapipe instead of four bounds-checked scalar loads
+@group(0) @binding(0) var xt: texture_storage_2d<rgba32float, read>;
+@group(0) @binding(1) var wt: texture_storage_2d<rgba32float, read>;
 @group(0) @binding(2) var<storage, read> bias: array<ST>;
 @group(0) @binding(3) var<storage, read_write> y: array<ST>;
 // residual added in the epilogue (p.has_res == 1; the launcher binds y here otherwise); may be y itself

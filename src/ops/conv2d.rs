@@ -594,6 +594,9 @@ pub fn conv2d_ex(rec: &mut Recorder, a: &Conv2dArgs) -> Result<()> {
     );
     // per-shape label: `--profile` then splits conv time by shape
     let label = format!("conv2d {n}x{c}x{h}x{w} -> {o} k{kh}x{kw} s{}", a.stride);
+    // x and the packed weights through their texel views where the device has them
+    let views: Vec<&crate::vk::Buffer> = bufs.iter().map(|b| b.as_ref()).collect();
+    let id = super::texel_variant(rec, id, &views).unwrap_or(id);
     rec.dispatch(id, &bufs, bytemuck::bytes_of(&p), groups, &label)?;
     // the conv's output tensor (`out`, or the scratch when the residual is `out`)
     let y = Tensor::on_buffer(bufs[3].clone(), &os, d)?;
