@@ -533,7 +533,7 @@ fn fused_bias_per_image_and_residual_match_reference() {
             3,
             ConvPath::Winograd6,
         ),
-        // outputs of 16 KiB and more: on CPU devices the residual (also in place) is read through its texel
+        // outputs of 16 KiB and more (texel views from 4 KiB): on CPU devices the residual (also in place) is read through its texel
         // view (`vk::image`)
         (
             "winograd_vec4_texel_40x48",

@@ -554,7 +554,7 @@ fn linear_geglu_matches_linear_then_geglu() {
     assert_no_validation_errors();
 }
 
-/// The tiled kernels' texel-view variants (`vk::image`: operands of 16 KiB or more read through linear
+/// The tiled kernels' texel-view variants (`vk::image`: operands of 4 KiB or more read through linear
 /// storage images on CPU devices) must read every operand value exactly: A . I == A and I . B == B bit for
 /// bit (multiplying by 1 and adding zeros is exact in f32), with sizes that are not whole image rows (the
 /// buffers are padded, lavapipe pads linear images further) and both the nn4a and the nt8a4 kernels.
@@ -569,7 +569,8 @@ fn texel_view_operands_are_read_exactly() {
             info.name
         );
     }
-    // below one image row: never viewed (the plain kernels run)
+    // below TEXEL_MIN_BYTES: never viewed (the plain kernels run)
+    const { assert!(b2dr::vk::TEXEL_MIN_BYTES > 4000) };
     assert!(!upload(&ctx, &[1000], DType::F32, &[0.5; 1000])
         .buffer()
         .has_texel_view());
@@ -580,8 +581,9 @@ fn texel_view_operands_are_read_exactly() {
         }
         v
     };
-    // (M, K): A of 16,896 bytes (1.03 image rows of 16 KiB), 66,560 (4.06 rows) and 307,200 (18.75 rows)
-    for (m, k) in [(33usize, 128usize), (130, 128), (300, 256)] {
+    // (M, K): A of 4,608 bytes (0.28 image rows of 16 KiB), 16,896 (1.03 rows), 66,560 (4.06 rows) and
+    // 307,200 (18.75 rows)
+    for (m, k) in [(9usize, 128usize), (33, 128), (130, 128), (300, 256)] {
         let a = uniform(m * k, 1.0, 11);
         let ta = upload(&ctx, &[m, k], DType::F32, &a);
         let ti = upload(&ctx, &[k, k], DType::F32, &eye(k));

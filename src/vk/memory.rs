@@ -10,6 +10,11 @@ use gpu_allocator::MemoryLocation;
 use super::image::{TexelView, IMAGE_ROW_BYTES};
 use super::{vk_err, Context, Inner};
 
+/// Smallest buffer given a texel view: down to a 64 x 16 f32 weight. Smaller ones would pay up to 16x in
+/// padding (lavapipe pads a linear image to 4 rows of 16 KiB); b2dr-tiny's whole sampling pipeline takes 703
+/// MiB without texel views, 718 with them from 16 KiB, 724 from 4 KiB (the step's small linears gain).
+pub const TEXEL_MIN_BYTES: u64 = 4096;
+
 /// A storage buffer with its memory.
 pub struct Buffer {
     pub(crate) ctx: Arc<Inner>,
@@ -45,8 +50,9 @@ impl Buffer {
              split the batch or use a smaller resolution"
         );
         // whole 16-byte units: a kernel may read the vec4 that holds any element (elementwise.wgsl binary4);
-        // on devices that read through texel views, buffers of an image row or more take whole rows (at most
-        // 16 KiB - 16 bytes more) so any of them can be viewed as an image
+        // on devices that read through texel views, buffers of TEXEL_MIN_BYTES or more take whole image rows
+        // (at most 16 KiB - 16 bytes more, plus the image's own padding: see `image::memory_requirements`) so
+        // any of them can be viewed as an image
         let size = if Self::texel_sized(ctx, size, loc) {
             size.next_multiple_of(IMAGE_ROW_BYTES)
         } else {
@@ -106,11 +112,11 @@ impl Buffer {
 
     fn texel_sized(ctx: &Context, size: u64, loc: MemoryLocation) -> bool {
         let i = &ctx.inner.info;
-        i.linear_images && i.is_cpu() && loc == MemoryLocation::GpuOnly && size >= IMAGE_ROW_BYTES
+        i.linear_images && i.is_cpu() && loc == MemoryLocation::GpuOnly && size >= TEXEL_MIN_BYTES
     }
 
     /// Whether kernels can read this buffer through a storage-image binding (see `vk::image`): CPU devices
-    /// with linear rgba32f storage images, buffers of at least one image row.
+    /// with linear rgba32f storage images, buffers of at least [`TEXEL_MIN_BYTES`].
     pub fn has_texel_view(&self) -> bool {
         let i = &self.ctx.info;
         i.linear_images && i.is_cpu() && self.size % IMAGE_ROW_BYTES == 0

@@ -20,7 +20,7 @@ pub use command::{Recorder, Recording, Timing};
 pub use device::DeviceInfo;
 pub use image::{IMAGE_ROW_BYTES, IMAGE_ROW_TEXELS};
 pub use instance::{validation_errors, validation_requested};
-pub use memory::Buffer;
+pub use memory::{Buffer, TEXEL_MIN_BYTES};
 
 use crate::kernels::KernelId;
 
