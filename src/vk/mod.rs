@@ -29,6 +29,11 @@ pub(crate) fn vk_err(call: &'static str) -> impl Fn(vk::Result) -> anyhow::Error
     move |r| anyhow::anyhow!("{call} failed: {r:?}")
 }
 
+/// Texel views unless `B2DR_TEXEL_VIEWS=0`.
+fn texel_views_env() -> bool {
+    std::env::var("B2DR_TEXEL_VIEWS").map_or(true, |v| v != "0")
+}
+
 /// Options for creating a [`Context`].
 #[derive(Clone, Debug, Default)]
 pub struct ContextOptions {
@@ -104,9 +109,7 @@ impl Context {
             .clone()
             .or_else(|| std::env::var("B2DR_DEVICE").ok());
         let (pd, mut info) = device::choose(&parts.instance, &devices, sel.as_deref())?;
-        info.linear_images &= opts
-            .texel_views
-            .unwrap_or_else(|| std::env::var("B2DR_TEXEL_VIEWS").map_or(true, |v| v != "0"));
+        info.linear_images &= opts.texel_views.unwrap_or_else(texel_views_env);
         let family = device::compute_queue_family(&parts.instance, pd)?;
         let dev = device::create_device(&parts.instance, pd, &info, family)?;
         // SAFETY: the queue family index was used at device creation with one queue.
@@ -139,6 +142,7 @@ impl Context {
     pub fn from_external(ext: ExternalVulkan) -> Result<Self> {
         let mut info = device::describe(&ext.instance, ext.physical_device, 0);
         info.f16 &= ext.f16_enabled;
+        info.linear_images &= texel_views_env();
         info.cooperative_matrix = false; // only when b2dr enabled the extension itself
         Self::assemble(
             ext.entry,
