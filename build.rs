@@ -9,8 +9,9 @@
 //! - `kernels/common.wgsl` is appended to every kernel (shared helpers); errors in it are reported there.
 //! - Every `@compute` entry point becomes a registry entry `<file>_<variant>[_<entry>]` (entry `main` omitted).
 //! - Storage buffers are `@group(0) @binding(0..n)` (contiguous); a binding may also be a
-//!   `texture_storage_2d<rgba32float, read>`: a texel view of the buffer bound there (src/vk/image.rs). Parameters are one `var<immediate>` struct of
-//!   4-byte scalars; the matching `#[repr(C)]` Rust struct is generated here with a compile-time size assert.
+//!   `texture_storage_2d<rgba32float, read>`: a texel view of the buffer bound there (src/vk/image.rs).
+//!   Parameters are one `var<immediate>` struct of 4-byte scalars; the matching `#[repr(C)]` Rust struct is
+//!   generated here with a compile-time size assert.
 use std::collections::BTreeMap;
 use std::fmt::Write as _;
 use std::path::{Path, PathBuf};

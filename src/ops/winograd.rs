@@ -13,8 +13,8 @@ use crate::kernels::KernelId as K;
 use crate::tensor::{DType, Tensor};
 
 /// Bytes of each intermediate (V or M) per slab at most. Smaller slabs keep V and M in the CPU's caches
-/// between the transforms and the GEMMs: b2dr-tiny's decode on lavapipe took 750-767 ms with 16 MiB slabs,
-/// 625-650 ms with 4 MiB (alternating runs, 2026-11-23); 1-3 MiB were slower again (more dispatches).
+/// between the transforms and the GEMMs: b2dr-tiny's decode on lavapipe took 759-767 ms (median) with 16 MiB
+/// slabs, 628-651 ms with 4 MiB (alternating runs, 2026-11-23); 1-3 MiB were slower again (more dispatches).
 const SLAB_BYTES: usize = 4 << 20;
 
 /// The Winograd output tile.

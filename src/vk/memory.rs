@@ -22,6 +22,8 @@ pub struct Buffer {
     alloc: Option<Allocation>,
     size: u64,
     name: String,
+    // allocated with room for a texel view (whole image rows plus the image's padding)
+    texel_sized: bool,
     // the storage-image view of this buffer's bytes, created at first use (see `vk::image`)
     texels: Mutex<Option<TexelView>>,
 }
@@ -53,7 +55,8 @@ impl Buffer {
         // on devices that read through texel views, buffers of TEXEL_MIN_BYTES or more take whole image rows
         // (at most 16 KiB - 16 bytes more, plus the image's own padding: see `image::memory_requirements`) so
         // any of them can be viewed as an image
-        let size = if Self::texel_sized(ctx, size, loc) {
+        let texel_sized = Self::texel_sized(ctx, size, loc);
+        let size = if texel_sized {
             size.next_multiple_of(IMAGE_ROW_BYTES)
         } else {
             size.next_multiple_of(16)
@@ -68,7 +71,7 @@ impl Buffer {
         let raw = unsafe { d.create_buffer(&bci, None) }.map_err(vk_err("vkCreateBuffer"))?;
         // SAFETY: raw is a fresh buffer of this device.
         let mut req = unsafe { d.get_buffer_memory_requirements(raw) };
-        if Self::texel_sized(ctx, size, loc) {
+        if texel_sized {
             // room for the texel view's image too (it may want a few rows more than the buffer)
             let ir = super::image::memory_requirements(d, size);
             req.size = req.size.max(ir.size);
@@ -106,6 +109,7 @@ impl Buffer {
             alloc: Some(alloc),
             size,
             name: name.to_string(),
+            texel_sized,
             texels: Mutex::new(None),
         })
     }
@@ -118,8 +122,7 @@ impl Buffer {
     /// Whether kernels can read this buffer through a storage-image binding (see `vk::image`): CPU devices
     /// with linear rgba32f storage images, buffers of at least [`TEXEL_MIN_BYTES`].
     pub fn has_texel_view(&self) -> bool {
-        let i = &self.ctx.info;
-        i.linear_images && i.is_cpu() && self.size % IMAGE_ROW_BYTES == 0
+        self.texel_sized
     }
 
     /// The storage-image view of the buffer's bytes (created on first use).
