@@ -1,0 +1,7 @@
+//! Frame rendering (Bench2Drive-R): the library API above `nn` and `projection` that turns one simulated
+//! moment into camera images with the generative renderer.
+//! - [`frame`]: one frame planned once per shape on the device (previous-frame chain, reference encoding,
+//!   batched sampling with reference guidance, decode, upsample), replayed every frame.
+//! - [`package`]: the model package folder (`docs/b2dr_controlnet.md` section 5) and the built-in model.
+pub mod frame;
+pub mod package;
