@@ -426,3 +426,125 @@ fn b2dr_frame_matches_reference() {
     }
     common::assert_no_validation_errors();
 }
+
+/// A B2D-R ControlNet whose new outputs are zero (conv_in's previous-latent channels, the noise-level
+/// embedding's last layer, every Ref-Attn output projection) equals the plain ControlNet on the shared weights,
+/// with references and any previous latent.
+#[test]
+fn fresh_b2dr_equals_plain_controlnet() {
+    use b2dr::nn::config::ControlNetConfig;
+    use b2dr::nn::controlnet::ControlNet;
+    let Some(ctx) = common::ctx() else { return };
+    let g = golden();
+    let mut b = g.control.clone();
+    let ci = b.tensors.get_mut("conv_in.weight").unwrap();
+    let (o, i) = (ci.shape[0], ci.shape[1]);
+    assert_eq!(i, 8);
+    let mut plain_conv_in = vec![];
+    for oc in 0..o {
+        for ic in 0..8 {
+            let k = &mut ci.data[(oc * 8 + ic) * 9..(oc * 8 + ic + 1) * 9];
+            if ic < 4 {
+                plain_conv_in.extend_from_slice(k);
+            } else {
+                k.fill(0.0);
+            }
+        }
+    }
+    for (name, t) in b.tensors.iter_mut() {
+        if name.starts_with("noise_embedding.linear_2") || (name.starts_with("ref_attn.") && name.contains("to_out")) {
+            t.data.fill(0.0);
+        }
+    }
+    let mut pcfg: ControlNetConfig = g.ccfg.base.clone();
+    pcfg.enc.in_channels = 4;
+    let mut plain = Weights::default();
+    for (name, spec) in b2dr::nn::weights::expected_controlnet(&pcfg) {
+        let mut t = b.get(&name).unwrap().clone();
+        if name == "conv_in.weight" {
+            t.shape = spec.clone();
+            t.data = plain_conv_in.clone();
+        }
+        plain.tensors.insert(name, t);
+    }
+    let c = Case(golden::golden_case(CASES[0].0));
+    let dt = DType::F32;
+    let bdw = DeviceWeights::upload(&ctx, &b, "", dt).unwrap();
+    let pdw = DeviceWeights::upload(&ctx, &plain, "", dt).unwrap();
+    let bn = B2drControlNet::load(&bdw, &g.ccfg).unwrap();
+    let pn = ControlNet::load(&pdw, &pcfg).unwrap();
+    let mut ws = Workspace::new(&ctx, dt);
+    let t = |name: &str| c.up(&ctx, name, dt, None);
+    let (x, z, masks) = (t("in.x_t"), t("out.prev.z"), t("in.masks"));
+    let s = x.shape().to_vec();
+    let x8 = Tensor::empty(&ctx, &[1, 8, s[2], s[3]], dt, "x8").unwrap();
+    let tt = Tensor::from_f32(&ctx, &[1], DType::F32, &c.get("in.timestep").data, "t").unwrap();
+    let cx = Tensor::from_f32(&ctx, &[1, 77, 32], dt, &c.context(1), "cx").unwrap();
+    let nl = Tensor::from_f32(&ctx, &[1], DType::F32, &[200.0], "n").unwrap();
+    let locs = g.ccfg.ref_attn.len();
+    let lat = c.up(&ctx, "out.ref_latents", dt, Some(&c.pair_shape("out.ref_latents")));
+    let pe_cur: Vec<Tensor> = (0..locs).map(|j| t(&format!("in.pe_cur.{j}"))).collect();
+    let pe_ref: Vec<Tensor> = (0..locs)
+        .map(|j| {
+            let nm = format!("in.pe_ref.{j}");
+            c.up(&ctx, &nm, dt, Some(&c.pair_shape(&nm)))
+        })
+        .collect();
+    let ob = record(&ctx, &mut ws, |f| {
+        b2dr::ops::elementwise::concat_channels(f.rec, &x, &z, &x8)?;
+        let fr = bn.prepare(f, &FrameTensors { masks: &masks, noise_level: &nl, refs: Some((&lat, &pe_cur, &pe_ref)) })?;
+        bn.forward(f, &x8, &tt, &cx, &fr, RefRows::All, 0.7)
+    });
+    let op = record(&ctx, &mut ws, |f| pn.forward(f, &x, &tt, &cx, &masks, 0.7));
+    for (k, (a, p)) in ob.down.iter().zip(&op.down).enumerate() {
+        let (a, p) = (a.to_f32(&ctx).unwrap(), p.to_f32(&ctx).unwrap());
+        let e = golden::nmse(&a, &p);
+        assert!(e <= 1e-12, "down.{k}: the fresh B2D-R ControlNet differs from the plain one: {e:e}");
+    }
+    let e = golden::nmse(&ob.mid.to_f32(&ctx).unwrap(), &op.mid.to_f32(&ctx).unwrap());
+    assert!(e <= 1e-12, "mid: {e:e}");
+    common::assert_no_validation_errors();
+}
+
+/// The PETR geometry of src/projection/pe.rs (through render::inputs::geometry) equals the golden's
+/// position-encoding inputs, which python/b2dr_ref/pe.py computed from the same camera matrices.
+#[test]
+fn position_encodings_match_python_port() {
+    use b2dr::projection::geometry::{mat3_from_rows, mat4_from_rows};
+    use b2dr::scene::camera::Camera;
+    let g = golden();
+    for (file, n, (h, w)) in CASES {
+        let c = Case(golden::golden_case(file));
+        let m4 = |d: &[f32]| {
+            let mut r = [[0.0f64; 4]; 4];
+            for (i, v) in d.iter().enumerate() {
+                r[i / 4][i % 4] = *v as f64;
+            }
+            mat4_from_rows(&r)
+        };
+        let cur = m4(&c.get("in.geom.cur_ego2global").data);
+        let mut per_cam = vec![];
+        for k in 0..n {
+            let kd = &c.get("in.geom.k_render").data[k * 9..(k + 1) * 9];
+            let mut r = [[0.0f64; 3]; 3];
+            for (i, v) in kd.iter().enumerate() {
+                r[i / 3][i % 3] = *v as f64;
+            }
+            let cam = Camera {
+                name: format!("cam{k}"),
+                intrinsic: mat3_from_rows(&r),
+                cam2ego: m4(&c.get("in.geom.cam2ego").data[k * 16..(k + 1) * 16]),
+                width: (8 * w) as u32,
+                height: (8 * h) as u32,
+            };
+            let rd = &c.get("in.geom.ref_ego2global").data;
+            let (a, b) = (m4(&rd[k * 32..k * 32 + 16]), m4(&rd[k * 32 + 16..k * 32 + 32]));
+            per_cam.push(b2dr::render::inputs::geometry(&g.ccfg, &cam, (8 * h, 8 * w), &cur, [&a, &b]).unwrap());
+        }
+        let geo = b2dr::render::inputs::stack(&per_cam);
+        for j in 0..g.ccfg.ref_attn.len() {
+            check(&format!("{file} pe_cur.{j}"), &geo.pe_cur[j], c.get(&format!("in.pe_cur.{j}")), 1e-10);
+            check(&format!("{file} pe_ref.{j}"), &geo.pe_ref[j], c.get(&format!("in.pe_ref.{j}")), 1e-10);
+        }
+    }
+}

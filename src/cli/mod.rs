@@ -5,6 +5,7 @@ mod bench;
 mod forward;
 mod info;
 mod project;
+mod render;
 mod sample;
 mod sim;
 
@@ -38,6 +39,8 @@ pub enum Command {
     Forward(forward::ForwardArgs),
     /// Run a full guided sampling loop (UNet + ControlNet + VAE decode) and write PNG and EXR.
     Sample(sample::SampleArgs),
+    /// Render one Bench2Drive-R frame of a keyframe (layout masks, previous frame, two references).
+    Render(render::RenderArgs),
     /// Closed-loop simulation of a planner over scenarios, with the nuPlan closed-loop score.
     Sim(sim::SimArgs),
 }
@@ -96,6 +99,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Project(a) => project::run(a),
         Command::Forward(a) => forward::run(cli.device, a),
         Command::Sample(a) => sample::run(cli.device, a),
+        Command::Render(a) => render::run(cli.device, a),
         Command::Sim(a) => sim::run(a),
     }
 }
