@@ -47,6 +47,8 @@ pub enum Command {
 
 #[derive(Subcommand, Debug)]
 pub enum BenchCmd {
+    /// Time Bench2Drive-R frames by stage (encode, denoise, decode) of a model package (default: built-in).
+    Frame(bench::FrameArgs),
     /// Time model components (guided UNet + ControlNet step, VAE decode) of b2dr-tiny at 224 x 400.
     Model {
         #[arg(long)]
@@ -84,6 +86,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     }
     match cli.command {
         Command::Info => info::run(cli.device),
+        Command::Bench(BenchCmd::Frame(a)) => bench::run_frame(cli.device, a),
         Command::Bench(BenchCmd::Ops {
             json,
             filter,

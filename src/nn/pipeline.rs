@@ -213,6 +213,19 @@ impl Sampler {
         })
     }
 
+    /// The recordings a run replays, by stage: the model pass (once per step), the first sampler step, the
+    /// decode (profiles and dispatch counts).
+    pub fn recordings(&self) -> Vec<(&'static str, &Recording)> {
+        let mut v = vec![("model pass (per step)", &self.model)];
+        if let Some(s) = self.steps.first() {
+            v.push(("sampler update (per step)", s));
+        }
+        if let Some((d, _)) = &self.decode {
+            v.push(("vae decode", d));
+        }
+        v
+    }
+
     /// The current latent (N, 4, h, w), read back.
     pub fn latent(&self) -> Result<Vec<f32>> {
         self.bufs[&Buf::Sample].to_f32(&self.ctx)

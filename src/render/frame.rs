@@ -561,6 +561,17 @@ impl FrameRenderer {
             .transpose()
     }
 
+    /// The recordings a frame replays, by stage (profiles and dispatch counts): the previous-frame chain and
+    /// the frame conditioning (references, PE MLPs: once per frame), then the sampler's.
+    pub fn recordings(&self) -> Vec<(&'static str, &Recording)> {
+        let mut v = vec![
+            ("previous frame (per frame)", &self.prev_rec),
+            ("conditioning + references (per frame)", &self.cond_rec),
+        ];
+        v.extend(self.sampler.recordings());
+        v
+    }
+
     /// The last frame's final latent (N, 4, h, w), read back.
     pub fn latent(&self) -> Result<Vec<f32>> {
         self.sampler.latent()

@@ -5,6 +5,7 @@
 //! - [`inputs`]: host-side inputs from a scene state (masks, PETR geometry, images, seeded noise).
 //! - [`job`]: `b2dr render` of a keyframe.
 //! - [`package`]: the model package folder (`docs/b2dr_controlnet.md` section 5) and the built-in model.
+pub mod bench;
 pub mod frame;
 pub mod inputs;
 pub mod job;
