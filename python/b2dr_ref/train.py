@@ -127,27 +127,36 @@ class SyntheticSource:
 
 
 class DatasetSource:
-    """The exported training data (world.md 2) read by b2dr_ref.dataset, adapted to the SampleSource protocol."""
+    """The exported training data (world.md 2, docs/training_data.md) read by ``b2dr_ref.dataset.TrainingSet``,
+    one Sample per (frame, camera): index ``i = frame * n_cameras + camera``. ``ds``: an opened TrainingSet (or
+    anything with its interface: cameras, mask_channels, height, width, __len__, __getitem__ -> the sample dict)."""
 
-    def __init__(self, directory: str):
-        from . import dataset as ds      # python/b2dr_ref/dataset.py (the export's reader)
+    def __init__(self, directory: Optional[str] = None, ds=None):
+        if ds is None:
+            from .dataset import TrainingSet      # python/b2dr_ref/dataset.py (the export's reader)
 
-        self.ds = ds.open_dataset(directory) if hasattr(ds, "open_dataset") else ds.TrainingDataset(directory)
-        self.render_size = tuple(int(v) for v in getattr(self.ds, "render_size"))
-        self.cameras = list(getattr(self.ds, "cameras"))
+            ds = TrainingSet(directory)
+        self.ds = ds
+        if list(ds.mask_channels) != list(MASK_CHANNELS):
+            raise ValueError(f"{directory}: mask channels {list(ds.mask_channels)} differ from the model's "
+                             f"{MASK_CHANNELS}")
+        self.render_size = (int(ds.height), int(ds.width))
+        self.cameras = list(ds.cameras)
+        self._frame = (None, None)
 
     def __len__(self):
-        return len(self.ds)
+        return len(self.ds) * len(self.cameras)
 
     def __getitem__(self, i: int) -> Sample:
-        s = self.ds[i]
-        g = (lambda k: s[k]) if isinstance(s, dict) else (lambda k: getattr(s, k))
-        return Sample(target=np.asarray(g("target")), prev=np.asarray(g("prev")), refs=np.asarray(g("refs")),
-                      masks=np.asarray(g("masks")), k=np.asarray(g("intrinsics"), np.float64),
-                      cam2ego=np.asarray(g("cam2ego"), np.float64),
-                      ego2global=np.asarray(g("ego2global"), np.float64),
-                      prev_ego2global=np.asarray(g("prev_ego2global"), np.float64),
-                      ref_ego2global=np.asarray(g("ref_ego2global"), np.float64), camera=str(g("camera")))
+        f, c = divmod(int(i), len(self.cameras))
+        if self._frame[0] != f:
+            self._frame = (f, self.ds[f])
+        s = self._frame[1]
+        return Sample(target=s["target"][c], prev=s["prev"][c], refs=s["ref"][c], masks=s["masks"][c],
+                      k=np.asarray(s["intrinsics"][c], np.float64), cam2ego=np.asarray(s["cam2ego"][c], np.float64),
+                      ego2global=np.asarray(s["ego2global"][c], np.float64),
+                      prev_ego2global=np.asarray(s["prev_ego2global"][c], np.float64),
+                      ref_ego2global=np.asarray(s["ref_ego2global"][c], np.float64), camera=self.cameras[c])
 
 
 def open_source(data: str, render_size=None) -> SampleSource:
@@ -317,10 +326,14 @@ class Batcher:
 
     @torch.no_grad()
     def _encode(self, imgs_u8: np.ndarray, blur: bool) -> torch.Tensor:
-        x = torch.from_numpy(imgs_u8).float().div(255.0).to(self.device)
-        if blur:
-            x = gaussian_blur(x, self.sigma)
-        return (self.vae.encode(2.0 * x - 1.0).latent_dist.mean * self.vae.config.scaling_factor).cpu()
+        """One image at a time, so a latent does not depend on which batch it was first seen in (exact resume)."""
+        out = []
+        for img in imgs_u8:
+            x = torch.from_numpy(np.ascontiguousarray(img[None])).float().div(255.0).to(self.device)
+            if blur:
+                x = gaussian_blur(x, self.sigma)
+            out.append((self.vae.encode(2.0 * x - 1.0).latent_dist.mean * self.vae.config.scaling_factor).cpu())
+        return torch.cat(out)
 
     def _prepare(self, idx: Sequence[int]):
         todo = sorted(set(i for i in idx if i not in self.cache))
@@ -429,6 +442,8 @@ def train(args):
             ema.shadow = ck["ema"]
         step = ck["step"]
     steps = args.steps if not ck else max(args.steps, step)
+    if args.stop_after:
+        steps = min(steps, step + args.stop_after)
     abar = make_noise_scheduler().alphas_cumprod.to(torch.float32)
     batcher = Batcher(source, vae, controlnet, device, cache=args.cache)
     run_meta = dict(cfg=cfg, cameras=cameras, vae_path=os.path.abspath(vae_path), total_steps=total,
@@ -563,6 +578,8 @@ def add_common(p: argparse.ArgumentParser):
     p.add_argument("--ckpt-every", type=int, default=250)
     p.add_argument("--log-every", type=int, default=10)
     p.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.pt")
+    p.add_argument("--stop-after", type=int, default=0,
+                   help="stop after this many steps of this invocation (the schedule still spans --steps)")
     p.add_argument("--fixed-batch", action="store_true", help="always samples 0..B-1 (overfit check)")
 
 

@@ -93,6 +93,8 @@ def train_vae(args):
         torch.set_rng_state(ck["torch_rng"])
         step = ck["step"]
     steps = max(args.steps, step)
+    if args.stop_after:
+        steps = min(steps, step + args.stop_after)
     log = CsvLog(os.path.join(args.out, "log.csv"), ["step", "loss", "l1", "kl", "lr", "sec"], step)
     losses = []
     try:
