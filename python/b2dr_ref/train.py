@@ -329,9 +329,10 @@ class Batcher:
         """One image at a time, so a latent does not depend on which batch it was first seen in (exact resume)."""
         out = []
         for img in imgs_u8:
-            x = torch.from_numpy(np.ascontiguousarray(img[None])).float().div(255.0).to(self.device)
+            x = torch.from_numpy(np.ascontiguousarray(img[None])).float().div(255.0)
             if blur:
-                x = gaussian_blur(x, self.sigma)
+                x = gaussian_blur(x, self.sigma)        # on the CPU (frame.gaussian_blur builds its taps there)
+            x = x.to(self.device)
             out.append((self.vae.encode(2.0 * x - 1.0).latent_dist.mean * self.vae.config.scaling_factor).cpu())
         return torch.cat(out)
 
@@ -439,7 +440,7 @@ def train(args):
         gen.set_state(ck["generator"])
         torch.set_rng_state(ck["torch_rng"])
         if ema is not None and ck.get("ema") is not None:
-            ema.shadow = ck["ema"]
+            ema.shadow = {k: v.to(device) for k, v in ck["ema"].items()}
         step = ck["step"]
     steps = args.steps if not ck else max(args.steps, step)
     if args.stop_after:

@@ -2,7 +2,7 @@
 trained on the dataset's target images with an L1 reconstruction loss + a small KL term (LDM style).
 
     python -m b2dr_ref.vae_train --data DIR --out VAE_RUN [--config nano] [--steps N] [--batch B] [--device cpu|cuda]
-                                 [--resume]
+                                 [--crop HxW] [--resume]
 
 Loss per step (LDM's autoencoder without the perceptual / GAN terms): the sums over pixels and latent elements
 per image, averaged over the batch, divided by 3 H W so the figure reads as a per-pixel L1:
@@ -36,6 +36,25 @@ def build_vae(cfg, seed: int = 0):
 def images(source, idx, device) -> torch.Tensor:
     x = np.stack([source[i].target for i in idx])
     return torch.from_numpy(x).float().div(255.0).mul(2.0).sub(1.0).to(device)
+
+
+def parse_crop(text: str):
+    h, w = (int(v) for v in text.lower().split("x"))
+    if h % 8 or w % 8 or h <= 0 or w <= 0:
+        raise argparse.ArgumentTypeError(f"--crop {text}: HxW, multiples of 8")
+    return h, w
+
+
+def random_crop(x: torch.Tensor, hw, gen: torch.Generator) -> torch.Tensor:
+    """One random HxW window (offsets on the 8-pixel grid) of the whole batch; the VAE is convolutional, so
+    training on crops is LDM's usual speed-up."""
+    h, w = hw
+    H, W = x.shape[-2:]
+    if h > H or w > W:
+        raise ValueError(f"crop {h}x{w} larger than the images {H}x{W}")
+    y0 = 8 * int(torch.randint(0, (H - h) // 8 + 1, (1,), generator=gen))
+    x0 = 8 * int(torch.randint(0, (W - w) // 8 + 1, (1,), generator=gen))
+    return x[..., y0:y0 + h, x0:x0 + w]
 
 
 def vae_loss(vae, x, gen: torch.Generator, kl_weight: float):
@@ -102,7 +121,10 @@ def train_vae(args):
             t0 = time.perf_counter()
             idx = list(range(args.batch)) if args.fixed_batch else \
                 torch.randint(0, len(source), (args.batch,), generator=gen).tolist()
-            loss, l1, kl = vae_loss(vae, images(source, idx, device), gen, args.kl_weight)
+            x = images(source, idx, device)
+            if args.crop:
+                x = random_crop(x, args.crop, gen)
+            loss, l1, kl = vae_loss(vae, x, gen, args.kl_weight)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(vae.parameters(), args.clip)
@@ -130,6 +152,8 @@ def main(argv=None):
     add_common(p)
     p.set_defaults(lr=2e-4, warmup=200, ckpt_every=500)
     p.add_argument("--kl-weight", type=float, default=1e-6)
+    p.add_argument("--crop", type=parse_crop, default=None,
+                   help="train on random HxW crops (multiples of 8), e.g. 56x104: ~4x cheaper steps")
     return train_vae(p.parse_args(sys.argv[1:] if argv is None else argv))
 
 
