@@ -42,3 +42,4 @@ pub mod scene;
 pub mod sim;
 pub mod tensor;
 pub mod vk;
+pub mod world;
