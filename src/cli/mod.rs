@@ -2,11 +2,13 @@
 use clap::{Parser, Subcommand};
 
 mod bench;
+mod export;
 mod forward;
 mod info;
 mod project;
 mod sample;
 mod sim;
+mod world;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -40,6 +42,10 @@ pub enum Command {
     Sample(sample::SampleArgs),
     /// Closed-loop simulation of a planner over scenarios, with the nuPlan closed-loop score.
     Sim(sim::SimArgs),
+    /// Ground truth of a scenario state: camera images, mosaic + BEV, overlays of the projected masks.
+    World(world::WorldArgs),
+    /// Export training samples (images, references, masks, matrices) as safetensors shards + index.json.
+    ExportTraining(export::ExportArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -97,5 +103,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Forward(a) => forward::run(cli.device, a),
         Command::Sample(a) => sample::run(cli.device, a),
         Command::Sim(a) => sim::run(a),
+        Command::World(a) => world::run(a),
+        Command::ExportTraining(a) => export::run(a),
     }
 }

@@ -175,8 +175,8 @@ pub fn object_solid(o: &WorldObject, pal: &Palette) -> Solid {
                 c,
                 y,
                 DVec2::ZERO,
-                l * 0.55,
-                w * 0.75,
+                l * 0.75,
+                w * 0.85,
                 0.0,
                 h * 0.5,
                 BoxColours::uniform(trousers),
@@ -187,7 +187,7 @@ pub fn object_solid(o: &WorldObject, pal: &Palette) -> Solid {
                 c,
                 y,
                 DVec2::ZERO,
-                l * 0.7,
+                l * 0.9,
                 w,
                 h * 0.5,
                 h * 0.84,
@@ -199,8 +199,8 @@ pub fn object_solid(o: &WorldObject, pal: &Palette) -> Solid {
                 c,
                 y,
                 DVec2::ZERO,
-                l * 0.42,
-                w * 0.42,
+                l * 0.55,
+                w * 0.55,
                 h * 0.84,
                 h,
                 BoxColours::uniform(skin),
@@ -210,7 +210,7 @@ pub fn object_solid(o: &WorldObject, pal: &Palette) -> Solid {
             let tyre: Rgb = [0.08, 0.08, 0.09];
             let frame = pick(&CLOTHES, 3);
             let shirt = pick(&CLOTHES, 5);
-            let r = (0.2 * h).min(l * 0.2);
+            let r = (0.22 * h).min(l * 0.25);
             for fx in [1.0, -1.0] {
                 push_box(
                     &mut s,
@@ -219,7 +219,7 @@ pub fn object_solid(o: &WorldObject, pal: &Palette) -> Solid {
                     y,
                     DVec2::new(fx * (l * 0.5 - r), 0.0),
                     2.0 * r,
-                    w * 0.25,
+                    w * 0.3,
                     0.0,
                     2.0 * r,
                     BoxColours::uniform(tyre),
@@ -233,20 +233,21 @@ pub fn object_solid(o: &WorldObject, pal: &Palette) -> Solid {
                 DVec2::ZERO,
                 l - 2.0 * r,
                 w * 0.3,
-                r * 0.8,
+                r * 0.6,
                 r * 2.0,
                 BoxColours::uniform(frame),
             );
+            // Rider: legs from the pedals up, torso, head.
             push_box(
                 &mut s,
                 pal,
                 c,
                 y,
-                DVec2::new(-l * 0.08, 0.0),
-                l * 0.35,
+                DVec2::new(-l * 0.05, 0.0),
+                l * 0.55,
                 w * 0.8,
-                r * 2.0,
-                h * 0.55,
+                r,
+                h * 0.57,
                 BoxColours::uniform(darker(shirt, 0.5)),
             );
             push_box(
@@ -254,10 +255,10 @@ pub fn object_solid(o: &WorldObject, pal: &Palette) -> Solid {
                 pal,
                 c,
                 y,
-                DVec2::new(-l * 0.02, 0.0),
-                l * 0.3,
+                DVec2::new(0.0, 0.0),
+                l * 0.55,
                 w * 0.95,
-                h * 0.55,
+                h * 0.57,
                 h * 0.86,
                 BoxColours::uniform(shirt),
             );
@@ -266,9 +267,9 @@ pub fn object_solid(o: &WorldObject, pal: &Palette) -> Solid {
                 pal,
                 c,
                 y,
-                DVec2::new(l * 0.02, 0.0),
-                l * 0.14,
-                w * 0.4,
+                DVec2::new(l * 0.05, 0.0),
+                l * 0.18,
+                w * 0.45,
                 h * 0.86,
                 h,
                 BoxColours::uniform([0.80, 0.62, 0.50]),
