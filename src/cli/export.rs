@@ -19,9 +19,10 @@ pub struct ExportArgs {
     /// Target frames per scenario (each exported once per offset).
     #[arg(long, default_value_t = 16)]
     pub samples_per_scenario: usize,
-    /// Ego offsets DX,DY,DYAW (m, m, degrees) in the ego frame, space-separated; 0,0,0 = the logged pose.
-    #[arg(long, num_args = 1.., default_value = "0,0,0", allow_hyphen_values = true)]
-    pub offsets: Vec<String>,
+    /// Ego offsets DX,DY,DYAW (m, m, degrees) in the ego frame, separated by ';' (e.g. "0,0,0;0,1.5,0;0,-1.5,5");
+    /// every target is exported once per offset; 0,0,0 = the logged pose.
+    #[arg(long, default_value = "0,0,0", allow_hyphen_values = true)]
+    pub offsets: String,
     /// Seed of the sample and reference choice.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -40,8 +41,10 @@ pub fn run(a: ExportArgs) -> Result<()> {
     let (height, width) = parse_size(&a.size)?;
     let offsets = a
         .offsets
-        .iter()
-        .map(|s| parse_offset(s))
+        .split(';')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(parse_offset)
         .collect::<Result<Vec<_>>>()?;
     let s = export_training(&ExportOptions {
         scenarios: a.scenario,
