@@ -9,7 +9,7 @@ use b2dr::world::load_all;
 use b2dr::world::view::layout_masks;
 use safetensors::SafeTensors;
 
-/// >= 2000 samples: reference distances fall into 2-5 / 5-10 / 10-15 m with frequencies within 3 points of
+/// At least 2000 samples: reference distances fall into 2-5 / 5-10 / 10-15 m with frequencies within 3 points of
 /// 0.1 / 0.3 / 0.6; slot 0 is ahead and slot 1 behind unless that side has no image in the drawn interval.
 #[test]
 fn reference_distances_follow_the_hierarchical_bins() {

@@ -74,7 +74,7 @@ fn new_layouts_load_and_differ() {
         };
         let sc = b2dr::world::load(&src[0]).unwrap();
         assert_eq!(sc.len(), 201, "{spec}");
-        assert_eq!(sc.source, spec.replace("::evening", "::evening"), "{spec}");
+        assert_eq!(sc.source, spec, "{spec}");
         assert!(
             (sc.ego[150].rear_axle.pos() - sc.ego[0].rear_axle.pos()).length() > 30.0,
             "{spec}: the expert must drive"

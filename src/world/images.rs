@@ -22,13 +22,15 @@ pub struct RgbPixels {
 }
 
 type Key = (String, usize, usize);
+/// The cached images and their insertion order (FIFO eviction).
+type Cache = (HashMap<Key, Arc<RgbPixels>>, VecDeque<Key>);
 
 /// Resolves and caches the recorded images of one scenario.
 pub struct ImageStore<'a> {
     world: World<'a>,
     base_dir: Option<PathBuf>,
     capacity: usize,
-    cache: Mutex<(HashMap<Key, Arc<RgbPixels>>, VecDeque<Key>)>,
+    cache: Mutex<Cache>,
 }
 
 impl<'a> ImageStore<'a> {

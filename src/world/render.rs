@@ -417,6 +417,7 @@ impl Canvas {
 
 /// Renders every camera of `cams` (each at `width x height`, intrinsics rescaled from its native size) from the
 /// ego pose `ego2global`, on up to `threads` threads (results do not depend on the thread count).
+#[allow(clippy::too_many_arguments)]
 pub fn render_cameras(
     scenery: &Scenery,
     cams: &[Camera],

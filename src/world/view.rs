@@ -279,8 +279,8 @@ pub fn overlay(frame: &CameraFrame, masks: &LayoutMasks) -> RgbImage {
         for (p, &v) in m.iter().enumerate() {
             if v != 0 {
                 let px = img.get_pixel_mut((p % w) as u32, (p / w) as u32);
-                for k in 0..3 {
-                    px.0[k] = (px.0[k] as f32 * (1.0 - alpha) + col[k] as f32 * alpha) as u8;
+                for (v, c) in px.0.iter_mut().zip(col) {
+                    *v = (*v as f32 * (1.0 - alpha) + c as f32 * alpha) as u8;
                 }
             }
         }
