@@ -89,3 +89,31 @@ fn world_writes_images_and_rejects_bad_input() {
     assert!(code == 1 && msg.contains("DX,DY,DYAW"), "{msg}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Determinism across runs: two processes write byte-identical images.
+#[test]
+fn world_images_are_identical_across_runs() {
+    let base = std::env::temp_dir().join(format!("b2dr_world_runs_{}", std::process::id()));
+    let mut bytes = Vec::new();
+    for run in 0..2 {
+        let d = base.join(run.to_string());
+        let (code, msg) = b2dr(&[
+            "world",
+            "--scenario",
+            "builtin:multilane:2::morning",
+            "--step",
+            "77",
+            "--size",
+            "224x400",
+            "--out",
+            d.to_str().unwrap(),
+        ]);
+        assert_eq!(code, 0, "{msg}");
+        bytes.push(
+            ["mosaic.png", "CAM_FRONT_class.png", "bev.png"]
+                .map(|f| std::fs::read(d.join(f)).unwrap()),
+        );
+    }
+    assert!(bytes[0] == bytes[1], "images differ between runs");
+    std::fs::remove_dir_all(&base).ok();
+}

@@ -239,3 +239,57 @@ pub fn push_frustum(
         push(pts, nrm);
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::import::DayPalette;
+
+    /// Every face normal points away from the solid's centre (back-face culling relies on it).
+    #[test]
+    fn normals_point_outward() {
+        let pal = Palette::of(DayPalette::Noon);
+        let mut s = Solid::new(SemanticClass::Vehicle, 1);
+        push_box(
+            &mut s,
+            &pal,
+            DVec2::new(3.0, -2.0),
+            0.7,
+            DVec2::new(0.5, 0.2),
+            4.0,
+            2.0,
+            0.2,
+            1.5,
+            BoxColours::uniform([0.5; 3]),
+        );
+        push_frustum(
+            &mut s,
+            &pal,
+            DVec2::new(3.0, -2.0),
+            0.3,
+            7,
+            1.0,
+            0.4,
+            1.5,
+            3.0,
+            [0.5; 3],
+        );
+        let s = s.finish();
+        assert_eq!(s.faces.len(), 6 + 9);
+        for (i, f) in s.faces.iter().enumerate() {
+            let c = f.pts.iter().copied().sum::<DVec3>() / f.pts.len() as f64;
+            let inner = if i < 6 {
+                DVec3::new(
+                    3.0 + 0.5 * 0.7f64.cos() - 0.2 * 0.7f64.sin(),
+                    -2.0 + 0.5 * 0.7f64.sin() + 0.2 * 0.7f64.cos(),
+                    0.85,
+                )
+            } else {
+                DVec3::new(3.0, -2.0, 2.25)
+            };
+            assert!(f.normal.dot(c - inner) > 0.0, "{f:?}");
+            assert!((f.normal.length() - 1.0).abs() < 1e-9);
+        }
+        assert!(s.radius > 2.0);
+    }
+}

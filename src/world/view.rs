@@ -406,3 +406,38 @@ pub fn write_view(out: &ViewOutput, sc: &Scenario, step: usize, dir: &Path) -> R
     )?;
     Ok(())
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn sizes_and_offsets_parse_or_fail_clearly() {
+        assert_eq!(parse_size("224x400").unwrap(), (224, 400));
+        assert_eq!(parse_size("112X200").unwrap(), (112, 200));
+        for bad in ["224", "0x400", "224x5000", "ax400", "224x-1", ""] {
+            assert!(parse_size(bad).is_err(), "{bad}");
+        }
+        let o = parse_offset("1, -2.5, 90").unwrap();
+        assert_eq!((o.x, o.y), (1.0, -2.5));
+        assert!((o.heading - std::f64::consts::FRAC_PI_2).abs() < 1e-12);
+        for bad in ["1,2", "1,2,3,4", "nan,0,0", "0,0,inf", "0,500,0", "x,y,z"] {
+            assert!(parse_offset(bad).is_err(), "{bad}");
+        }
+    }
+
+    #[test]
+    fn mosaic_puts_front_in_the_middle_of_the_top_row() {
+        let names: Vec<String> = crate::scene::import::CAMERAS
+            .iter()
+            .map(|s| s.to_string())
+            .collect();
+        let imgs: Vec<RgbImage> = (0..6)
+            .map(|i| RgbImage::from_pixel(4, 2, Rgb([i as u8 * 40, 0, 0])))
+            .collect();
+        let m = mosaic(&names, &imgs, None);
+        assert_eq!((m.width(), m.height()), (12, 4));
+        assert_eq!(m.get_pixel(5, 0).0[0], 0); // CAM_FRONT (index 0) at column 1, row 0
+        assert_eq!(m.get_pixel(5, 3).0[0], 3 * 40); // CAM_BACK at column 1, row 1
+    }
+}
