@@ -71,16 +71,17 @@ pub fn object_solid(o: &WorldObject, pal: &Palette) -> Solid {
         ObjectClass::Vehicle => {
             let body = pick(&VEHICLE_COLOURS, 0);
             let tyre: Rgb = [0.06, 0.06, 0.07];
-            let glass: Rgb = [0.12, 0.16, 0.22];
+            let glass: Rgb = [0.28, 0.34, 0.42];
             let wheel_r = (0.22 * h).clamp(0.25, 0.4);
             let (z_body, z_belt) = (wheel_r * 0.9, h * 0.58);
+            // The body stops 3 cm short of the box ends, so the lamps in front of it are not coplanar with it.
             push_box(
                 &mut s,
                 pal,
                 c,
                 y,
                 DVec2::ZERO,
-                l,
+                l - 0.06,
                 w,
                 z_body,
                 z_belt,

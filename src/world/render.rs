@@ -200,6 +200,9 @@ impl Canvas {
             self.ground(&view, scenery, opt);
         }
         let pal = &scenery.palette;
+        for o in objects {
+            self.contact_shadow(&view, o, opt);
+        }
         if opt.scenery {
             for s in &scenery.solids {
                 self.solid(&view, s, pal, opt);
@@ -338,6 +341,34 @@ impl Canvas {
                 }
             });
         }
+    }
+
+    /// Darkens the ground under an object's footprint (a soft contact shadow; ground pixels only, so ids and
+    /// depth stay the ground's).
+    fn contact_shadow(&mut self, v: &View, o: &WorldObject, opt: &RenderOptions) {
+        let r = o.size.truncate().length() * 0.5;
+        if !v.sees_sphere(o.center.truncate().extend(0.0), r, opt.near, opt.range) {
+            return;
+        }
+        let (s, c) = o.yaw.sin_cos();
+        let (l, w) = (o.size.x * 0.5, o.size.y * 0.5);
+        let ring = [(l, w), (-l, w), (-l, -w), (l, -w)]
+            .map(|(x, y)| DVec3::new(o.center.x + c * x - s * y, o.center.y + s * x + c * y, 0.0));
+        if !self.project_ring(v, ring.into_iter(), opt.near, opt.range) {
+            return;
+        }
+        self.raster.add_ring(&self.px);
+        let w = self.frame.width;
+        let fr = &mut self.frame;
+        self.raster.fill_spans(|j, i0, i1| {
+            for p in j * w + i0..=j * w + i1 {
+                if fr.instance[p] == 0 && fr.class[p] != SemanticClass::Sky as u8 {
+                    for k in 0..3 {
+                        fr.rgb[3 * p + k] = (fr.rgb[3 * p + k] as u16 * 3 / 5) as u8;
+                    }
+                }
+            }
+        });
     }
 
     fn solid(&mut self, v: &View, s: &Solid, pal: &Palette, opt: &RenderOptions) {
