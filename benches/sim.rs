@@ -1,9 +1,10 @@
 //! Closed-loop simulation speed: one 15 s scenario (150 steps at 10 Hz) with IDM agents and the expert
 //! planner (LQR tracker + bicycle every step, planner at 2 Hz), single thread. Scenario loading is outside
 //! the timed region. Prints steps/s. Names: sim_<agents>_<scene>_150steps.
-use b2dr::scene::import::{scenarionet, synthetic};
+use b2dr::scene::import::scenarionet;
 use b2dr::scene::Scenario;
 use b2dr::sim::{run, AgentMode, ExpertPlanner, SimConfig};
+use b2dr::world::town as synthetic;
 use criterion::{black_box, criterion_group, criterion_main, Criterion};
 use std::path::PathBuf;
 use std::time::Instant;

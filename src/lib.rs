@@ -21,6 +21,10 @@
 //! - [`scene`], [`sim`], [`metrics`], [`projection`]: the CPU side (scenario model and importers, ego
 //!   controller and IDM agents, the nuPlan closed-loop score, camera projection / retrieval / position
 //!   encodings). None of them imports `ash` or touches the GPU.
+//! - [`world`]: the synthetic ground-truth world above them: the built-in towns (their logs are driven by
+//!   `sim`'s IDM agents), the deterministic CPU camera renderer (RGB, depth, class and instance ids), the
+//!   image store that renders a generated log's recorded frames on demand, and the training-data export.
+//!   Never imports `ash` or touches the GPU.
 //! - `cli` (binary only): the `b2dr` command.
 //!
 //! ## Synchronisation
@@ -45,3 +49,4 @@ pub mod scene;
 pub mod sim;
 pub mod tensor;
 pub mod vk;
+pub mod world;

@@ -1,9 +1,10 @@
 //! Importer and map tests: errors name the file and the field, lane links are inferred from geometry
 //! (1 m, 30 deg), the synthetic town is deterministic and well formed, the shared scenes load.
 use b2dr::scene::geometry::Polyline;
-use b2dr::scene::import::{resolve, scenarionet, synthetic, Source};
+use b2dr::scene::import::{resolve, scenarionet, BuiltinSpec, Source};
 use b2dr::scene::index::PolygonSet;
 use b2dr::scene::map::{infer_lane_links, LaneKind, LaneSpec, Map};
+use b2dr::world::town as synthetic;
 use glam::DVec2;
 use serde_json::json;
 use std::path::PathBuf;
@@ -164,10 +165,7 @@ fn unreadable_files_and_bad_specs_are_errors() {
     assert!(resolve(dir.join("nope").to_str().unwrap()).is_err());
     assert_eq!(
         resolve("builtin:town:7:200").unwrap(),
-        vec![Source::Builtin {
-            seed: 7,
-            n_vehicles: Some(200)
-        }]
+        vec![Source::Builtin(BuiltinSpec::town(7, Some(200)))]
     );
     std::fs::remove_dir_all(&dir).ok();
 }
@@ -258,7 +256,7 @@ fn shared_scenes_load() {
         return;
     }
     for src in resolve(d.to_str().unwrap()).unwrap() {
-        let sc = src.load().unwrap();
+        let sc = b2dr::world::load(&src).unwrap();
         let links: usize = sc.map.lanes.iter().map(|l| l.successors.len()).sum();
         println!(
             "{}: {} steps, {} tracks, {} lanes ({} connectors), {} links, drivable area {}, route {} lanes",

@@ -1,8 +1,8 @@
 //! Planners and the closed loop: determinism (bit-identical traces), external planner failures (crash,
 //! timeout, NaN, empty and short trajectories) end the scenario with a reason, the IDM ego planner drives.
-use b2dr::scene::import::synthetic;
 use b2dr::sim::external::ExternalPlanner;
 use b2dr::sim::{run, AgentMode, ExpertPlanner, IdmPlanner, SimConfig};
+use b2dr::world::town as synthetic;
 use std::path::PathBuf;
 use std::time::Duration;
 

@@ -1,10 +1,11 @@
 //! Closed-loop runs on the 10 shared nuScenes scenes (skipped with a printed reason when the data is absent)
 //! and on the synthetic town: expert tracking accuracy, constant-velocity deviation, IDM leader overlap.
 use b2dr::scene::geometry::{convex_intersect, OrientedBox};
-use b2dr::scene::import::{scenarionet, synthetic};
+use b2dr::scene::import::scenarionet;
 use b2dr::scene::Scenario;
 use b2dr::sim::agents::LeaderRef;
 use b2dr::sim::{run, AgentMode, ConstantVelocityPlanner, ExpertPlanner, SimConfig, SimResult};
+use b2dr::world::town as synthetic;
 use std::path::PathBuf;
 
 fn scenes_dir() -> Option<PathBuf> {

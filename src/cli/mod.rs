@@ -2,12 +2,14 @@
 use clap::{Parser, Subcommand};
 
 mod bench;
+mod export;
 mod forward;
 mod info;
 mod project;
 mod render;
 mod sample;
 mod sim;
+mod world;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -43,6 +45,10 @@ pub enum Command {
     Render(render::RenderArgs),
     /// Closed-loop simulation of a planner over scenarios, with the nuPlan closed-loop score.
     Sim(sim::SimArgs),
+    /// Ground truth of a scenario state: camera images, mosaic + BEV, overlays of the projected masks.
+    World(world::WorldArgs),
+    /// Export training samples (images, references, masks, matrices) as safetensors shards + index.json.
+    ExportTraining(export::ExportArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -104,5 +110,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Sample(a) => sample::run(cli.device, a),
         Command::Render(a) => render::run(cli.device, a),
         Command::Sim(a) => sim::run(a),
+        Command::World(a) => world::run(a),
+        Command::ExportTraining(a) => export::run(a),
     }
 }

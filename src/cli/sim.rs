@@ -19,7 +19,8 @@ use std::time::{Duration, Instant};
 
 #[derive(Args, Debug)]
 pub struct SimArgs {
-    /// Scenario(s): builtin:town[:seed[:n_vehicles]], a ScenarioNet .json file, or a directory of them.
+    /// Scenario(s): builtin:LAYOUT[:seed[:n_vehicles[:palette]]] (LAYOUT: town, cross, tjunction, straight, curve,
+    /// multilane), a ScenarioNet .json file, or a directory of them.
     #[arg(long, default_value = "builtin:town")]
     pub scenario: String,
     /// Planner: expert, cv, idm or cmd:<command line> (see docs/planner_protocol.md).
@@ -60,7 +61,7 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 /// Runs one scenario and writes its folder; returns its metrics.json value.
 fn run_one(src: &Source, args: &SimArgs, cfg: &SimConfig, dir: &Path) -> Result<Value> {
     let t0 = Instant::now();
-    let sc = src.load()?;
+    let sc = b2dr::world::load(src)?;
     let mut planner =
         sim::planner_from_spec(&args.planner, Duration::from_secs_f64(args.planner_timeout))?;
     let r = sim::run(&sc, planner.as_mut(), cfg);

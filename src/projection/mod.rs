@@ -10,6 +10,7 @@
 //! - [`retrieval`]: nearest recorded image ahead / behind along the ego heading, and hierarchical sampling of
 //!   training references.
 //! - [`pe`]: PETR frustum position encodings `(D*3, h, w)` in the current ego frame.
+//! - [`scene`]: a scenario's boxes at a log step (gravity centres) and its map as a [`MapLayer`].
 //! - [`keyframe`]: reader of the shared keyframe JSON (used by `b2dr project` and the tests).
 //!
 //! Conventions: ego x forward, y left, z up; camera x right, y down, z forward; image coordinates put the centre
@@ -21,6 +22,7 @@ pub mod layout;
 pub mod pe;
 pub mod raster;
 pub mod retrieval;
+pub mod scene;
 
 pub use geometry::{
     channel_name, Box3d, BoxClass, CameraProjector, MapClass, MapElement, MapGeometry, MapLayer,

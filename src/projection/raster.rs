@@ -82,6 +82,14 @@ impl Rasterizer {
     /// set pixels become 1) and clears the scratch state. Returns the number of pixels newly or re-set.
     pub fn fill(&mut self, mask: &mut [u8]) -> usize {
         debug_assert_eq!(mask.len(), self.width * self.height);
+        let w = self.width;
+        self.fill_spans(|j, i0, i1| mask[j * w + i0..=j * w + i1].fill(1))
+    }
+
+    /// Like [`Rasterizer::fill`], handing each covered span to `span(row, first column, last column)`
+    /// (inclusive, clipped to the image) instead of writing a mask: the same pixels as `fill`. Returns the
+    /// number of pixels covered.
+    pub fn fill_spans(&mut self, mut span: impl FnMut(usize, usize, usize)) -> usize {
         if self.row_min > self.row_max {
             self.row_min = usize::MAX;
             self.row_max = 0;
@@ -93,13 +101,12 @@ impl Rasterizer {
             let xs = &mut self.rows[j];
             if xs.len() >= 2 {
                 xs.sort_unstable_by(|a, b| a.total_cmp(b));
-                let row = &mut mask[j * self.width..(j + 1) * self.width];
                 for pair in xs.chunks_exact(2) {
                     let i0 = pair[0].ceil().max(0.0);
                     let i1 = (pair[1].ceil() - 1.0).min(w - 1.0);
                     if i0 <= i1 {
                         let (i0, i1) = (i0 as usize, i1 as usize);
-                        row[i0..=i1].fill(1);
+                        span(j, i0, i1);
                         count += i1 - i0 + 1;
                     }
                 }

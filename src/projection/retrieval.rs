@@ -160,3 +160,135 @@ pub fn sample_training_references<R: Rng>(
     let rear = pick(false);
     References { front, rear }
 }
+
+/// Draws an interval index with the probabilities of [`TRAINING_INTERVALS`] restricted to `allowed`
+/// (renormalised); `None` when nothing is allowed.
+fn draw_interval<R: Rng>(allowed: [bool; 3], rng: &mut R) -> Option<usize> {
+    let total: f64 = (0..3)
+        .filter(|&i| allowed[i])
+        .map(|i| TRAINING_INTERVALS[i].2)
+        .sum();
+    if total <= 0.0 {
+        return None;
+    }
+    let mut r = rng.gen::<f64>() * total;
+    let mut last = None;
+    for (i, iv) in TRAINING_INTERVALS.iter().enumerate() {
+        if !allowed[i] {
+            continue;
+        }
+        last = Some(i);
+        if r < iv.2 {
+            return Some(i);
+        }
+        r -= iv.2;
+    }
+    last
+}
+
+/// Training references as a pair, one slot ahead and one behind where the log allows (the export's rule; spec
+/// 3g). Per slot: an interval is drawn with probabilities 0.1 / 0.3 / 0.6 over ALL intervals; the slot takes an
+/// image of its own side in that interval, or, when its side has none there, an image of the other side in the
+/// same interval (both references then lie on one side); only when the interval is empty on both sides is it
+/// redrawn among the intervals that hold an image on either side (renormalised). So the distance frequencies
+/// are the spec's wherever the log holds images in every interval. `None` when no image lies in 2-15 m.
+/// `[ahead slot, behind slot]`; the chosen image is uniform within its interval and side.
+pub fn sample_reference_pair<R: Rng>(
+    frames: &[RecordedFrame],
+    camera: &str,
+    train: usize,
+    rng: &mut R,
+) -> Option<[Reference; 2]> {
+    let pose = frames.get(train)?.image(camera)?.ego2global;
+    let cands: Vec<Cand> = along_distances(frames, camera, &pose)
+        .filter(|c| c.0 != train && c.2 != 0.0)
+        .collect();
+    let bucket = |ahead: bool, i: usize| -> Vec<Cand> {
+        let (lo, hi, _) = TRAINING_INTERVALS[i];
+        cands
+            .iter()
+            .copied()
+            .filter(|c| (c.2 > 0.0) == ahead && c.2.abs() >= lo && c.2.abs() < hi)
+            .collect()
+    };
+    let buckets: [[Vec<Cand>; 3]; 2] = [
+        [bucket(true, 0), bucket(true, 1), bucket(true, 2)],
+        [bucket(false, 0), bucket(false, 1), bucket(false, 2)],
+    ];
+    let nonempty: [bool; 3] =
+        std::array::from_fn(|i| !buckets[0][i].is_empty() || !buckets[1][i].is_empty());
+    let inv = pose.inverse();
+    let mut pick = |side: usize| -> Option<Reference> {
+        let mut i = draw_interval([true; 3], rng)?;
+        if !nonempty[i] {
+            i = draw_interval(nonempty, rng)?;
+        }
+        let own = &buckets[side][i];
+        let v = if own.is_empty() {
+            &buckets[1 - side][i]
+        } else {
+            own
+        };
+        let c = v[rng.gen_range(0..v.len())];
+        Some(make_ref(frames, &inv, c))
+    };
+    let a = pick(0)?;
+    let b = pick(1)?;
+    Some([a, b])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scene::camera::CameraImage;
+    use rand::SeedableRng;
+
+    fn line_frames(n: usize, spacing: f64) -> Vec<RecordedFrame> {
+        (0..n)
+            .map(|k| {
+                let m = DMat4::from_translation(glam::DVec3::new(k as f64 * spacing, 0.0, 0.0));
+                RecordedFrame {
+                    timestamp_us: k as i64,
+                    ego2global: m,
+                    images: vec![CameraImage {
+                        camera: "C".into(),
+                        path: String::new(),
+                        timestamp_us: k as i64,
+                        ego2global: m,
+                    }],
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn pair_follows_interval_probabilities() {
+        let frames = line_frames(100, 0.7);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let mut counts = [0usize; 3];
+        let mut n = 0;
+        for t in 0..4000 {
+            let train = 25 + t % 50;
+            let [a, b] = sample_reference_pair(&frames, "C", train, &mut rng).unwrap();
+            assert!(a.along > 0.0 && b.along < 0.0);
+            for r in [a, b] {
+                let d = r.along.abs();
+                let i = TRAINING_INTERVALS
+                    .iter()
+                    .position(|iv| d >= iv.0 && d < iv.1)
+                    .unwrap();
+                counts[i] += 1;
+                n += 1;
+            }
+        }
+        for (i, c) in counts.iter().enumerate() {
+            let f = *c as f64 / n as f64;
+            assert!((f - TRAINING_INTERVALS[i].2).abs() < 0.02, "{counts:?}");
+        }
+        // At the log start nothing lies behind: both slots ahead.
+        let [a, b] = sample_reference_pair(&frames, "C", 0, &mut rng).unwrap();
+        assert!(a.along > 0.0 && b.along > 0.0);
+        // A standstill log: nothing in 2-15 m.
+        assert!(sample_reference_pair(&line_frames(10, 0.01), "C", 5, &mut rng).is_none());
+    }
+}

@@ -101,3 +101,83 @@ impl CameraRig {
         self.cameras.iter().find(|c| c.name == name)
     }
 }
+
+/// Where the pixels of a [`CameraImage`] come from, decoded from its `path`.
+///
+/// Recorded images of imported logs are files. Images of generated logs (the built-in towns) are not stored
+/// anywhere: their path is `builtin://<scenario>/<CAMERA>/<step>` (`<step>` = the log step, so any step of the
+/// log is a valid image, not only the rig's frames) and the world's image store (`crate::world::images`) renders
+/// them from the scenario at that step, on demand, cached in memory.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum ImageRef<'a> {
+    /// A file path (relative paths are relative to the scenario's directory).
+    File(&'a str),
+    /// A ground-truth image of the scenario's own log.
+    Generated {
+        scenario: &'a str,
+        camera: &'a str,
+        step: usize,
+    },
+}
+
+/// Scheme prefix of generated images.
+pub const GENERATED_SCHEME: &str = "builtin://";
+
+impl<'a> ImageRef<'a> {
+    /// The path of a generated image.
+    pub fn generated_path(scenario: &str, camera: &str, step: usize) -> String {
+        format!("{GENERATED_SCHEME}{scenario}/{camera}/{step:04}")
+    }
+
+    /// Decodes a path; a malformed `builtin://` path is an error naming it.
+    pub fn parse(path: &'a str) -> anyhow::Result<ImageRef<'a>> {
+        let Some(rest) = path.strip_prefix(GENERATED_SCHEME) else {
+            return Ok(ImageRef::File(path));
+        };
+        let mut it = rest.rsplitn(3, '/');
+        let (step, camera, scenario) = (it.next(), it.next(), it.next());
+        match (step.and_then(|s| s.parse::<usize>().ok()), camera, scenario) {
+            (Some(step), Some(camera), Some(scenario)) if !camera.is_empty() => {
+                Ok(ImageRef::Generated {
+                    scenario,
+                    camera,
+                    step,
+                })
+            }
+            _ => anyhow::bail!(
+                "image path {path:?}: expected {GENERATED_SCHEME}<scenario>/<CAMERA>/<step>"
+            ),
+        }
+    }
+}
+
+impl CameraImage {
+    /// Where this image's pixels come from (see [`ImageRef`]).
+    pub fn source(&self) -> anyhow::Result<ImageRef<'_>> {
+        ImageRef::parse(&self.path)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn image_refs() {
+        let p = ImageRef::generated_path("town-0", "CAM_FRONT", 5);
+        assert_eq!(p, "builtin://town-0/CAM_FRONT/0005");
+        assert_eq!(
+            ImageRef::parse(&p).unwrap(),
+            ImageRef::Generated {
+                scenario: "town-0",
+                camera: "CAM_FRONT",
+                step: 5
+            }
+        );
+        assert_eq!(
+            ImageRef::parse("a/b.jpg").unwrap(),
+            ImageRef::File("a/b.jpg")
+        );
+        assert!(ImageRef::parse("builtin://x/CAM").is_err());
+    }
+}

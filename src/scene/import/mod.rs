@@ -1,24 +1,23 @@
 //! Scenario importers and the scenario source syntax accepted by `b2dr sim --scenario`:
-//! - `builtin:town[:seed[:n_vehicles]]`: the synthetic town ([`synthetic`]);
+//! - `builtin:LAYOUT[:seed[:n_vehicles[:palette]]]`: the built-in synthetic towns ([`builtin`] parses the spec;
+//!   `crate::world::load` generates them, since their logs are driven by the simulator's IDM agents);
 //! - a ScenarioNet JSON file ([`scenarionet`]);
 //! - a directory: every `*.json` file in it, sorted by name.
+pub mod builtin;
 pub mod scenarionet;
-pub mod synthetic;
+
+pub use builtin::{BuiltinSpec, DayPalette, Layout};
 
 use super::camera::{Camera, CameraImage, CameraRig, RecordedFrame};
 use super::geometry::Pose2;
-use super::Scenario;
 use anyhow::{bail, Context, Result};
 use glam::{DMat3, DMat4, DVec3, DVec4};
 use std::path::PathBuf;
 
-/// One scenario to load.
+/// One scenario to load (`crate::world::load`).
 #[derive(Clone, Debug, PartialEq)]
 pub enum Source {
-    Builtin {
-        seed: u64,
-        n_vehicles: Option<usize>,
-    },
+    Builtin(BuiltinSpec),
     File(PathBuf),
 }
 
@@ -26,24 +25,11 @@ impl Source {
     /// Stable name used for output folders and `--resume` bookkeeping.
     pub fn name(&self) -> String {
         match self {
-            Source::Builtin {
-                seed,
-                n_vehicles: None,
-            } => format!("town-{seed}"),
-            Source::Builtin {
-                seed,
-                n_vehicles: Some(n),
-            } => format!("town-{seed}-{n}v"),
+            Source::Builtin(b) => b.name(),
             Source::File(p) => p
                 .file_stem()
                 .map(|s| s.to_string_lossy().into_owned())
                 .unwrap_or_default(),
-        }
-    }
-    pub fn load(&self) -> Result<Scenario> {
-        match self {
-            Source::Builtin { seed, n_vehicles } => Ok(synthetic::town(*seed, *n_vehicles)),
-            Source::File(p) => scenarionet::load_file(p),
         }
     }
 }
@@ -51,27 +37,7 @@ impl Source {
 /// Parses a `--scenario` argument into the scenarios it names.
 pub fn resolve(spec: &str) -> Result<Vec<Source>> {
     if let Some(rest) = spec.strip_prefix("builtin:") {
-        let parts: Vec<&str> = rest.split(':').collect();
-        if parts[0] != "town" {
-            bail!("unknown builtin scenario {spec:?}: expected builtin:town[:seed[:n_vehicles]]");
-        }
-        let seed = match parts.get(1) {
-            Some(s) => s
-                .parse::<u64>()
-                .with_context(|| format!("{spec}: seed {s:?} is not an integer"))?,
-            None => 0,
-        };
-        let n_vehicles = match parts.get(2) {
-            Some(s) => Some(
-                s.parse::<usize>()
-                    .with_context(|| format!("{spec}: n_vehicles {s:?} is not an integer"))?,
-            ),
-            None => None,
-        };
-        if parts.len() > 3 {
-            bail!("{spec}: too many fields; expected builtin:town[:seed[:n_vehicles]]");
-        }
-        return Ok(vec![Source::Builtin { seed, n_vehicles }]);
+        return Ok(vec![Source::Builtin(BuiltinSpec::parse(rest, spec)?)]);
     }
     let p = PathBuf::from(spec);
     if p.is_dir() {
@@ -89,7 +55,7 @@ pub fn resolve(spec: &str) -> Result<Vec<Source>> {
     if p.is_file() {
         return Ok(vec![Source::File(p)]);
     }
-    bail!("scenario {spec:?} is neither builtin:town[:seed[:n]], an existing .json file nor a directory")
+    bail!("scenario {spec:?} is neither builtin:LAYOUT[:seed[:n[:palette]]], an existing .json file nor a directory")
 }
 
 /// Ego -> global 4x4 of a rear-axle pose (nuScenes' ego frame sits at the rear axle, z = 0).
@@ -152,8 +118,9 @@ pub fn nuscenes_like_cameras() -> Vec<Camera> {
         .collect()
 }
 
-/// Recorded frames every `every` log steps (0.5 s at 10 Hz with every = 5) from the ego log. The image paths
-/// `<scenario>/<CAM>/<step>.jpg` are placeholders until a renderer writes them.
+/// Recorded frames every `every` log steps (0.5 s at 10 Hz with every = 5) from the ego log. The images are
+/// generated ones: their paths are `builtin://<scenario>/<CAM>/<step>` ([`super::camera::ImageRef`]), which the
+/// world's image store renders on demand from the scenario at that log step.
 pub fn frames_from_ego(
     name: &str,
     ego: &[super::EgoLogState],
@@ -172,7 +139,7 @@ pub fn frames_from_ego(
                     .iter()
                     .map(|c| CameraImage {
                         camera: c.to_string(),
-                        path: format!("{name}/{c}/{k:04}.jpg"),
+                        path: super::camera::ImageRef::generated_path(name, c, k),
                         timestamp_us: t_us,
                         ego2global: m,
                     })

@@ -1,13 +1,22 @@
-//! The built-in synthetic town (`builtin:town[:seed[:n_vehicles]]`), deterministic by seed: a 4-way
-//! signalised intersection with four straight arms (2 lanes per direction, 3 in dense scenes), a 90-degree
-//! curve continuing the east arm northwards, crosswalks, stop lines, traffic lights cycling over time,
-//! vehicles, pedestrians and traffic cones, a nuScenes-like 6-camera rig with frames every 0.5 s.
+//! The built-in synthetic towns (`builtin:LAYOUT[:seed[:n_vehicles[:palette]]]`), deterministic by spec.
+//! `builtin:town` is the original: a 4-way signalised intersection with four straight arms (2 lanes per
+//! direction, 3 in dense scenes), a 90-degree curve continuing the east arm northwards, crosswalks, stop lines,
+//! traffic lights cycling over time, vehicles, pedestrians and traffic cones, a nuScenes-like 6-camera rig with
+//! frames every 0.5 s. The other layouts ([`Layout`]) vary the arms, the curve, the lights and the lane count,
+//! and add cyclists and barriers.
 //!
 //! Logs are generated, not scripted: the vehicles and the expert ego are driven by the IDM agent manager
-//! itself (lane following, car following, stopping at red lights) for [`LOG_STEPS`] steps and recorded.
-use crate::scene::geometry::{Polyline, Pose2};
-use crate::scene::index::PolygonSet;
-use crate::scene::map::{Crosswalk, LaneKind, LaneSpec, Map, StopLine};
+//! itself (lane following, car following, stopping at red lights) for [`LOG_STEPS`] steps and recorded. This is
+//! why the generator lives in `world` (above `sim`), not in `scene::import`.
+//!
+//! Invariant: `builtin:town[:seed[:n]]` must stay bit-identical to the original generator (the sim tests and
+//! recorded scores depend on it): its random draws happen in the original order, and the layout-specific
+//! additions only draw from a second generator.
+pub mod layout;
+
+use crate::scene::geometry::Pose2;
+use crate::scene::import::{BuiltinSpec, Layout};
+use crate::scene::map::LaneKind;
 use crate::scene::{
     EgoLogState, ObjectClass, ObjectState, Route, Scenario, Track, TrafficLightStatus,
     VehicleParameters,
@@ -15,6 +24,7 @@ use crate::scene::{
 use crate::sim::agents::IdmManager;
 use crate::sim::idm::IdmParams;
 use glam::DVec2;
+use layout::{build_layout, LayoutOptions, TownLayout, H, LANE_W};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::f64::consts::FRAC_PI_2;
@@ -22,11 +32,6 @@ use std::f64::consts::FRAC_PI_2;
 /// Logged steps (20 s at 10 Hz: room for a 15 s run plus the expert's 4 s look-ahead).
 pub const LOG_STEPS: usize = 201;
 pub const DT: f64 = 0.1;
-const LANE_W: f64 = 3.5;
-/// Intersection half size.
-const H: f64 = 11.0;
-const LANE_SPEED: f64 = 12.0;
-const CONNECTOR_SPEED: f64 = 9.0;
 
 /// Light state of a phase at time t: phase 0 (east-west) green 0-10 s, yellow 10-12, red 12-20; phase 1
 /// (north-south) red 0-12.5, green 12.5-17.5, yellow 17.5-19.5, red 19.5-20; cycle 20 s.
@@ -50,201 +55,58 @@ pub fn light_state(phase: usize, t: f64) -> TrafficLightStatus {
     }
 }
 
-fn sample_line(a: DVec2, b: DVec2) -> Vec<DVec2> {
-    let n = ((b - a).length().ceil() as usize).max(2);
-    (0..=n)
-        .map(|i| a + (b - a) * (i as f64 / n as f64))
-        .collect()
+/// The original town (`builtin:town:SEED[:N]`).
+pub fn town(seed: u64, n_vehicles: Option<usize>) -> Scenario {
+    generate(&BuiltinSpec::town(seed, n_vehicles))
 }
 
-fn sample_bezier(p0: DVec2, d0: DVec2, p3: DVec2, d3: DVec2) -> Vec<DVec2> {
-    let k = 0.55 * (p3 - p0).length();
-    let (p1, p2) = (p0 + d0 * k, p3 - d3 * k);
-    let n = (((p3 - p0).length() * 1.3).ceil() as usize).max(4);
-    (0..=n)
-        .map(|i| {
-            let t = i as f64 / n as f64;
-            let u = 1.0 - t;
-            p0 * (u * u * u) + p1 * (3.0 * u * u * t) + p2 * (3.0 * u * t * t) + p3 * (t * t * t)
-        })
-        .collect()
-}
-
-fn sample_arc(c: DVec2, r: f64, a0: f64, a1: f64) -> Vec<DVec2> {
-    let n = ((r * (a1 - a0).abs()).ceil() as usize).max(4);
-    (0..=n)
-        .map(|i| {
-            let a = a0 + (a1 - a0) * i as f64 / n as f64;
-            c + DVec2::new(a.cos(), a.sin()) * r
-        })
-        .collect()
-}
-
-fn rect(c: DVec2, u: DVec2, half_u: f64, half_n: f64) -> [DVec2; 4] {
-    let n = u.perp();
-    [
-        c + u * half_u + n * half_n,
-        c - u * half_u + n * half_n,
-        c - u * half_u - n * half_n,
-        c + u * half_u - n * half_n,
-    ]
-}
-
-struct TownLayout {
-    map: Map,
-    /// Per arm, per lane: the inbound lane index.
-    inbound: Vec<Vec<usize>>,
-    /// Connector indices with their phase.
-    connectors: Vec<(usize, usize)>,
-}
-
-fn build_layout(lanes_per_dir: usize, arm_len: f64) -> TownLayout {
-    let mut specs: Vec<LaneSpec> = Vec::new();
-    let mut stop_lines = Vec::new();
-    let mut crosswalks = Vec::new();
-    let mut inbound = vec![vec![]; 4];
-    let mut ends = vec![vec![(DVec2::ZERO, DVec2::ZERO); lanes_per_dir]; 4]; // inbound end (point, dir)
-    let mut starts = vec![vec![(DVec2::ZERO, DVec2::ZERO); lanes_per_dir]; 4]; // outbound start
-    let off = |i: usize| LANE_W / 2.0 + i as f64 * LANE_W;
-    let lane = |id: String, pts: Vec<DVec2>, kind: LaneKind, rb: String, speed: f64| LaneSpec {
-        id,
-        kind,
-        centre: Polyline::new(pts, None),
-        polygon: None,
-        width: LANE_W,
-        speed_limit_mps: Some(speed),
-        successors: vec![],
-        roadblock: Some(rb),
-        has_traffic_light: kind == LaneKind::Connector,
-        stop_lines: vec![],
-    };
-    let names = ["east", "north", "west", "south"];
-    for a in 0..4 {
-        let th = a as f64 * FRAC_PI_2;
-        let u = DVec2::new(th.cos(), th.sin());
-        let n = u.perp();
-        for i in 0..lanes_per_dir {
-            let o = off(i);
-            let (p_far, p_near) = (u * (H + arm_len) + n * o, u * H + n * o);
-            inbound[a].push(specs.len());
-            specs.push(lane(
-                format!("{}_in_{i}", names[a]),
-                sample_line(p_far, p_near),
-                LaneKind::Lane,
-                format!("{}_in", names[a]),
-                LANE_SPEED,
-            ));
-            ends[a][i] = (p_near, -u);
-            stop_lines.push(StopLine {
-                id: format!("stop_{}_{i}", names[a]),
-                polygon: rect(u * (H + 0.25) + n * o, u, 0.25, LANE_W / 2.0),
-            });
-            let (q_near, q_far) = (u * H - n * o, u * (H + arm_len) - n * o);
-            specs.push(lane(
-                format!("{}_out_{i}", names[a]),
-                sample_line(q_near, q_far),
-                LaneKind::Lane,
-                format!("{}_out", names[a]),
-                LANE_SPEED,
-            ));
-            starts[a][i] = (q_near, u);
-        }
-        let half_road = lanes_per_dir as f64 * LANE_W;
-        crosswalks.push(Crosswalk {
-            id: format!("crosswalk_{}", names[a]),
-            polygon: rect(u * (H + 3.0), u, 2.0, half_road).to_vec(),
-        });
-    }
-    // The curve: east arm outbound lanes turn left (north) around C, then run 40 m north; inbound mirror.
-    let r0 = 30.0;
-    let c = DVec2::new(H + arm_len, r0);
-    for i in 0..lanes_per_dir {
-        let o = off(i);
-        let ro = r0 + o;
-        specs.push(lane(
-            format!("curve_out_{i}"),
-            sample_arc(c, ro, -FRAC_PI_2, 0.0),
-            LaneKind::Lane,
-            "curve_out".into(),
-            LANE_SPEED,
-        ));
-        specs.push(lane(
-            format!("north_road_out_{i}"),
-            sample_line(c + DVec2::new(ro, 0.0), c + DVec2::new(ro, 40.0)),
-            LaneKind::Lane,
-            "north_road_out".into(),
-            LANE_SPEED,
-        ));
-        let ri = r0 - o;
-        specs.push(lane(
-            format!("north_road_in_{i}"),
-            sample_line(c + DVec2::new(ri, 40.0), c + DVec2::new(ri, 0.0)),
-            LaneKind::Lane,
-            "north_road_in".into(),
-            LANE_SPEED,
-        ));
-        specs.push(lane(
-            format!("curve_in_{i}"),
-            sample_arc(c, ri, 0.0, -FRAC_PI_2),
-            LaneKind::Lane,
-            "curve_in".into(),
-            LANE_SPEED,
-        ));
-    }
-    // Connectors: straight for every lane, left from the inner lane, right from the outer lane.
-    let mut connectors = Vec::new();
-    for a in 0..4 {
-        let mut add = |specs: &mut Vec<LaneSpec>, i: usize, b: usize, j: usize, kind: &str| {
-            let (p0, d0) = ends[a][i];
-            let (p3, d3) = starts[b][j];
-            let pts = if kind == "straight" {
-                sample_line(p0, p3)
-            } else {
-                sample_bezier(p0, d0, p3, d3)
-            };
-            let mut s = lane(
-                format!("conn_{}_{i}_{}_{j}", names[a], names[b]),
-                pts,
-                LaneKind::Connector,
-                format!("conn_{}_{}", names[a], names[b]),
-                CONNECTOR_SPEED,
-            );
-            s.stop_lines = vec![a * lanes_per_dir + i];
-            connectors.push((specs.len(), a % 2));
-            specs.push(s);
-        };
-        for i in 0..lanes_per_dir {
-            add(&mut specs, i, (a + 2) % 4, i, "straight");
-        }
-        add(&mut specs, 0, (a + 3) % 4, 0, "left");
-        add(
-            &mut specs,
-            lanes_per_dir - 1,
-            (a + 1) % 4,
-            lanes_per_dir - 1,
-            "right",
-        );
-    }
-    let inter = vec![vec![
-        DVec2::new(-H, -H),
-        DVec2::new(H, -H),
-        DVec2::new(H, H),
-        DVec2::new(-H, H),
-    ]];
-    let map = Map::build(
-        "synthetic-town",
-        specs,
-        stop_lines,
-        crosswalks,
-        inter,
-        PolygonSet::default(),
-        true,
-    )
-    .expect("the synthetic town is well formed");
-    TownLayout {
-        map,
-        inbound,
-        connectors,
+/// Layout options of a spec: (options, default vehicle count range).
+fn options(spec: &BuiltinSpec) -> (LayoutOptions, std::ops::RangeInclusive<usize>) {
+    let dense = spec.n_vehicles.is_some_and(|n| n > 40);
+    let lanes_per_dir = if dense { 3 } else { 2 };
+    let arm_len = if dense { 75.0 } else { 90.0 };
+    let classic = LayoutOptions::classic(lanes_per_dir, arm_len);
+    match spec.layout {
+        Layout::Town => (classic, 8..=15),
+        Layout::Cross => (
+            LayoutOptions {
+                curve: false,
+                ..classic
+            },
+            8..=15,
+        ),
+        Layout::TJunction => (
+            LayoutOptions {
+                arms: [true, false, true, true],
+                ..classic
+            },
+            6..=12,
+        ),
+        Layout::Straight => (
+            LayoutOptions {
+                arms: [true, false, true, false],
+                curve: false,
+                lights: false,
+                ..classic
+            },
+            4..=9,
+        ),
+        Layout::Curve => (
+            LayoutOptions {
+                arms: [true, false, true, false],
+                lights: false,
+                ..classic
+            },
+            4..=9,
+        ),
+        Layout::Multilane => (
+            // Three lanes per direction (a fourth would not fit the junction's right turns).
+            LayoutOptions {
+                lanes_per_dir: 3,
+                ..classic
+            },
+            14..=24,
+        ),
     }
 }
 
@@ -256,15 +118,24 @@ fn lights_at(layout: &TownLayout, t: f64) -> Vec<(usize, TrafficLightStatus)> {
         .collect()
 }
 
-/// Generates the town. `n_vehicles` None gives a light scene (8-15 vehicles by seed); Some(n) a dense one.
-pub fn town(seed: u64, n_vehicles: Option<usize>) -> Scenario {
+/// Generates a built-in scenario. `n_vehicles` None gives a light scene (a layout-dependent count drawn from
+/// the seed, 8-15 for the town); Some(n) n vehicles (dense scenes above 40: 3 lanes, shorter arms).
+pub fn generate(spec: &BuiltinSpec) -> Scenario {
+    let (seed, n_vehicles) = (spec.seed, spec.n_vehicles);
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    // Draws of the non-classic additions (cyclists, barriers): a generator of their own, so the town's draws
+    // stay in their original order.
+    let mut extra_rng = ChaCha8Rng::seed_from_u64(seed ^ 0x9e37_79b9_7f4a_7c15);
     let dense = n_vehicles.is_some_and(|n| n > 40);
-    let lanes_per_dir = if dense { 3 } else { 2 };
-    let arm_len = if dense { 75.0 } else { 90.0 };
-    let layout = build_layout(lanes_per_dir, arm_len);
+    let (opt, default_count) = options(spec);
+    let lanes_per_dir = opt.lanes_per_dir;
+    let map_name = match spec.layout {
+        Layout::Town => "synthetic-town".to_string(),
+        l => format!("synthetic-{}", l.name()),
+    };
+    let layout = build_layout(opt, &map_name);
     let map = &layout.map;
-    let n_veh = n_vehicles.unwrap_or_else(|| rng.gen_range(8..=15));
+    let n_veh = n_vehicles.unwrap_or_else(|| rng.gen_range(default_count));
     let ego_params = VehicleParameters::PACIFICA;
 
     // Ego: west arm, inbound (eastbound) inner lane, heading east through the intersection into the curve.
@@ -389,7 +260,7 @@ pub fn town(seed: u64, n_vehicles: Option<usize>) -> Scenario {
             }
         })
         .collect();
-    super::scenarionet::fill_ego_accel(&mut ego, DT);
+    crate::scene::import::scenarionet::fill_ego_accel(&mut ego, DT);
     let mut out_tracks: Vec<Track> = Vec::new();
     for (ti, tr) in tracks.iter().enumerate().skip(1) {
         if logs[ti].iter().all(|s| s.is_none()) {
@@ -404,13 +275,17 @@ pub fn town(seed: u64, n_vehicles: Option<usize>) -> Scenario {
     let half_road = lanes_per_dir as f64 * LANE_W;
     let n_ped = 4 + (seed % 3) as usize;
     for p in 0..n_ped {
-        let a = [1usize, 3, 0, 2][p % 4];
+        let mut a = [1usize, 3, 0, 2][p % 4];
+        if !opt.arms[a] {
+            a = (a + 1) % 4; // north/south arm absent: the east/west one (both exist in every layout)
+        }
         let th = a as f64 * FRAC_PI_2;
         let u = DVec2::new(th.cos(), th.sin());
         let n = u.perp();
         let speed = rng.gen_range(1.1..1.5);
         let phase = rng.gen_range(0.0..1.0);
-        let (c, dir, span) = if p % 4 < 2 {
+        // Crosswalk walkers only where lights stop the traffic (the logs' vehicles do not yield to them).
+        let (c, dir, span) = if p % 4 < 2 && opt.lights {
             (u * (H + 3.0), n, half_road + 2.0) // crosswalk
         } else {
             (u * (H + 20.0) + n * (half_road + 2.0), u, 15.0) // sidewalk
@@ -459,10 +334,10 @@ pub fn town(seed: u64, n_vehicles: Option<usize>) -> Scenario {
             ],
         });
     }
-    let name = match n_vehicles {
-        Some(n) => format!("town-{seed}-{n}v"),
-        None => format!("town-{seed}"),
-    };
+    if spec.layout != Layout::Town {
+        add_extras(&mut out_tracks, &opt, &mut extra_rng);
+    }
+    let name = spec.name();
     let mut route = Route::default();
     for &l in &route_lanes {
         route.lane_ids.push(map.lanes[l].id.clone());
@@ -474,13 +349,10 @@ pub fn town(seed: u64, n_vehicles: Option<usize>) -> Scenario {
     let traffic_lights = (0..LOG_STEPS)
         .map(|k| lights_at(&layout, k as f64 * DT))
         .collect();
-    let rig = super::default_rig(&name, &ego, DT);
+    let rig = crate::scene::import::default_rig(&name, &ego, DT);
     Scenario {
         name: name.clone(),
-        source: format!(
-            "builtin:town:{seed}{}",
-            n_vehicles.map(|n| format!(":{n}")).unwrap_or_default()
-        ),
+        source: spec.source(),
         dt: DT,
         map: layout.map,
         ego,
@@ -489,5 +361,54 @@ pub fn town(seed: u64, n_vehicles: Option<usize>) -> Scenario {
         route,
         traffic_lights,
         rig,
+    }
+}
+
+/// Cyclists riding along the west arm's kerb and barriers on the east arm's shoulder (non-classic layouts).
+fn add_extras(tracks: &mut Vec<Track>, opt: &LayoutOptions, rng: &mut ChaCha8Rng) {
+    let half_road = opt.lanes_per_dir as f64 * LANE_W;
+    for c in 0..2 {
+        // Along the outer lane's right edge: eastbound on the south side (y < 0), westbound on the north side.
+        let (y, dir) = if c == 0 {
+            (-(half_road - 0.8), 1.0)
+        } else {
+            (half_road - 0.8, -1.0)
+        };
+        let x0 = -(H + rng.gen_range(10.0..60.0)) * dir;
+        let speed = rng.gen_range(3.5..5.5);
+        let states = (0..LOG_STEPS)
+            .map(|k| {
+                let x = x0 + dir * speed * k as f64 * DT;
+                Some(ObjectState {
+                    pose: Pose2::new(x, y, if dir > 0.0 { 0.0 } else { std::f64::consts::PI }),
+                    velocity: DVec2::new(dir * speed, 0.0),
+                })
+            })
+            .collect();
+        tracks.push(Track {
+            id: format!("cyclist_{c}"),
+            class: ObjectClass::Bicycle,
+            length: 1.8,
+            width: 0.7,
+            height: 1.75,
+            states,
+        });
+    }
+    for b in 0..3 {
+        let pos = DVec2::new(H + 25.0 + 2.2 * b as f64, half_road + 0.7);
+        tracks.push(Track {
+            id: format!("barrier_{b}"),
+            class: ObjectClass::Barrier,
+            length: 2.0,
+            width: 0.5,
+            height: 1.0,
+            states: vec![
+                Some(ObjectState {
+                    pose: Pose2::new(pos.x, pos.y, 0.0),
+                    velocity: DVec2::ZERO
+                });
+                LOG_STEPS
+            ],
+        });
     }
 }

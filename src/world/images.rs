@@ -1,0 +1,138 @@
+//! The image store of one scenario: the pixels of its recorded images at a requested size.
+//!
+//! Generated images (`builtin://<scenario>/<CAMERA>/<step>`, [`ImageRef::Generated`]) are rendered by the
+//! ground-truth renderer from the scenario at that log step, with the image's own recorded ego pose, and kept in
+//! an in-memory cache (FIFO, [`ImageStore::with_capacity`] images); nothing is written to disk. File images are
+//! read relative to the scenario's directory and resized (bilinear) to the requested size.
+use super::render::{render_cameras, RenderOptions};
+use super::{objects_at, World};
+use crate::scene::camera::{CameraImage, ImageRef};
+use crate::scene::Scenario;
+use anyhow::{bail, ensure, Context, Result};
+use std::collections::{HashMap, VecDeque};
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+
+/// An RGB image `(H, W, 3)` interleaved, u8.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RgbPixels {
+    pub width: usize,
+    pub height: usize,
+    pub data: Vec<u8>,
+}
+
+type Key = (String, usize, usize);
+/// The cached images and their insertion order (FIFO eviction).
+type Cache = (HashMap<Key, Arc<RgbPixels>>, VecDeque<Key>);
+
+/// Resolves and caches the recorded images of one scenario.
+pub struct ImageStore<'a> {
+    world: World<'a>,
+    base_dir: Option<PathBuf>,
+    capacity: usize,
+    cache: Mutex<Cache>,
+}
+
+impl<'a> ImageStore<'a> {
+    /// A store for `sc`; file images are looked up under `base_dir` (the scenario file's directory).
+    pub fn new(sc: &'a Scenario, base_dir: Option<PathBuf>) -> Self {
+        Self::with_capacity(sc, base_dir, 512)
+    }
+
+    pub fn with_capacity(sc: &'a Scenario, base_dir: Option<PathBuf>, capacity: usize) -> Self {
+        ImageStore {
+            world: World::new(sc),
+            base_dir,
+            capacity: capacity.max(1),
+            cache: Mutex::new((HashMap::new(), VecDeque::new())),
+        }
+    }
+
+    pub fn world(&self) -> &World<'a> {
+        &self.world
+    }
+
+    /// The pixels of `img` at `width x height`.
+    pub fn image(&self, img: &CameraImage, width: usize, height: usize) -> Result<Arc<RgbPixels>> {
+        let key = (img.path.clone(), width, height);
+        if let Some(hit) = self.cache.lock().ok().and_then(|c| c.0.get(&key).cloned()) {
+            return Ok(hit);
+        }
+        let px = Arc::new(self.load(img, width, height)?);
+        if let Ok(mut c) = self.cache.lock() {
+            if c.0.len() >= self.capacity {
+                if let Some(old) = c.1.pop_front() {
+                    c.0.remove(&old);
+                }
+            }
+            if c.0.insert(key.clone(), px.clone()).is_none() {
+                c.1.push_back(key);
+            }
+        }
+        Ok(px)
+    }
+
+    fn load(&self, img: &CameraImage, width: usize, height: usize) -> Result<RgbPixels> {
+        let sc = self.world.scenario;
+        match img.source()? {
+            ImageRef::Generated {
+                scenario,
+                camera,
+                step,
+            } => {
+                ensure!(
+                    scenario == sc.name,
+                    "image {:?} belongs to scenario {scenario:?}, not {:?}",
+                    img.path,
+                    sc.name
+                );
+                ensure!(
+                    step < sc.len(),
+                    "image {:?}: step {step} is beyond the log ({} steps)",
+                    img.path,
+                    sc.len()
+                );
+                let Some(cam) = sc.rig.camera(camera) else {
+                    bail!("image {:?}: the rig has no camera {camera:?}", img.path);
+                };
+                let objects = objects_at(sc, step);
+                let f = render_cameras(
+                    &self.world.scenery,
+                    std::slice::from_ref(cam),
+                    &img.ego2global,
+                    width,
+                    height,
+                    &objects,
+                    &RenderOptions::default(),
+                    1,
+                )?
+                .remove(0);
+                Ok(RgbPixels {
+                    width,
+                    height,
+                    data: f.rgb,
+                })
+            }
+            ImageRef::File(p) => {
+                let path = match &self.base_dir {
+                    Some(d) => d.join(p),
+                    None => PathBuf::from(p),
+                };
+                let im = image::open(&path)
+                    .with_context(|| format!("reading recorded image {}", path.display()))?
+                    .to_rgb8();
+                let im = image::imageops::resize(
+                    &im,
+                    width as u32,
+                    height as u32,
+                    image::imageops::FilterType::Triangle,
+                );
+                Ok(RgbPixels {
+                    width,
+                    height,
+                    data: im.into_raw(),
+                })
+            }
+        }
+    }
+}

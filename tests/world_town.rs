@@ -1,0 +1,122 @@
+//! The built-in towns: `builtin:town[:seed[:n]]` is bit-identical to the original generator (hashes recorded
+//! from the generator as it was in `scene::import::synthetic` before the move to `world::town`), and the new
+//! layouts load, differ, and keep their invariants.
+use b2dr::scene::import::{resolve, Source};
+use b2dr::scene::map::LaneKind;
+use b2dr::scene::ObjectClass;
+use b2dr::world::town::town;
+use std::hash::{Hash, Hasher};
+
+fn town_hash(seed: u64, n: Option<usize>) -> u64 {
+    let sc = town(seed, n);
+    let frames: Vec<_> = sc
+        .rig
+        .frames
+        .iter()
+        .map(|f| (f.timestamp_us, f.ego2global))
+        .collect();
+    let s = format!(
+        "{}|{}|{:?}|{:?}|{:?}|{:?}|{:?}|{:?}|{:?}|{:?}|{:?}|{:?}|{:?}",
+        sc.name,
+        sc.source,
+        sc.ego,
+        sc.tracks,
+        sc.route,
+        sc.traffic_lights,
+        sc.map.lanes,
+        sc.map.roadblocks,
+        sc.map.stop_lines,
+        sc.map.crosswalks,
+        sc.map.intersections,
+        frames,
+        sc.rig.cameras
+    );
+    let mut h = std::collections::hash_map::DefaultHasher::new();
+    s.hash(&mut h);
+    h.finish()
+}
+
+/// Hashes of the original generator (commit 526bf52, `scene::import::synthetic::town`), everything but the
+/// image paths (which became `builtin://` paths on purpose).
+#[test]
+fn classic_town_is_bit_identical_to_the_original() {
+    for (seed, n, want) in [
+        (0u64, None, 0xabddeb15126657a9u64),
+        (1, None, 0xd9f211b61cdee5d0),
+        (3, None, 0xf3fcf60207df9989),
+        (5, None, 0x6be8cc40946e841e),
+        (1, Some(200usize), 0x7c8034a3e567004e),
+        (2, Some(60), 0x3706afc39a424731),
+    ] {
+        assert_eq!(
+            town_hash(seed, n),
+            want,
+            "builtin:town:{seed}:{n:?} changed"
+        );
+    }
+}
+
+#[test]
+fn new_layouts_load_and_differ() {
+    let mut names = Vec::new();
+    for spec in [
+        "builtin:cross:1",
+        "builtin:tjunction:2",
+        "builtin:straight:3",
+        "builtin:curve:4",
+        "builtin:multilane:5",
+        "builtin:tjunction:2::evening",
+        "builtin:straight:3:12",
+    ] {
+        let src = resolve(spec).unwrap();
+        let Source::Builtin(_) = &src[0] else {
+            panic!("{spec}")
+        };
+        let sc = b2dr::world::load(&src[0]).unwrap();
+        assert_eq!(sc.len(), 201, "{spec}");
+        assert_eq!(sc.source, spec, "{spec}");
+        assert!(
+            (sc.ego[150].rear_axle.pos() - sc.ego[0].rear_axle.pos()).length() > 30.0,
+            "{spec}: the expert must drive"
+        );
+        assert!(
+            sc.tracks.iter().any(|t| t.class == ObjectClass::Bicycle),
+            "{spec}"
+        );
+        assert!(
+            sc.tracks.iter().any(|t| t.class == ObjectClass::Barrier),
+            "{spec}"
+        );
+        for l in sc
+            .map
+            .lanes
+            .iter()
+            .filter(|l| l.kind == LaneKind::Connector)
+        {
+            assert!(
+                !l.successors.is_empty() && !l.predecessors.is_empty(),
+                "{spec} {}",
+                l.id
+            );
+        }
+        names.push(sc.name.clone());
+        match spec {
+            "builtin:straight:3" | "builtin:curve:4" => {
+                assert!(
+                    sc.map.intersections.is_empty() && sc.map.stop_lines.is_empty(),
+                    "{spec}"
+                )
+            }
+            "builtin:tjunction:2" => {
+                assert!(!sc.map.lanes.iter().any(|l| l.id.starts_with("north_in")))
+            }
+            "builtin:multilane:5" => assert!(sc.map.lanes.iter().any(|l| l.id == "west_in_2")),
+            _ => {}
+        }
+    }
+    names.sort();
+    names.dedup();
+    assert_eq!(names.len(), 7);
+    assert!(resolve("builtin:town:1:2:dusk").is_err());
+    assert!(resolve("builtin:roundabout").is_err());
+}
