@@ -25,6 +25,7 @@
 //!   `sim`'s IDM agents), the deterministic CPU camera renderer (RGB, depth, class and instance ids), the
 //!   image store that renders a generated log's recorded frames on demand, and the training-data export.
 //!   Never imports `ash` or touches the GPU.
+//! - [`eval`]: `b2dr run`, the closed loop with rendered cameras (renderer modes as observation engines).
 //! - `cli` (binary only): the `b2dr` command.
 //!
 //! ## Synchronisation
@@ -38,6 +39,7 @@
 //! Launchers check shapes, dtypes and limits (`ensure!` with the op name and shapes) before recording; the
 //! recorder checks binding counts, parameter sizes and grid limits; `build.rs` checks kernels (naga validation)
 //! and parameter layouts at build time; tests run with the Khronos validation layer and fail on any error.
+pub mod eval;
 pub mod kernels;
 pub mod metrics;
 pub mod nn;

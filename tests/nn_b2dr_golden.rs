@@ -452,7 +452,9 @@ fn fresh_b2dr_equals_plain_controlnet() {
         }
     }
     for (name, t) in b.tensors.iter_mut() {
-        if name.starts_with("noise_embedding.linear_2") || (name.starts_with("ref_attn.") && name.contains("to_out")) {
+        if name.starts_with("noise_embedding.linear_2")
+            || (name.starts_with("ref_attn.") && name.contains("to_out"))
+        {
             t.data.fill(0.0);
         }
     }
@@ -482,7 +484,12 @@ fn fresh_b2dr_equals_plain_controlnet() {
     let cx = Tensor::from_f32(&ctx, &[1, 77, 32], dt, &c.context(1), "cx").unwrap();
     let nl = Tensor::from_f32(&ctx, &[1], DType::F32, &[200.0], "n").unwrap();
     let locs = g.ccfg.ref_attn.len();
-    let lat = c.up(&ctx, "out.ref_latents", dt, Some(&c.pair_shape("out.ref_latents")));
+    let lat = c.up(
+        &ctx,
+        "out.ref_latents",
+        dt,
+        Some(&c.pair_shape("out.ref_latents")),
+    );
     let pe_cur: Vec<Tensor> = (0..locs).map(|j| t(&format!("in.pe_cur.{j}"))).collect();
     let pe_ref: Vec<Tensor> = (0..locs)
         .map(|j| {
@@ -492,14 +499,24 @@ fn fresh_b2dr_equals_plain_controlnet() {
         .collect();
     let ob = record(&ctx, &mut ws, |f| {
         b2dr::ops::elementwise::concat_channels(f.rec, &x, &z, &x8)?;
-        let fr = bn.prepare(f, &FrameTensors { masks: &masks, noise_level: &nl, refs: Some((&lat, &pe_cur, &pe_ref)) })?;
+        let fr = bn.prepare(
+            f,
+            &FrameTensors {
+                masks: &masks,
+                noise_level: &nl,
+                refs: Some((&lat, &pe_cur, &pe_ref)),
+            },
+        )?;
         bn.forward(f, &x8, &tt, &cx, &fr, RefRows::All, 0.7)
     });
     let op = record(&ctx, &mut ws, |f| pn.forward(f, &x, &tt, &cx, &masks, 0.7));
     for (k, (a, p)) in ob.down.iter().zip(&op.down).enumerate() {
         let (a, p) = (a.to_f32(&ctx).unwrap(), p.to_f32(&ctx).unwrap());
         let e = golden::nmse(&a, &p);
-        assert!(e <= 1e-12, "down.{k}: the fresh B2D-R ControlNet differs from the plain one: {e:e}");
+        assert!(
+            e <= 1e-12,
+            "down.{k}: the fresh B2D-R ControlNet differs from the plain one: {e:e}"
+        );
     }
     let e = golden::nmse(&ob.mid.to_f32(&ctx).unwrap(), &op.mid.to_f32(&ctx).unwrap());
     assert!(e <= 1e-12, "mid: {e:e}");
@@ -538,13 +555,29 @@ fn position_encodings_match_python_port() {
                 height: (8 * h) as u32,
             };
             let rd = &c.get("in.geom.ref_ego2global").data;
-            let (a, b) = (m4(&rd[k * 32..k * 32 + 16]), m4(&rd[k * 32 + 16..k * 32 + 32]));
-            per_cam.push(b2dr::render::inputs::geometry(&g.ccfg, &cam, (8 * h, 8 * w), &cur, [&a, &b]).unwrap());
+            let (a, b) = (
+                m4(&rd[k * 32..k * 32 + 16]),
+                m4(&rd[k * 32 + 16..k * 32 + 32]),
+            );
+            per_cam.push(
+                b2dr::render::inputs::geometry(&g.ccfg, &cam, (8 * h, 8 * w), &cur, [&a, &b])
+                    .unwrap(),
+            );
         }
         let geo = b2dr::render::inputs::stack(&per_cam);
         for j in 0..g.ccfg.ref_attn.len() {
-            check(&format!("{file} pe_cur.{j}"), &geo.pe_cur[j], c.get(&format!("in.pe_cur.{j}")), 1e-10);
-            check(&format!("{file} pe_ref.{j}"), &geo.pe_ref[j], c.get(&format!("in.pe_ref.{j}")), 1e-10);
+            check(
+                &format!("{file} pe_cur.{j}"),
+                &geo.pe_cur[j],
+                c.get(&format!("in.pe_cur.{j}")),
+                1e-10,
+            );
+            check(
+                &format!("{file} pe_ref.{j}"),
+                &geo.pe_ref[j],
+                c.get(&format!("in.pe_ref.{j}")),
+                1e-10,
+            );
         }
     }
 }

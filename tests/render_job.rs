@@ -1,18 +1,18 @@
 //! `b2dr render` end to end on a small model package (the golden test config, saved as a package folder):
 //! package save/load round trip, per-camera outputs and report, determinism, and clear errors on bad model
 //! folders and inputs.
+#[path = "golden/b2dr_package.rs"]
+mod b2dr_package;
 mod common;
 #[path = "golden/common.rs"]
 mod golden;
+use b2dr_package::small_package;
 
 use std::path::{Path, PathBuf};
 
-use b2dr::nn::b2dr::expected_b2dr;
-use b2dr::nn::b2dr_config::B2drConfig;
-use b2dr::nn::config::{UNetConfig, VaeConfig};
-use b2dr::nn::weights::{expected_unet, expected_vae, FileDType, Weights};
+use b2dr::nn::weights::FileDType;
 use b2dr::render::job::{self, RenderJob};
-use b2dr::render::package::{ModelPackage, PackageMeta};
+use b2dr::render::package::ModelPackage;
 use b2dr::tensor::DType;
 
 fn keyframe() -> Option<PathBuf> {
@@ -23,53 +23,6 @@ fn keyframe() -> Option<PathBuf> {
     } else {
         eprintln!("SKIP: {} is absent (shared data)", p.display());
         None
-    }
-}
-
-/// The golden test config as a model package at 56 x 104 (6 cameras, one shared context).
-fn small_package() -> ModelPackage {
-    let m = golden::load_json("b2dr_models.json");
-    let ucfg = UNetConfig::from_json(m["configs"]["unet"].clone()).unwrap();
-    let ccfg = B2drConfig::from_json(m["configs"]["controlnet"].clone()).unwrap();
-    let vcfg = VaeConfig::from_json(m["configs"]["vae"].clone()).unwrap();
-    let w = |f: &str, e: &[b2dr::nn::weights::Spec]| {
-        Weights::load(&golden::golden_dir().join(f), e).unwrap()
-    };
-    let d = ucfg.enc.cross_attention_dim;
-    ModelPackage {
-        meta: PackageMeta {
-            format: "b2dr-model".into(),
-            version: 1,
-            render_size: [56, 104],
-            cameras: [
-                "CAM_FRONT",
-                "CAM_FRONT_RIGHT",
-                "CAM_FRONT_LEFT",
-                "CAM_BACK",
-                "CAM_BACK_LEFT",
-                "CAM_BACK_RIGHT",
-            ]
-            .map(String::from)
-            .to_vec(),
-            sampler: "unipc".into(),
-            steps: 2,
-            ref_guidance: 2.0,
-            dtype: "f32".into(),
-        },
-        unet: w("b2dr_weights_unet.safetensors", &expected_unet(&ucfg)),
-        control: w(
-            "b2dr_weights_controlnet.safetensors",
-            &expected_b2dr(&ccfg),
-        ),
-        vae: w("b2dr_weights_vae.safetensors", &expected_vae(&vcfg)),
-        context: Weights::random(&[("cond".into(), vec![77, d])], 5)
-            .get("cond")
-            .unwrap()
-            .clone(),
-        unet_cfg: ucfg,
-        control_cfg: ccfg,
-        vae_cfg: vcfg,
-        source: "test".into(),
     }
 }
 
@@ -109,7 +62,10 @@ fn render_job_writes_cameras_and_is_deterministic() {
     let back = ModelPackage::load(&dir).unwrap();
     assert_eq!(back.meta, pkg.meta);
     assert_eq!(back.control_cfg, pkg.control_cfg);
-    assert_eq!(back.control.tensors, pkg.control.tensors, "weights round trip");
+    assert_eq!(
+        back.control.tensors, pkg.control.tensors,
+        "weights round trip"
+    );
     let o1 = tmp("o1");
     let o2 = tmp("o2");
     let r = job::run(&ctx, &job(&dir, &frame, &o1)).unwrap();
@@ -125,7 +81,8 @@ fn render_job_writes_cameras_and_is_deterministic() {
     for k in ["encode_ms", "denoise_ms", "decode_ms"] {
         assert!(r["times_ms"][k].as_f64().unwrap() > 0.0, "{k}");
     }
-    assert!(r["device_bytes_planned"].as_u64().unwrap() > 0);
+    // (planned bytes are a difference of the shared context's total: parallel tests make it unreliable here)
+    assert!(r["device_bytes_total"].as_u64().unwrap() > 0);
     // references change the frame; another seed changes it
     let o3 = tmp("o3");
     let mut j = job(&dir, &frame, &o3);
@@ -136,8 +93,16 @@ fn render_job_writes_cameras_and_is_deterministic() {
     j.seed = 4;
     job::run(&ctx, &j).unwrap();
     let a = std::fs::read(o1.join("CAM_FRONT.exr")).unwrap();
-    assert_ne!(a, std::fs::read(o3.join("CAM_FRONT.exr")).unwrap(), "--no-refs changes nothing");
-    assert_ne!(a, std::fs::read(o4.join("CAM_FRONT.exr")).unwrap(), "--seed changes nothing");
+    assert_ne!(
+        a,
+        std::fs::read(o3.join("CAM_FRONT.exr")).unwrap(),
+        "--no-refs changes nothing"
+    );
+    assert_ne!(
+        a,
+        std::fs::read(o4.join("CAM_FRONT.exr")).unwrap(),
+        "--seed changes nothing"
+    );
     common::assert_no_validation_errors();
 }
 
@@ -160,7 +125,10 @@ fn render_job_rejects_bad_models_and_inputs() {
     let plain = pkg.control_cfg.base.to_json();
     std::fs::write(d.join("controlnet/config.json"), plain.to_string()).unwrap();
     let e = err(&ctx, &job(&d, &frame, &out));
-    assert!(e.contains("plain ControlNetModel") || e.contains("in_channels"), "{e}");
+    assert!(
+        e.contains("plain ControlNetModel") || e.contains("in_channels"),
+        "{e}"
+    );
     // a missing B2D-R tensor
     let d = tmp("missing");
     let mut p2 = pkg.clone();
@@ -188,7 +156,10 @@ fn render_job_rejects_bad_models_and_inputs() {
     c["prev_noise_level"] = serde_json::json!(1e9);
     std::fs::write(&cpath, c.to_string()).unwrap();
     let e = err(&ctx, &job(&d, &frame, &out));
-    assert!(e.contains("prev_noise_level") && e.contains("config.json"), "{e}");
+    assert!(
+        e.contains("prev_noise_level") && e.contains("config.json"),
+        "{e}"
+    );
     c["prev_noise_level"] = serde_json::json!(200);
     c["ref_attn_heads"] = serde_json::json!(3);
     std::fs::write(&cpath, c.to_string()).unwrap();
@@ -208,7 +179,10 @@ fn render_job_rejects_bad_models_and_inputs() {
     let mut j = job(&good, &frame, &out);
     j.prev = vec![frame.clone(), frame.clone(), frame.clone()];
     let e = err(&ctx, &j);
-    assert!(e.contains("--prev") && e.contains("3 images for 2 cameras"), "{e}");
+    assert!(
+        e.contains("--prev") && e.contains("3 images for 2 cameras"),
+        "{e}"
+    );
     let mut j = job(&good, &frame, &out);
     j.steps = Some(0);
     let e = err(&ctx, &j);

@@ -77,7 +77,14 @@ fn cfg() -> SimConfig {
 }
 
 fn run(sc: &Scenario, p: &mut ExternalPlanner) -> b2dr::sim::SimResult {
-    run_with_sensors(sc, p, &cfg(), &|_, _| vec![], Some(&mut Gradient), &mut |_, _| Ok(()))
+    run_with_sensors(
+        sc,
+        p,
+        &cfg(),
+        &|_, _| vec![],
+        Some(&mut Gradient),
+        &mut |_, _| Ok(()),
+    )
 }
 
 fn tmp(name: &str) -> std::path::PathBuf {
@@ -96,11 +103,17 @@ fn images_reach_the_planner_exactly() {
     let sc = synthetic::town(1, None);
     for images in ["paths", "inline"] {
         let d = tmp(images);
-        let r = run(&sc, &mut planner(&format!("--mode checksum --images {images}"), 20.0, &d));
+        let r = run(
+            &sc,
+            &mut planner(&format!("--mode checksum --images {images}"), 20.0, &d),
+        );
         assert!(r.failure.is_none(), "{images}: {:?}", r.failure);
         assert_eq!(r.steps.len(), 13);
         if images == "paths" {
-            assert!(std::fs::read_dir(&d).unwrap().count() >= 6 * 3, "image files written");
+            assert!(
+                std::fs::read_dir(&d).unwrap().count() >= 6 * 3,
+                "image files written"
+            );
         }
     }
     // a requested size: the planner gets images and intrinsics at that size; its projection of an ego point
@@ -110,7 +123,10 @@ fn images_reach_the_planner_exactly() {
     let r = run(
         &sc,
         &mut planner(
-            &format!("--mode project --images inline --size 56x100 --dump {}", dump.display()),
+            &format!(
+                "--mode project --images inline --size 56x100 --dump {}",
+                dump.display()
+            ),
             20.0,
             &d,
         ),
@@ -129,7 +145,10 @@ fn images_reach_the_planner_exactly() {
             .unwrap();
         // b2dr's projection of the ego point through the camera at 100 x 56
         let k = cam.intrinsic_scaled(100, 56);
-        let pc = cam.cam2ego.inverse().transform_point3(glam::DVec3::new(10.0, 0.0, 0.5));
+        let pc = cam
+            .cam2ego
+            .inverse()
+            .transform_point3(glam::DVec3::new(10.0, 0.0, 0.5));
         if pc.z <= 1e-6 {
             assert!(v["uv"].is_null(), "{line}");
             continue;
@@ -137,7 +156,10 @@ fn images_reach_the_planner_exactly() {
         let p = k * (pc / pc.z);
         let uv = v["uv"].as_array().unwrap();
         let (u, vv) = (uv[0].as_f64().unwrap(), uv[1].as_f64().unwrap());
-        assert!((u - p.x).abs() < 1e-6 && (vv - p.y).abs() < 1e-6, "{line} vs {p:?}");
+        assert!(
+            (u - p.x).abs() < 1e-6 && (vv - p.y).abs() < 1e-6,
+            "{line} vs {p:?}"
+        );
         n += 1;
     }
     assert!(n >= 3, "the point is in front of several cameras ({n})");
@@ -158,11 +180,17 @@ fn hostile_planners_end_only_their_scenario() {
     ] {
         let d = tmp(mode);
         let t0 = Instant::now();
-        let r = run(&sc, &mut planner(&format!("--mode {mode} --images inline"), 2.0, &d));
+        let r = run(
+            &sc,
+            &mut planner(&format!("--mode {mode} --images inline"), 2.0, &d),
+        );
         let f = r.failure.clone().unwrap_or_default();
         println!("{mode}: {f} ({:.2} s)", t0.elapsed().as_secs_f64());
         assert!(f.contains(needle), "{mode}: {f}");
-        assert!(t0.elapsed() < Duration::from_secs(12), "{mode} took too long");
+        assert!(
+            t0.elapsed() < Duration::from_secs(12),
+            "{mode} took too long"
+        );
     }
     // the next scenario runs normally
     let d = tmp("after");

@@ -130,7 +130,15 @@ pub fn run_frame(device: Option<String>, a: FrameArgs) -> Result<()> {
         Some(d) => b2dr::render::package::ModelPackage::load(d)?,
         None => b2dr::render::package::ModelPackage::builtin("b2dr-tiny")?,
     };
-    let b = b2dr::render::bench::run(&ctx, &pkg, a.cameras, a.steps, a.ref_guidance, a.dtype, a.frames)?;
+    let b = b2dr::render::bench::run(
+        &ctx,
+        &pkg,
+        a.cameras,
+        a.steps,
+        a.ref_guidance,
+        a.dtype,
+        a.frames,
+    )?;
     let prof: Vec<_> = b
         .profile
         .iter()
@@ -150,16 +158,29 @@ pub fn run_frame(device: Option<String>, a: FrameArgs) -> Result<()> {
         ctx.info().name, pkg.source, b.cameras, b.size.0, b.size.1, b.steps, b.ref_guidance, b.plan_ms,
         b.device_bytes as f64 / (1 << 20) as f64
     );
-    println!("{:<8} {:>12} {:>12} {:>12} {:>12}", "frame", "encode ms", "denoise ms", "decode ms", "total ms");
+    println!(
+        "{:<8} {:>12} {:>12} {:>12} {:>12}",
+        "frame", "encode ms", "denoise ms", "decode ms", "total ms"
+    );
     for (k, t) in b.frames.iter().enumerate() {
         println!(
             "{:<8} {:>12.1} {:>12.1} {:>12.1} {:>12.1}",
-            k, t.encode_ms, t.denoise_ms, t.decode_ms, t.encode_ms + t.denoise_ms + t.decode_ms
+            k,
+            t.encode_ms,
+            t.denoise_ms,
+            t.decode_ms,
+            t.encode_ms + t.denoise_ms + t.decode_ms
         );
     }
-    println!("{:<44} {:>10} {:>12} {:>8}", "recording", "dispatches", "GPU ms", "x/frame");
+    println!(
+        "{:<44} {:>10} {:>12} {:>8}",
+        "recording", "dispatches", "GPU ms", "x/frame"
+    );
     for p in &b.profile {
-        println!("{:<44} {:>10} {:>12.2} {:>8}", p.stage, p.dispatches, p.gpu_ms, p.per_frame);
+        println!(
+            "{:<44} {:>10} {:>12.2} {:>8}",
+            p.stage, p.dispatches, p.gpu_ms, p.per_frame
+        );
     }
     Ok(())
 }

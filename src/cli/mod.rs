@@ -7,6 +7,7 @@ mod forward;
 mod info;
 mod project;
 mod render;
+mod run;
 mod sample;
 mod sim;
 mod world;
@@ -43,6 +44,8 @@ pub enum Command {
     Sample(sample::SampleArgs),
     /// Render one Bench2Drive-R frame of a keyframe (layout masks, previous frame, two references).
     Render(render::RenderArgs),
+    /// The closed loop with rendered cameras: a planner drives on images of the simulated world.
+    Run(run::RunArgs),
     /// Closed-loop simulation of a planner over scenarios, with the nuPlan closed-loop score.
     Sim(sim::SimArgs),
     /// Ground truth of a scenario state: camera images, mosaic + BEV, overlays of the projected masks.
@@ -109,6 +112,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Forward(a) => forward::run(cli.device, a),
         Command::Sample(a) => sample::run(cli.device, a),
         Command::Render(a) => render::run(cli.device, a),
+        Command::Run(a) => run::run(cli.device, a),
         Command::Sim(a) => sim::run(a),
         Command::World(a) => world::run(a),
         Command::ExportTraining(a) => export::run(a),

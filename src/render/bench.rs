@@ -42,10 +42,7 @@ pub fn run(
     frames: usize,
 ) -> Result<FrameBench> {
     let [h, w] = pkg.meta.render_size;
-    anyhow::ensure!(
-        (1..=64).contains(&cameras),
-        "--cameras {cameras}: 1..=64"
-    );
+    anyhow::ensure!((1..=64).contains(&cameras), "--cameras {cameras}: 1..=64");
     anyhow::ensure!(frames >= 1, "--frames must be >= 1");
     let names: Vec<String> = (0..cameras)
         .map(|i| pkg.meta.cameras[i % pkg.meta.cameras.len()].clone())
@@ -68,7 +65,10 @@ pub fn run(
     let plan_ms = t0.elapsed().as_secs_f64() * 1e3;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
     let mut u = |n: usize| -> Vec<f32> { (0..n).map(|_| rng.gen_range(0.0f32..1.0)).collect() };
-    let masks: Vec<f32> = u(cameras * 15 * h * w).iter().map(|v| (*v > 0.8) as u8 as f32).collect();
+    let masks: Vec<f32> = u(cameras * 15 * h * w)
+        .iter()
+        .map(|v| (*v > 0.8) as u8 as f32)
+        .collect();
     let prev = u(cameras * 3 * h * w);
     let refs = u(cameras * 2 * 3 * h * w);
     let cfg = &pkg.control_cfg;
@@ -86,7 +86,11 @@ pub fn run(
         let (x_t, eps) = frame_noise(1, k as u64, cameras, r.latent_size());
         times.push(r.render(&FrameInputs {
             masks: &masks,
-            prev: if k == 0 { Prev::Image(&prev) } else { Prev::Carried },
+            prev: if k == 0 {
+                Prev::Image(&prev)
+            } else {
+                Prev::Carried
+            },
             refs: Some(RefInputs {
                 images: &refs,
                 pe_cur: pc.iter().map(|v| &v[..]).collect(),

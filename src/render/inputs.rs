@@ -96,7 +96,10 @@ pub fn geometry(
 pub fn stack(per_camera: &[Geometry]) -> Geometry {
     let locs = per_camera.first().map(|g| g.pe_cur.len()).unwrap_or(0);
     let cat = |f: &dyn Fn(&Geometry) -> &Vec<Vec<f32>>, j: usize| -> Vec<f32> {
-        per_camera.iter().flat_map(|g| f(g)[j].iter().copied()).collect()
+        per_camera
+            .iter()
+            .flat_map(|g| f(g)[j].iter().copied())
+            .collect()
     };
     Geometry {
         pe_cur: (0..locs).map(|j| cat(&|g| &g.pe_cur, j)).collect(),
@@ -151,8 +154,14 @@ pub fn to_rgb(chw: &[f32], size: (usize, usize)) -> image::RgbImage {
 
 /// The seeded noise of frame `frame` of a run with seed `seed`: x_T and eps_prev, each (N, 4, h, w). Stable
 /// across runs, threads and machines (ChaCha8 seeded from (seed, frame)).
-pub fn frame_noise(seed: u64, frame: u64, n: usize, latent: (usize, usize)) -> (Vec<f32>, Vec<f32>) {
-    let mut r = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ frame.wrapping_mul(0x9E37_79B9_7F4A_7C15));
+pub fn frame_noise(
+    seed: u64,
+    frame: u64,
+    n: usize,
+    latent: (usize, usize),
+) -> (Vec<f32>, Vec<f32>) {
+    let mut r =
+        rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ frame.wrapping_mul(0x9E37_79B9_7F4A_7C15));
     let len = n * 4 * latent.0 * latent.1;
     let mut draw = || -> Vec<f32> { (0..len).map(|_| StandardNormal.sample(&mut r)).collect() };
     let x_t = draw();

@@ -111,7 +111,11 @@ pub fn run(ctx: &Context, j: &RenderJob) -> Result<serde_json::Value> {
                 format!(
                     "--cameras: {n:?} is not a camera of {} (it has {:?})",
                     j.frame.display(),
-                    frame.cameras.iter().map(|(c, _)| &c.name).collect::<Vec<_>>()
+                    frame
+                        .cameras
+                        .iter()
+                        .map(|(c, _)| &c.name)
+                        .collect::<Vec<_>>()
                 )
             })?;
         cams.push((c.clone(), img.clone()));
@@ -142,7 +146,10 @@ pub fn run(ctx: &Context, j: &RenderJob) -> Result<serde_json::Value> {
         }
         [d] if d.is_dir() => {
             for (c, _) in &cams {
-                prev.extend(inputs::read_planar(&d.join(format!("{}.png", c.name)), size)?);
+                prev.extend(inputs::read_planar(
+                    &d.join(format!("{}.png", c.name)),
+                    size,
+                )?);
             }
         }
         list => {

@@ -274,6 +274,7 @@ struct LoopCtx<'a> {
 }
 
 /// What a planner step observed and decided; `Err` ends the scenario with that reason.
+#[allow(clippy::too_many_arguments)] // the loop's parts, each borrowed differently
 fn plan_step(
     c: &LoopCtx,
     st: &LoopState,

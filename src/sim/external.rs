@@ -230,9 +230,8 @@ impl ExternalPlanner {
             match rx.recv_timeout(deadline.saturating_duration_since(Instant::now())) {
                 Ok(Ok(l)) if l.trim().is_empty() => continue,
                 Ok(Ok(l)) => {
-                    return serde_json::from_str(&l).map_err(|e| {
-                        anyhow!("planner reply is not valid JSON ({e}): {:.200}", l)
-                    })
+                    return serde_json::from_str(&l)
+                        .map_err(|e| anyhow!("planner reply is not valid JSON ({e}): {:.200}", l))
                 }
                 Ok(Err(e)) => bail!("{e}"),
                 Err(RecvTimeoutError::Timeout) => bail!(
@@ -279,7 +278,12 @@ impl ExternalPlanner {
     }
 
     /// The v2 `cameras` entries of a request (files written or bytes appended).
-    fn cameras(&self, step: usize, frames: &[CameraFrame], inline: &mut Vec<u8>) -> Result<Vec<Value>> {
+    fn cameras(
+        &self,
+        step: usize,
+        frames: &[CameraFrame],
+        inline: &mut Vec<u8>,
+    ) -> Result<Vec<Value>> {
         let mut out = vec![];
         for f in frames {
             let f = match self.size {
@@ -366,8 +370,10 @@ impl Planner for ExternalPlanner {
             .rig
             .cameras
             .iter()
-            .map(|c| json!({"camera": c.name, "width": c.width, "height": c.height,
-                "intrinsic": rows3(&c.intrinsic), "cam2ego": rows4(&c.cam2ego)}))
+            .map(|c| {
+                json!({"camera": c.name, "width": c.width, "height": c.height,
+                "intrinsic": rows3(&c.intrinsic), "cam2ego": rows4(&c.cam2ego)})
+            })
             .collect();
         let msg = json!({
             "type": "start", "version": 2, "scenario": sc.name, "map": sc.source,
@@ -381,7 +387,11 @@ impl Planner for ExternalPlanner {
         if let Some(e) = reply.get("error") {
             bail!("planner refused the scenario: {e}");
         }
-        self.mode = match reply.get("images").and_then(Value::as_str).unwrap_or("paths") {
+        self.mode = match reply
+            .get("images")
+            .and_then(Value::as_str)
+            .unwrap_or("paths")
+        {
             "paths" => ImageMode::Paths,
             "inline" => ImageMode::Inline,
             "none" => ImageMode::None,
@@ -390,11 +400,15 @@ impl Planner for ExternalPlanner {
         self.size = match reply.get("size") {
             None | Some(Value::Null) => None,
             Some(v) => {
-                let s: Option<Vec<u32>> = v
-                    .as_array()
-                    .map(|a| a.iter().filter_map(|x| x.as_u64().map(|x| x as u32)).collect());
+                let s: Option<Vec<u32>> = v.as_array().map(|a| {
+                    a.iter()
+                        .filter_map(|x| x.as_u64().map(|x| x as u32))
+                        .collect()
+                });
                 match s.as_deref() {
-                    Some([h, w]) if (1..=4096).contains(h) && (1..=4096).contains(w) => Some((*h, *w)),
+                    Some([h, w]) if (1..=4096).contains(h) && (1..=4096).contains(w) => {
+                        Some((*h, *w))
+                    }
                     _ => bail!("planner start reply: size {v} must be [height, width] in 1..=4096"),
                 }
             }
@@ -427,16 +441,15 @@ impl Planner for ExternalPlanner {
             msg["cameras"] = json!(self.cameras(input.step, input.frames, &mut inline)?);
             msg["inline_bytes"] = json!(inline.len());
         }
-        let reply = self
-            .request(&msg, &inline, true)?
-            .context("no reply")?;
+        let reply = self.request(&msg, &inline, true)?.context("no reply")?;
         let local = parse_reply(&reply)?;
         trajectory_from_ego_frame(e, &local, PLAN_POSES)
     }
     fn finish(&mut self) {
         if self.protocol >= 2 && self.writer.is_some() {
             // best effort, for at most a second: the process is killed right after
-            let mut line = json!({"type": "end", "version": 2, "scenario": self.scenario}).to_string();
+            let mut line =
+                json!({"type": "end", "version": 2, "scenario": self.scenario}).to_string();
             line.push('\n');
             let deadline = Instant::now() + self.timeout.min(Duration::from_secs(1));
             let _ = self.send(line.into_bytes(), deadline);

@@ -1,0 +1,107 @@
+//! `b2dr run`: the closed loop with rendered cameras (see `b2dr::eval::run`).
+use std::path::PathBuf;
+
+use anyhow::Result;
+use b2dr::eval::run::{self, RendererMode, RunConfig};
+use b2dr::vk::{Context, ContextOptions};
+
+#[derive(clap::Args, Debug)]
+pub struct RunArgs {
+    /// Scenario(s): builtin:LAYOUT[:SEED[:VEHICLES[:PALETTE]]], a ScenarioNet .json file, or a folder of them
+    #[arg(long, default_value = "builtin:town")]
+    pub scenario: String,
+    /// b2dr (generative renderer), b2dr-noref-noprev (masks only), log-replay, groundtruth (synthetic
+    /// scenarios), none (boxes only, as `b2dr sim`)
+    #[arg(long, default_value = "b2dr")]
+    pub renderer: String,
+    /// Model package folder for the b2dr renderers (default: the built-in model)
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// expert, cv, idm or cmd:<command line> (protocol v2, docs/planner_protocol.md)
+    #[arg(long, default_value = "expert")]
+    pub planner: String,
+    /// idm (reactive, R-CLS), replay (CLS-NR) or none
+    #[arg(long, default_value = "idm")]
+    pub agents: String,
+    /// lqr or perfect
+    #[arg(long, default_value = "lqr")]
+    pub controller: String,
+    /// Steps per scenario (10 Hz)
+    #[arg(long, default_value_t = 150)]
+    pub steps: usize,
+    #[arg(long, default_value_t = 60.0)]
+    pub planner_timeout: f64,
+    /// Comma-separated cameras (default: the model's / the rig's)
+    #[arg(long, value_delimiter = ',')]
+    pub cameras: Vec<String>,
+    /// Render size HxW of groundtruth and log-replay (the b2dr renderers use the model's)
+    #[arg(long, default_value = "112x200")]
+    pub size: String,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// UNet/ControlNet dtype of the b2dr renderers
+    #[arg(long, default_value = "f32")]
+    pub dtype: String,
+    /// Skip the animated GIF
+    #[arg(long)]
+    pub no_gif: bool,
+    /// Skip scenarios already done in --out (refused when --out holds another configuration)
+    #[arg(long)]
+    pub resume: bool,
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+pub fn run(device: Option<String>, a: RunArgs) -> Result<()> {
+    let renderer: RendererMode = a.renderer.parse()?;
+    let size = b2dr::world::view::parse_size(&a.size).map_err(|e| e.context("--size"))?;
+    let mut cfg = RunConfig {
+        scenario: a.scenario,
+        renderer,
+        model: a.model,
+        planner: a.planner,
+        agents: a.agents.parse()?,
+        controller: a.controller,
+        steps: a.steps,
+        planner_timeout_s: a.planner_timeout,
+        cameras: a.cameras,
+        size,
+        seed: a.seed,
+        dtype: a.dtype,
+        gif: !a.no_gif,
+    };
+    let ctx = if renderer.uses_model() {
+        Some(Context::new(&ContextOptions {
+            device,
+            ..Default::default()
+        })?)
+    } else {
+        None
+    };
+    if renderer.uses_model() {
+        // the model's render size is the run's
+        let pkg_size = match &cfg.model {
+            Some(d) => {
+                b2dr::render::package::ModelPackage::load(d)?
+                    .meta
+                    .render_size
+            }
+            None => {
+                b2dr::render::package::ModelPackage::builtin("b2dr-tiny")?
+                    .meta
+                    .render_size
+            }
+        };
+        cfg.size = (pkg_size[0], pkg_size[1]);
+    }
+    let s = run::run(ctx.as_ref(), &cfg, &a.out, a.resume)?;
+    eprintln!(
+        "{} scenario(s), {} {:.4} (renderer {}) -> {}",
+        s["scenarios"].as_array().map(|v| v.len()).unwrap_or(0),
+        s["cls_kind"].as_str().unwrap_or("CLS"),
+        s["cls"].as_f64().unwrap_or(0.0),
+        renderer.name(),
+        a.out.join("metrics.json").display()
+    );
+    Ok(())
+}

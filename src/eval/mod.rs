@@ -1,0 +1,6 @@
+//! The evaluation (`b2dr run`): the closed loop of `sim` with the sensors at every planner step: the
+//! generative renderer (`render`), the synthetic world's exact renderer (`world`) or log replay, behind the
+//! simulator's [`crate::sim::sensors::Sensors`] trait. This layer sits above sim, world and render; the
+//! simulator itself never touches the GPU.
+pub mod run;
+pub mod sensors;

@@ -1,0 +1,446 @@
+//! `b2dr run`: the closed loop with rendered cameras over scenarios (spec loop.md section 1).
+//!
+//! Layout of `--out`:
+//!   <out>/config.json                    the run's configuration (a `--resume` with another one is refused)
+//!   <out>/<scenario>/trace.jsonl         one line per 10 Hz step (ego, command, plan, objects)
+//!   <out>/<scenario>/frames/<step>_<CAM>.png   every rendered camera image at render size
+//!   <out>/<scenario>/mosaic/<step>.png   the cameras + a bird's-eye view per planner step
+//!   <out>/<scenario>/run.gif             the mosaics, animated (2 Hz)
+//!   <out>/<scenario>/metrics.json        score, every metric, failure, per-stage timing, device memory
+//!                                        (written last: its presence marks the scenario done for --resume)
+//!   <out>/metrics.json                   all scenarios, the aggregate (R-CLS / CLS-NR) and timing totals
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use anyhow::{bail, ensure, Context as _, Result};
+use serde_json::{json, Value};
+
+use super::sensors::{rig_cameras, B2dr, B2drEngine, GroundTruth, LogReplay};
+use crate::metrics::ScoreParams;
+use crate::render::package::ModelPackage;
+use crate::scene::import::{resolve, Source};
+use crate::sim::closed_loop::run_with_sensors;
+use crate::sim::external::ExternalPlanner;
+use crate::sim::sensors::{CameraFrame, Sensors};
+use crate::sim::{self, AgentMode, Planner, SimConfig, SimResult};
+use crate::tensor::DType;
+use crate::vk::Context;
+use crate::world::images::ImageStore;
+
+/// `--renderer`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum RendererMode {
+    B2dr,
+    B2drNorefNoprev,
+    LogReplay,
+    Groundtruth,
+    None,
+}
+
+impl std::str::FromStr for RendererMode {
+    type Err = anyhow::Error;
+    fn from_str(s: &str) -> Result<Self> {
+        Ok(match s {
+            "b2dr" => Self::B2dr,
+            "b2dr-noref-noprev" => Self::B2drNorefNoprev,
+            "log-replay" => Self::LogReplay,
+            "groundtruth" => Self::Groundtruth,
+            "none" => Self::None,
+            _ => bail!(
+                "--renderer {s:?}: expected b2dr, b2dr-noref-noprev, log-replay, groundtruth or none"
+            ),
+        })
+    }
+}
+
+impl RendererMode {
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::B2dr => "b2dr",
+            Self::B2drNorefNoprev => "b2dr-noref-noprev",
+            Self::LogReplay => "log-replay",
+            Self::Groundtruth => "groundtruth",
+            Self::None => "none",
+        }
+    }
+    pub fn uses_model(self) -> bool {
+        matches!(self, Self::B2dr | Self::B2drNorefNoprev)
+    }
+}
+
+/// Everything a run depends on (stored in `<out>/config.json`).
+#[derive(Clone, Debug, serde::Serialize)]
+pub struct RunConfig {
+    pub scenario: String,
+    pub renderer: RendererMode,
+    /// Model package folder (b2dr modes); None: the built-in model.
+    pub model: Option<PathBuf>,
+    pub planner: String,
+    pub agents: AgentMode,
+    pub controller: String,
+    pub steps: usize,
+    pub planner_timeout_s: f64,
+    /// Cameras (empty: the model's for b2dr modes, the rig's otherwise).
+    pub cameras: Vec<String>,
+    /// Render size (H, W) of groundtruth / log-replay (b2dr modes use the model's).
+    pub size: (usize, usize),
+    pub seed: u64,
+    pub dtype: String,
+    /// Write the animated GIF.
+    pub gif: bool,
+}
+
+/// Stage totals over frames.
+#[derive(Default)]
+struct Totals(Vec<(String, f64)>);
+
+impl Totals {
+    fn add(&mut self, k: &str, v: f64) {
+        match self.0.iter_mut().find(|(n, _)| n == k) {
+            Some(e) => e.1 += v,
+            None => self.0.push((k.to_string(), v)),
+        }
+    }
+    fn json(&self) -> Value {
+        Value::Object(self.0.iter().map(|(k, v)| (k.clone(), json!(v))).collect())
+    }
+}
+
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path)
+        .with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))
+}
+
+/// A folder name from a scenario name (no separators or dots that could leave `--out`).
+pub fn folder_name(name: &str) -> String {
+    let s: String = name
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    if s.is_empty() {
+        "_".into()
+    } else {
+        s
+    }
+}
+
+fn planner(cfg: &RunConfig, dir: &Path) -> Result<Box<dyn Planner>> {
+    let timeout = Duration::from_secs_f64(cfg.planner_timeout_s);
+    Ok(match cfg.planner.strip_prefix("cmd:") {
+        Some(c) => Box::new(ExternalPlanner::new(c, timeout)?.v2(Some(dir.join("planner_images")))),
+        None => sim::planner_from_spec(&cfg.planner, timeout)?,
+    })
+}
+
+/// The mosaic of one planner step: the cameras in a grid and the bird's-eye view of the state.
+fn mosaic(
+    sc: &crate::scene::Scenario,
+    r: &SimResult,
+    step: usize,
+    frames: &[CameraFrame],
+) -> image::RgbImage {
+    let names: Vec<String> = frames.iter().map(|f| f.camera.clone()).collect();
+    let imgs: Vec<image::RgbImage> = frames.iter().map(|f| f.to_image()).collect();
+    let bev = r
+        .steps
+        .get(step)
+        .map(|s| sim::bev::render_step(sc, s, s.plan.as_deref(), &sim::bev::BevView::default()));
+    crate::world::view::mosaic(&names, &imgs, bev.as_ref())
+}
+
+fn write_gif(path: &Path, frames: &[image::RgbImage]) -> Result<()> {
+    use image::codecs::gif::{GifEncoder, Repeat};
+    let f = std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
+    let mut enc = GifEncoder::new_with_speed(std::io::BufWriter::new(f), 10);
+    enc.set_repeat(Repeat::Infinite).context("gif: repeat")?;
+    for img in frames {
+        // half size keeps the file small; 500 ms per frame (the planner's 2 Hz)
+        let small = image::imageops::resize(
+            img,
+            (img.width() / 2).max(1),
+            (img.height() / 2).max(1),
+            image::imageops::FilterType::Triangle,
+        );
+        let rgba = image::DynamicImage::ImageRgb8(small).to_rgba8();
+        enc.encode_frame(image::Frame::from_parts(
+            rgba,
+            0,
+            0,
+            image::Delay::from_numer_denom_ms(500, 1),
+        ))
+        .with_context(|| format!("writing {}", path.display()))?;
+    }
+    Ok(())
+}
+
+/// Runs one scenario; returns its metrics.json value.
+fn run_one(
+    src: &Source,
+    cfg: &RunConfig,
+    engine: Option<&mut B2drEngine>,
+    dir: &Path,
+    progress: &indicatif::ProgressBar,
+) -> Result<Value> {
+    let t0 = Instant::now();
+    let sc = crate::world::load(src)?;
+    let base = match src {
+        Source::File(p) => p.parent().map(Path::to_path_buf),
+        Source::Builtin(_) => None,
+    };
+    let store = ImageStore::new(&sc, base);
+    let sim_cfg = SimConfig {
+        agents: cfg.agents,
+        controller: cfg.controller.parse()?,
+        steps: cfg.steps,
+        ..SimConfig::default()
+    };
+    std::fs::create_dir_all(dir.join("frames"))
+        .with_context(|| format!("creating {}", dir.display()))?;
+    std::fs::create_dir_all(dir.join("mosaic"))?;
+    let mut p = planner(cfg, dir)?;
+    let cams = match engine.as_ref() {
+        Some(e) => rig_cameras(&sc, &e.cameras)?,
+        None => rig_cameras(&sc, &cfg.cameras)?,
+    };
+    let mut gt;
+    let mut lr;
+    let mut bd;
+    let sensors: Option<&mut dyn Sensors> = match cfg.renderer {
+        RendererMode::None => None,
+        RendererMode::Groundtruth => {
+            gt = GroundTruth::new(&store, cams.clone(), cfg.size);
+            Some(&mut gt)
+        }
+        RendererMode::LogReplay => {
+            lr = LogReplay {
+                store: &store,
+                cameras: cams.clone(),
+                size: cfg.size,
+            };
+            Some(&mut lr)
+        }
+        RendererMode::B2dr | RendererMode::B2drNorefNoprev => {
+            let e = engine.context("internal: the b2dr renderer needs its engine")?;
+            bd = B2dr::new(e, &store)?;
+            Some(&mut bd)
+        }
+    };
+    let mut kept: Vec<(usize, Vec<CameraFrame>)> = vec![];
+    let n_plan = cfg.steps.min(sc.len().saturating_sub(1)).div_ceil(5);
+    progress.set_length(n_plan as u64);
+    progress.set_position(0);
+    progress.set_message(sc.name.clone());
+    let frames_dir = dir.join("frames");
+    let mut write_frames = |k: usize, frames: &[CameraFrame]| -> Result<()> {
+        for f in frames {
+            let p = frames_dir.join(format!("{k:04}_{}.png", folder_name(&f.camera)));
+            f.to_image()
+                .save(&p)
+                .with_context(|| format!("writing {}", p.display()))?;
+        }
+        if !frames.is_empty() {
+            kept.push((k, frames.to_vec()));
+        }
+        progress.inc(1);
+        Ok(())
+    };
+    let r = run_with_sensors(
+        &sc,
+        p.as_mut(),
+        &sim_cfg,
+        &|sc, k| {
+            let t = (k as f64 * sc.dt * 1e6).round() as i64;
+            sc.rig
+                .frames
+                .iter()
+                .find(|f| f.timestamp_us == t)
+                .map(|f| f.images.clone())
+                .unwrap_or_default()
+        },
+        sensors,
+        &mut write_frames,
+    );
+    let wall_ms = t0.elapsed().as_secs_f64() * 1e3;
+    let trace_path = dir.join("trace.jsonl");
+    let mut w = std::io::BufWriter::new(
+        std::fs::File::create(&trace_path)
+            .with_context(|| format!("creating {}", trace_path.display()))?,
+    );
+    for s in &r.steps {
+        serde_json::to_writer(&mut w, s)?;
+        w.write_all(b"\n")?;
+    }
+    w.flush()?;
+    let mut mosaics = vec![];
+    for (k, frames) in &kept {
+        let m = mosaic(&sc, &r, *k, frames);
+        let p = dir.join("mosaic").join(format!("{k:04}.png"));
+        m.save(&p)
+            .with_context(|| format!("writing {}", p.display()))?;
+        mosaics.push(m);
+    }
+    if cfg.gif && !mosaics.is_empty() {
+        write_gif(&dir.join("run.gif"), &mosaics)?;
+    }
+    let mut totals = Totals::default();
+    let mut per_frame = vec![];
+    for t in &r.timing {
+        totals.add("sim", t.sim_ms);
+        totals.add("planner", t.planner_ms);
+        totals.add("sensors", t.sensors_ms);
+        for (k, v) in &t.sensors {
+            totals.add(k, *v);
+        }
+        per_frame.push(json!({"step": t.step, "sensors_ms": t.sensors_ms, "stages": t.sensors.iter().map(|(k, v)| json!({k: v})).collect::<Vec<_>>(), "planner_ms": t.planner_ms, "sim_ms": t.sim_ms}));
+    }
+    let (score, metrics, metrics_error) =
+        match sim::score::score_run(&sc, &r, &ScoreParams::default()) {
+            Ok(s) => (s.score, serde_json::to_value(&s)?, None),
+            Err(e) => (0.0, Value::Null, Some(format!("{e:#}"))),
+        };
+    let v = json!({
+        "scenario": sc.name, "source": sc.source, "planner": r.planner, "agents": r.agent_mode,
+        "renderer": cfg.renderer, "steps": r.steps.len().saturating_sub(1), "frames": kept.len(),
+        "idm_agents": r.idm_agents, "failure": r.failure, "score": if r.failure.is_some() { 0.0 } else { score },
+        "metrics": metrics, "metrics_error": metrics_error, "wall_ms": wall_ms,
+        "timing_ms": totals.json(), "timing_per_frame": per_frame,
+    });
+    write_atomic(
+        &dir.join("metrics.json"),
+        serde_json::to_string_pretty(&v)?.as_bytes(),
+    )?;
+    Ok(v)
+}
+
+/// Runs the configuration over its scenarios (see the module docs); returns the summary.
+pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> Result<Value> {
+    ensure!(cfg.steps >= 1, "--steps must be at least 1");
+    ensure!(
+        cfg.planner_timeout_s > 0.0 && cfg.planner_timeout_s <= 86400.0,
+        "--planner-timeout must be in (0, 86400] seconds"
+    );
+    let (h, w) = cfg.size;
+    ensure!(
+        (8..=4096).contains(&h) && (8..=4096).contains(&w),
+        "--size {h}x{w}: each side in 8..=4096"
+    );
+    planner(cfg, out)?;
+    let sources = resolve(&cfg.scenario)?;
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let cpath = out.join("config.json");
+    let cjson = serde_json::to_value(cfg)?;
+    if resume && cpath.is_file() {
+        let old: Value = serde_json::from_str(&std::fs::read_to_string(&cpath)?)
+            .with_context(|| format!("{}: invalid", cpath.display()))?;
+        ensure!(
+            old == cjson,
+            "--resume: {} was written by another configuration (delete the folder or use the same flags):\n  \
+             before: {old}\n  now:    {cjson}",
+            cpath.display()
+        );
+    }
+    write_atomic(&cpath, serde_json::to_string_pretty(&cjson)?.as_bytes())?;
+    let mut engine = if cfg.renderer.uses_model() {
+        let ctx = ctx.context("the b2dr renderer needs a Vulkan device")?;
+        let pkg = match &cfg.model {
+            Some(d) => ModelPackage::load(d)?,
+            None => ModelPackage::builtin("b2dr-tiny")?,
+        };
+        let cams = if cfg.cameras.is_empty() {
+            pkg.meta.cameras.clone()
+        } else {
+            cfg.cameras.clone()
+        };
+        let dtype: DType = cfg.dtype.parse()?;
+        Some(B2drEngine::new(
+            ctx,
+            pkg,
+            dtype,
+            cams,
+            cfg.renderer == RendererMode::B2dr,
+            None,
+            None,
+            cfg.seed,
+        )?)
+    } else {
+        None
+    };
+    let bar = indicatif::ProgressBar::new(1);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{prefix} {bar:25} {pos}/{len} frames {msg} [{elapsed_precise}]",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    let mut results = vec![];
+    let mut totals = Totals::default();
+    for (i, src) in sources.iter().enumerate() {
+        bar.set_prefix(format!("scenario {}/{}", i + 1, sources.len()));
+        let name = src.name();
+        let dir = out.join(folder_name(&name));
+        let done = dir.join("metrics.json");
+        let v = if resume && done.is_file() {
+            serde_json::from_str(&std::fs::read_to_string(&done)?).with_context(|| {
+                format!("{}: not valid JSON (delete it to rerun)", done.display())
+            })?
+        } else {
+            match run_one(src, cfg, engine.as_mut(), &dir, &bar) {
+                Ok(v) => v,
+                Err(e) => {
+                    let v = json!({"scenario": name, "failure": format!("{e:#}"), "score": 0.0});
+                    std::fs::create_dir_all(&dir).ok();
+                    write_atomic(&done, serde_json::to_string_pretty(&v)?.as_bytes())?;
+                    v
+                }
+            }
+        };
+        if let Some(t) = v["timing_ms"].as_object() {
+            for (k, x) in t {
+                totals.add(k, x.as_f64().unwrap_or(0.0));
+            }
+        }
+        bar.println(format!(
+            "{name}: score {:.4}{}",
+            v["score"].as_f64().unwrap_or(0.0),
+            v["failure"]
+                .as_str()
+                .map(|f| format!(" (failed: {f})"))
+                .unwrap_or_default()
+        ));
+        results.push(v);
+    }
+    bar.finish_and_clear();
+    let scores: Vec<f64> = results
+        .iter()
+        .map(|v| v["score"].as_f64().unwrap_or(0.0))
+        .collect();
+    let cls = if scores.is_empty() {
+        0.0
+    } else {
+        scores.iter().sum::<f64>() / scores.len() as f64
+    };
+    let summary = json!({
+        "renderer": cfg.renderer, "planner": cfg.planner, "agents": cfg.agents,
+        "cls_kind": match cfg.agents { AgentMode::Idm => "R-CLS", AgentMode::Replay => "CLS-NR", AgentMode::None => "CLS (no agents)" },
+        "cls": cls, "timing_ms": totals.json(),
+        "device": ctx.map(|c| c.info().name.clone()),
+        "device_bytes": engine.as_ref().map(|e| e.device_bytes()),
+        "model": engine.as_ref().map(|e| e.package.source.clone()),
+        "scenarios": results,
+    });
+    write_atomic(
+        &out.join("metrics.json"),
+        serde_json::to_string_pretty(&summary)?.as_bytes(),
+    )?;
+    Ok(summary)
+}

@@ -1,0 +1,190 @@
+//! `b2dr run`: with `--renderer none` the scores equal `b2dr sim`'s; groundtruth frames equal the world's
+//! ground truth of the simulated state bit for bit; log replay gives the recorded frame nearest in time; the
+//! b2dr renderer reruns bit-identically; `--resume` refuses another configuration.
+#[path = "golden/b2dr_package.rs"]
+mod b2dr_package;
+mod common;
+#[path = "golden/common.rs"]
+mod golden;
+
+use std::path::{Path, PathBuf};
+
+use b2dr::eval::run::{run, RendererMode, RunConfig};
+use b2dr::sim::AgentMode;
+use b2dr::world::images::ImageStore;
+use b2dr::world::World;
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("b2dr-run-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
+}
+
+fn cfg(renderer: RendererMode, agents: AgentMode, controller: &str, steps: usize) -> RunConfig {
+    RunConfig {
+        scenario: "builtin:town:2".into(),
+        renderer,
+        model: None,
+        planner: "expert".into(),
+        agents,
+        controller: controller.into(),
+        steps,
+        planner_timeout_s: 30.0,
+        cameras: vec![],
+        size: (56, 104),
+        seed: 0,
+        dtype: "f32".into(),
+        gif: false,
+    }
+}
+
+fn png(p: &Path) -> Vec<u8> {
+    image::open(p).unwrap().to_rgb8().into_raw()
+}
+
+#[test]
+fn renderer_none_scores_equal_sim() {
+    let out = tmp("none");
+    let s = run(
+        None,
+        &cfg(RendererMode::None, AgentMode::Idm, "lqr", 150),
+        &out,
+        false,
+    )
+    .unwrap();
+    let sc = b2dr::world::load_all("builtin:town:2").unwrap().remove(0);
+    let r = b2dr::sim::run(
+        &sc,
+        &mut b2dr::sim::ExpertPlanner,
+        &b2dr::sim::SimConfig::default(),
+    );
+    let want = b2dr::sim::score::score_run(&sc, &r, &Default::default())
+        .unwrap()
+        .score;
+    assert_eq!(s["scenarios"][0]["score"].as_f64().unwrap(), want);
+    // the trace is the sim's, line for line
+    let trace = std::fs::read_to_string(out.join("town-2/trace.jsonl")).unwrap();
+    let want_trace: Vec<String> = r
+        .steps
+        .iter()
+        .map(|s| serde_json::to_string(s).unwrap())
+        .collect();
+    assert_eq!(trace.lines().collect::<Vec<_>>(), want_trace);
+}
+
+#[test]
+fn groundtruth_frames_equal_the_world_and_log_replay_the_log() {
+    let sc = b2dr::world::load_all("builtin:town:2").unwrap().remove(0);
+    let world = World::new(&sc);
+    // replayed agents + the expert + perfect tracking: the simulated state is the log's
+    let out = tmp("gt");
+    run(
+        None,
+        &cfg(RendererMode::Groundtruth, AgentMode::Replay, "perfect", 20),
+        &out,
+        false,
+    )
+    .unwrap();
+    for k in [0usize, 5, 10, 15] {
+        let e2g = b2dr::scene::import::ego2global(&sc.ego[k].rear_axle);
+        let want = world
+            .render_step(&sc.rig.cameras, &e2g, k, 104, 56, 1)
+            .unwrap();
+        for f in &want {
+            let got = png(&out.join(format!("town-2/frames/{k:04}_{}.png", f.camera)));
+            assert_eq!(
+                got, f.rgb,
+                "step {k} {}: groundtruth frame differs from the world's",
+                f.camera
+            );
+        }
+    }
+    // log replay: the recorded image nearest in time, whatever the ego does (IDM agents, LQR)
+    let out = tmp("lr");
+    run(
+        None,
+        &cfg(RendererMode::LogReplay, AgentMode::Idm, "lqr", 20),
+        &out,
+        false,
+    )
+    .unwrap();
+    let store = ImageStore::new(&sc, None);
+    for k in [0usize, 5, 10, 15] {
+        for c in &sc.rig.cameras {
+            let img =
+                b2dr::eval::sensors::nearest_recorded(&sc, &c.name, k as f64 * sc.dt).unwrap();
+            assert_eq!(
+                img.timestamp_us,
+                (k as f64 * sc.dt * 1e6).round() as i64,
+                "a frame at each planner step"
+            );
+            let want = store.image(img, 104, 56).unwrap();
+            let got = png(&out.join(format!("town-2/frames/{k:04}_{}.png", c.name)));
+            assert_eq!(got, want.data, "step {k} {}", c.name);
+        }
+    }
+}
+
+#[test]
+fn b2dr_renderer_reruns_bit_identically_and_resume_checks_the_config() {
+    let Some(ctx) = common::ctx() else { return };
+    let dir = tmp("pkg");
+    b2dr_package::small_package()
+        .save(&dir, b2dr::nn::weights::FileDType::F32)
+        .unwrap();
+    let mut c = cfg(RendererMode::B2dr, AgentMode::Idm, "lqr", 10);
+    c.model = Some(dir.clone());
+    c.cameras = vec!["CAM_FRONT".into(), "CAM_BACK".into()];
+    let (o1, o2) = (tmp("b1"), tmp("b2"));
+    let s = run(Some(&ctx), &c, &o1, false).unwrap();
+    run(Some(&ctx), &c, &o2, false).unwrap();
+    assert!(
+        s["scenarios"][0]["failure"].is_null(),
+        "{}",
+        s["scenarios"][0]["failure"]
+    );
+    assert_eq!(s["scenarios"][0]["frames"], 2);
+    for k in [0, 5] {
+        for cam in ["CAM_FRONT", "CAM_BACK"] {
+            let f = format!("town-2/frames/{k:04}_{cam}.png");
+            assert_eq!(png(&o1.join(&f)), png(&o2.join(&f)), "{f}: reruns differ");
+        }
+    }
+    assert_ne!(
+        png(&o1.join("town-2/frames/0000_CAM_FRONT.png")),
+        png(&o1.join("town-2/frames/0005_CAM_FRONT.png")),
+        "frames differ over time"
+    );
+    let t = &s["scenarios"][0]["timing_ms"];
+    for k in [
+        "projection",
+        "retrieval",
+        "encode",
+        "denoise",
+        "decode",
+        "planner",
+        "sim",
+    ] {
+        assert!(t[k].as_f64().is_some(), "timing {k} missing: {t}");
+    }
+    // resume: same configuration skips, another is refused
+    let again = run(Some(&ctx), &c, &o1, true).unwrap();
+    assert_eq!(again["scenarios"][0]["score"], s["scenarios"][0]["score"]);
+    let mut other = c.clone();
+    other.seed = 1;
+    let e = format!("{:#}", run(Some(&ctx), &other, &o1, true).unwrap_err());
+    assert!(
+        e.contains("--resume") && e.contains("another configuration"),
+        "{e}"
+    );
+    // the masks-only baseline runs too, and differs
+    let mut nr = c.clone();
+    nr.renderer = RendererMode::B2drNorefNoprev;
+    let o3 = tmp("b3");
+    run(Some(&ctx), &nr, &o3, false).unwrap();
+    assert_ne!(
+        png(&o1.join("town-2/frames/0005_CAM_FRONT.png")),
+        png(&o3.join("town-2/frames/0005_CAM_FRONT.png"))
+    );
+    common::assert_no_validation_errors();
+}
