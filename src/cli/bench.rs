@@ -98,7 +98,7 @@ fn run_cases(
 
 #[derive(clap::Args, Debug)]
 pub struct FrameArgs {
-    /// Model package folder (default: the built-in b2dr-tiny)
+    /// Model package folder or builtin:NAME (default: the built-in b2dr-nano)
     #[arg(long)]
     pub model: Option<std::path::PathBuf>,
     #[arg(long, default_value_t = 6)]
@@ -126,10 +126,7 @@ pub fn run_frame(device: Option<String>, a: FrameArgs) -> Result<()> {
         profile: a.profile,
         ..Default::default()
     })?;
-    let pkg = match &a.model {
-        Some(d) => b2dr::render::package::ModelPackage::load(d)?,
-        None => b2dr::render::package::ModelPackage::builtin("b2dr-tiny")?,
-    };
+    let pkg = b2dr::render::package::resolve_model(a.model.as_deref())?;
     let b = b2dr::render::bench::run(
         &ctx,
         &pkg,

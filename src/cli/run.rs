@@ -14,7 +14,7 @@ pub struct RunArgs {
     /// scenarios), none (boxes only, as `b2dr sim`)
     #[arg(long, default_value = "b2dr")]
     pub renderer: String,
-    /// Model package folder for the b2dr renderers (default: the built-in model)
+    /// Model package folder or builtin:NAME for the b2dr renderers (default: builtin:b2dr-nano)
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// expert, cv, idm or cmd:<command line> (protocol v2, docs/planner_protocol.md)

@@ -18,7 +18,6 @@ use serde_json::{json, Value};
 
 use super::sensors::{rig_cameras, B2dr, B2drEngine, GroundTruth, LogReplay};
 use crate::metrics::ScoreParams;
-use crate::render::package::ModelPackage;
 use crate::scene::import::{resolve, Source};
 use crate::sim::closed_loop::run_with_sensors;
 use crate::sim::external::ExternalPlanner;
@@ -352,10 +351,7 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
     write_atomic(&cpath, serde_json::to_string_pretty(&cjson)?.as_bytes())?;
     let mut engine = if cfg.renderer.uses_model() {
         let ctx = ctx.context("the b2dr renderer needs a Vulkan device")?;
-        let pkg = match &cfg.model {
-            Some(d) => ModelPackage::load(d)?,
-            None => ModelPackage::builtin("b2dr-tiny")?,
-        };
+        let pkg = crate::render::package::resolve_model(cfg.model.as_deref())?;
         let cams = if cfg.cameras.is_empty() {
             pkg.meta.cameras.clone()
         } else {

@@ -7,7 +7,7 @@ use serde_json::json;
 
 use super::frame::{FrameInputs, FrameRenderer, FrameShape, Prev, RefInputs};
 use super::inputs;
-use super::package::{DeviceModel, ModelPackage};
+use super::package::DeviceModel;
 use crate::projection::keyframe::drivable_area_from_geojson;
 use crate::projection::{KeyFrame, MapLayer, ProjectionConfig};
 use crate::sampling::{ddim, unipc, NoiseSchedule, SamplerPlan};
@@ -69,10 +69,7 @@ fn write_exr(path: &Path, chw: &[f32], h: usize, w: usize) -> Result<()> {
 /// Renders the job's frame; returns the report written to `out/render.json`.
 pub fn run(ctx: &Context, j: &RenderJob) -> Result<serde_json::Value> {
     let t0 = std::time::Instant::now();
-    let pkg = match &j.model {
-        Some(d) => ModelPackage::load(d)?,
-        None => ModelPackage::builtin("b2dr-tiny")?,
-    };
+    let pkg = super::package::resolve_model(j.model.as_deref())?;
     let [ih, iw] = pkg.meta.render_size;
     let size = (ih, iw);
     let mut frame = KeyFrame::load(&j.frame)?;

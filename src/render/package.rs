@@ -92,8 +92,48 @@ pub struct ModelPackage {
     pub source: String,
 }
 
-/// The built-in model names.
-pub const BUILTIN: &[&str] = &["b2dr-tiny"];
+/// The built-in model names. `b2dr-nano` is the model trained here (python/b2dr_ref/nano.py; its trained
+/// package, when committed, is `models/b2dr-nano/` of the repository); `b2dr-tiny` is b2dr-tiny's UNet with a
+/// B2D-R ControlNet, seeded random weights (timing).
+pub const BUILTIN: &[&str] = &["b2dr-nano", "b2dr-tiny"];
+
+/// The default built-in model.
+pub const DEFAULT_MODEL: &str = "b2dr-nano";
+
+/// Where the trained b2dr-nano package lives in the repository.
+pub fn nano_dir() -> std::path::PathBuf {
+    std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/b2dr-nano")
+}
+
+/// The model of `--model`: a folder, `builtin:NAME`, or (None) the default built-in model.
+pub fn resolve_model(spec: Option<&Path>) -> Result<ModelPackage> {
+    match spec.and_then(|p| p.to_str()).and_then(|s| s.strip_prefix("builtin:")) {
+        Some(name) => ModelPackage::builtin(name),
+        None => match spec {
+            Some(d) => ModelPackage::load(d),
+            None => ModelPackage::builtin(DEFAULT_MODEL),
+        },
+    }
+}
+
+/// b2dr-nano's configs (python/b2dr_ref/nano.py NANO, the same numbers).
+fn nano_configs() -> (UNetConfig, B2drConfig, VaeConfig) {
+    let down = ["CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"];
+    let up = ["UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"];
+    let unet = UNetConfig::from_json(serde_json::json!({
+        "block_out_channels": [32, 64, 64, 64], "layers_per_block": 1, "cross_attention_dim": 64,
+        "attention_head_dim": [2, 4, 4, 4], "norm_num_groups": 16, "in_channels": 4, "out_channels": 4,
+        "down_block_types": down, "up_block_types": up,
+    }))
+    .expect("b2dr-nano unet config");
+    let mut control = B2drConfig::from_unet(&unet, vec![8, 16, 32, 64]);
+    control.pe_depth_num = 16;
+    let mut vae = VaeConfig::b2dr_tiny();
+    vae.block_out_channels = vec![16, 32, 64, 64];
+    vae.layers_per_block = 1;
+    vae.norm_num_groups = 16;
+    (unet, control, vae)
+}
 
 impl ModelPackage {
     /// Reads a package folder; every error names the file.
@@ -220,6 +260,41 @@ impl ModelPackage {
     /// The built-in model `name` (seeded random weights: an untrained renderer for tests and timing).
     pub fn builtin(name: &str) -> Result<Self> {
         match name {
+            "b2dr-nano" => {
+                let dir = nano_dir();
+                if dir.join("b2dr.json").is_file() {
+                    let mut p = Self::load(&dir)?;
+                    p.source = format!("builtin:b2dr-nano (trained, {})", dir.display());
+                    return Ok(p);
+                }
+                let (unet_cfg, control_cfg, vae_cfg) = nano_configs();
+                let d = unet_cfg.enc.cross_attention_dim;
+                let cameras: Vec<String> = crate::scene::import::nuscenes_like_cameras()
+                    .into_iter()
+                    .map(|c| c.name)
+                    .collect();
+                let ctxw = Weights::random(&[("cond".to_string(), vec![cameras.len(), 77, d])], 77);
+                Ok(Self {
+                    meta: PackageMeta {
+                        format: "b2dr-model".into(),
+                        version: 1,
+                        render_size: [112, 200],
+                        cameras,
+                        sampler: "unipc".into(),
+                        steps: 20,
+                        ref_guidance: 2.0,
+                        dtype: "f32".into(),
+                    },
+                    unet: Weights::random(&expected_unet(&unet_cfg), 1),
+                    control: Weights::random(&expected_b2dr(&control_cfg), 4),
+                    vae: Weights::random(&expected_vae(&vae_cfg), 3),
+                    context: ctxw.get("cond")?.clone(),
+                    unet_cfg,
+                    control_cfg,
+                    vae_cfg,
+                    source: "builtin:b2dr-nano (not trained yet: seeded random weights)".into(),
+                })
+            }
             "b2dr-tiny" => {
                 let unet_cfg = UNetConfig::b2dr_tiny();
                 let control_cfg = B2drConfig::from_unet(&unet_cfg, vec![16, 32, 96, 256]);
