@@ -40,14 +40,14 @@ var<immediate> cp: ConcatParams;
 var<immediate> tp: TransposeParams;
 var<immediate> lp: LinCombParams;
 
-// x: (n) -> out1: (n); op 0 = silu, 1 = gelu(erf)
+// x: (n) -> out1: (n); op 0 = silu, 1 = gelu(erf), 2 = relu, 3 = clamp(x / 2 + 0.5, 0, 1) (decoded image -> [0, 1])
 @compute @workgroup_size(256)
 fn unary(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: vec3<u32>, @builtin(local_invocation_id) lid: vec3<u32>) {
     let i = flat_index(wid, nwg, lid);
     if (i >= up.n) { return; }
     let x = f32(a[i]);
     var y: f32;
-    if (up.op == 0u) { y = silu(x); } else { y = gelu_erf(x); }
+    if (up.op == 0u) { y = silu(x); } else if (up.op == 1u) { y = gelu_erf(x); } else if (up.op == 2u) { y = max(x, 0.0); } else { y = clamp(x * 0.5 + 0.5, 0.0, 1.0); }
     out1[i] = ST(y);
 }
 
@@ -58,7 +58,7 @@ fn unary4(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg: v
     if (i >= up.n) { return; }
     let x = vec4<f32>(av4[i]);
     var y: vec4<f32>;
-    if (up.op == 0u) { y = x / (1.0 + exp(-x)); } else { y = vec4<f32>(gelu_erf(x.x), gelu_erf(x.y), gelu_erf(x.z), gelu_erf(x.w)); }
+    if (up.op == 0u) { y = x / (1.0 + exp(-x)); } else if (up.op == 1u) { y = vec4<f32>(gelu_erf(x.x), gelu_erf(x.y), gelu_erf(x.z), gelu_erf(x.w)); } else if (up.op == 2u) { y = max(x, vec4<f32>(0.0)); } else { y = clamp(x * 0.5 + 0.5, vec4<f32>(0.0), vec4<f32>(1.0)); }
     o1v4[i] = vec4<ST>(y);
 }
 

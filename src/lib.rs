@@ -16,6 +16,8 @@
 //!   device applies them with one kernel; a CPU executor is the oracle).
 //! - [`nn`]: the SD1.5 family (UNet, ControlNet, VAE) built on the ops, modules named after diffusers';
 //!   [`nn::pipeline`] plans a guided sampling run once per shape and replays it.
+//! - [`render`]: Bench2Drive-R frames on the engine (above `nn` and `projection`): masks, previous frame and
+//!   references in, camera images out, planned once per shape and replayed per frame.
 //! - [`scene`], [`sim`], [`metrics`], [`projection`]: the CPU side (scenario model and importers, ego
 //!   controller and IDM agents, the nuPlan closed-loop score, camera projection / retrieval / position
 //!   encodings). None of them imports `ash` or touches the GPU.
@@ -41,6 +43,7 @@ pub mod metrics;
 pub mod nn;
 pub mod ops;
 pub mod projection;
+pub mod render;
 pub mod sampling;
 pub mod scene;
 pub mod sim;

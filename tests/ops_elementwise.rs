@@ -39,7 +39,7 @@ const UNARY_CASES: &[Case] = &[
 ];
 
 #[test]
-fn silu_gelu_match_reference() {
+fn unary_ops_match_reference() {
     let Some(ctx) = ctx() else { return };
     for dtype in [DType::F32, DType::F16] {
         for c in UNARY_CASES {
@@ -47,14 +47,18 @@ fn silu_gelu_match_reference() {
             let x = uniform(n, c.scale, 1);
             let xs = stored(&x, dtype);
             let xt = upload(&ctx, c.shape, dtype, &x);
-            for (opname, f) in [("silu", r::silu as fn(f64) -> f64), ("gelu", r::gelu)] {
+            for (opname, f) in [
+                ("silu", r::silu as fn(f64) -> f64),
+                ("gelu", r::gelu),
+                ("relu", r::relu),
+                ("to_unit", r::to_unit),
+            ] {
                 let out = empty(&ctx, c.shape, dtype);
-                run(&ctx, |rec| {
-                    if opname == "silu" {
-                        ew::silu(rec, &xt, &out)
-                    } else {
-                        ew::gelu(rec, &xt, &out)
-                    }
+                run(&ctx, |rec| match opname {
+                    "silu" => ew::silu(rec, &xt, &out),
+                    "gelu" => ew::gelu(rec, &xt, &out),
+                    "relu" => ew::relu(rec, &xt, &out),
+                    _ => ew::to_unit(rec, &xt, &out),
                 });
                 let want: Vec<f64> = xs.iter().map(|&v| f(v)).collect();
                 let e = nmse(&out.to_f32(&ctx).unwrap(), &want);

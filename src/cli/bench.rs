@@ -95,3 +95,71 @@ fn run_cases(
     }
     Ok(())
 }
+
+#[derive(clap::Args, Debug)]
+pub struct FrameArgs {
+    /// Model package folder (default: the built-in b2dr-tiny)
+    #[arg(long)]
+    pub model: Option<std::path::PathBuf>,
+    #[arg(long, default_value_t = 6)]
+    pub cameras: usize,
+    #[arg(long, default_value_t = 20)]
+    pub steps: usize,
+    #[arg(long, default_value_t = 2.0)]
+    pub ref_guidance: f64,
+    #[arg(long, default_value = "f32")]
+    pub dtype: b2dr::tensor::DType,
+    /// Frames to render (the first starts from an image, the others from the carried frame)
+    #[arg(long, default_value_t = 2)]
+    pub frames: usize,
+    #[arg(long)]
+    pub json: bool,
+    /// GPU time and dispatch count per recording (timestamp queries after every dispatch)
+    #[arg(long)]
+    pub profile: bool,
+}
+
+/// `b2dr bench frame`.
+pub fn run_frame(device: Option<String>, a: FrameArgs) -> Result<()> {
+    let ctx = Context::new(&ContextOptions {
+        device,
+        profile: a.profile,
+        ..Default::default()
+    })?;
+    let pkg = match &a.model {
+        Some(d) => b2dr::render::package::ModelPackage::load(d)?,
+        None => b2dr::render::package::ModelPackage::builtin("b2dr-tiny")?,
+    };
+    let b = b2dr::render::bench::run(&ctx, &pkg, a.cameras, a.steps, a.ref_guidance, a.dtype, a.frames)?;
+    let prof: Vec<_> = b
+        .profile
+        .iter()
+        .map(|p| serde_json::json!({"stage": p.stage, "dispatches": p.dispatches, "gpu_ms": p.gpu_ms, "replays_per_frame": p.per_frame}))
+        .collect();
+    let report = serde_json::json!({
+        "device": ctx.info().name, "model": pkg.source, "cameras": b.cameras, "render_size": [b.size.0, b.size.1],
+        "steps": b.steps, "ref_guidance": b.ref_guidance, "plan_ms": b.plan_ms, "frames": b.frames,
+        "profile": prof, "device_bytes": b.device_bytes,
+    });
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+        return Ok(());
+    }
+    println!(
+        "device: {} | model {} | {} cameras at {}x{}, {} steps, ref guidance {} | plan {:.0} ms | device memory {:.1} MiB",
+        ctx.info().name, pkg.source, b.cameras, b.size.0, b.size.1, b.steps, b.ref_guidance, b.plan_ms,
+        b.device_bytes as f64 / (1 << 20) as f64
+    );
+    println!("{:<8} {:>12} {:>12} {:>12} {:>12}", "frame", "encode ms", "denoise ms", "decode ms", "total ms");
+    for (k, t) in b.frames.iter().enumerate() {
+        println!(
+            "{:<8} {:>12.1} {:>12.1} {:>12.1} {:>12.1}",
+            k, t.encode_ms, t.denoise_ms, t.decode_ms, t.encode_ms + t.denoise_ms + t.decode_ms
+        );
+    }
+    println!("{:<44} {:>10} {:>12} {:>8}", "recording", "dispatches", "GPU ms", "x/frame");
+    for p in &b.profile {
+        println!("{:<44} {:>10} {:>12.2} {:>8}", p.stage, p.dispatches, p.gpu_ms, p.per_frame);
+    }
+    Ok(())
+}

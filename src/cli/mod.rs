@@ -6,6 +6,7 @@ mod export;
 mod forward;
 mod info;
 mod project;
+mod render;
 mod sample;
 mod sim;
 mod world;
@@ -40,6 +41,8 @@ pub enum Command {
     Forward(forward::ForwardArgs),
     /// Run a full guided sampling loop (UNet + ControlNet + VAE decode) and write PNG and EXR.
     Sample(sample::SampleArgs),
+    /// Render one Bench2Drive-R frame of a keyframe (layout masks, previous frame, two references).
+    Render(render::RenderArgs),
     /// Closed-loop simulation of a planner over scenarios, with the nuPlan closed-loop score.
     Sim(sim::SimArgs),
     /// Ground truth of a scenario state: camera images, mosaic + BEV, overlays of the projected masks.
@@ -50,6 +53,8 @@ pub enum Command {
 
 #[derive(Subcommand, Debug)]
 pub enum BenchCmd {
+    /// Time Bench2Drive-R frames by stage (encode, denoise, decode) of a model package (default: built-in).
+    Frame(bench::FrameArgs),
     /// Time model components (guided UNet + ControlNet step, VAE decode) of b2dr-tiny at 224 x 400.
     Model {
         #[arg(long)]
@@ -87,6 +92,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     }
     match cli.command {
         Command::Info => info::run(cli.device),
+        Command::Bench(BenchCmd::Frame(a)) => bench::run_frame(cli.device, a),
         Command::Bench(BenchCmd::Ops {
             json,
             filter,
@@ -102,6 +108,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Project(a) => project::run(a),
         Command::Forward(a) => forward::run(cli.device, a),
         Command::Sample(a) => sample::run(cli.device, a),
+        Command::Render(a) => render::run(cli.device, a),
         Command::Sim(a) => sim::run(a),
         Command::World(a) => world::run(a),
         Command::ExportTraining(a) => export::run(a),

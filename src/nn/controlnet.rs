@@ -6,28 +6,28 @@ use super::config::ControlNetConfig;
 use super::device::{DeviceWeights, Fwd};
 use super::layers::Conv;
 use super::unet::{Encoded, EncoderHalf};
+
 use crate::ops::elementwise as ew;
 use crate::tensor::Tensor;
 
 pub struct ControlNet {
     pub cfg: ControlNetConfig,
     enc: EncoderHalf,
+    cond: CondEmbedding,
+    zero: ZeroConvs,
+}
+
+/// diffusers ControlNetConditioningEmbedding (`controlnet_cond_embedding.*`): conv3x3 + SiLU, then per
+/// channel pair conv c -> c + SiLU, conv c -> c' stride 2 + SiLU, then a zero-initialised conv to C0.
+pub struct CondEmbedding {
+    channels: usize,
     cond_in: Conv,
     cond_blocks: Vec<Conv>,
     cond_out: Conv,
-    down_zero: Vec<Conv>,
-    mid_zero: Conv,
 }
 
-/// ControlNet outputs: 12 down residuals and the mid residual (already scaled).
-pub struct ControlOut {
-    pub down: Vec<Tensor>,
-    pub mid: Tensor,
-}
-
-impl ControlNet {
+impl CondEmbedding {
     pub fn load(dw: &DeviceWeights, cfg: &ControlNetConfig) -> Result<Self> {
-        let enc = EncoderHalf::load(dw, &cfg.enc)?;
         let n = cfg.conditioning_embedding_out_channels.len();
         let mut cond_blocks = vec![];
         for k in 0..2 * (n - 1) {
@@ -38,31 +38,21 @@ impl ControlNet {
                 1 + k % 2,
             )?);
         }
-        let nskips =
-            1 + cfg.enc.down_blocks.len() * cfg.enc.layers_per_block + cfg.enc.down_blocks.len()
-                - 1;
-        let down_zero = (0..nskips)
-            .map(|k| Conv::one(dw, &format!("controlnet_down_blocks.{k}")))
-            .collect::<Result<Vec<_>>>()?;
         Ok(Self {
-            cfg: cfg.clone(),
-            enc,
+            channels: cfg.conditioning_channels,
             cond_in: Conv::same3(dw, "controlnet_cond_embedding.conv_in", 1)?,
             cond_blocks,
             cond_out: Conv::same3(dw, "controlnet_cond_embedding.conv_out", 1)?,
-            down_zero,
-            mid_zero: Conv::one(dw, "controlnet_mid_block")?,
         })
     }
 
-    /// cond: (M, Cc, 8H, 8W) -> the conditioning embedding (M, C0, H, W). It depends on the conditioning
-    /// images only, so a sampling loop computes it once and hands it to every step's [`Self::forward_embedded`].
-    pub fn embed(&self, f: &mut Fwd, cond: &Tensor) -> Result<Tensor> {
+    /// cond: (M, Cc, 8H, 8W) -> (M, C0, H, W).
+    pub fn forward(&self, f: &mut Fwd, cond: &Tensor) -> Result<Tensor> {
         let c = cond.shape();
         ensure!(
-            c.len() == 4 && c[0] >= 1 && c[1] == self.cfg.conditioning_channels,
+            c.len() == 4 && c[0] >= 1 && c[1] == self.channels,
             "controlnet: controlnet_cond {c:?} must be (M, {}, H, W)",
-            self.cfg.conditioning_channels
+            self.channels
         );
         // conv + SiLU pairs, the SiLU in the conv's epilogue
         let mut e = self
@@ -76,6 +66,85 @@ impl ControlNet {
         let emb = self.cond_out.forward(f, &e)?;
         f.ws.release(e);
         Ok(emb)
+    }
+}
+
+/// The zero-initialised 1x1 convs on the skips (`controlnet_down_blocks.k`) and the mid output
+/// (`controlnet_mid_block`), scaled by conditioning_scale.
+pub struct ZeroConvs {
+    down: Vec<Conv>,
+    mid: Conv,
+}
+
+impl ZeroConvs {
+    pub fn load(dw: &DeviceWeights, cfg: &ControlNetConfig) -> Result<Self> {
+        let e = &cfg.enc;
+        let nskips = 1 + e.down_blocks.len() * e.layers_per_block + e.down_blocks.len() - 1;
+        let down = (0..nskips)
+            .map(|k| Conv::one(dw, &format!("controlnet_down_blocks.{k}")))
+            .collect::<Result<Vec<_>>>()?;
+        Ok(Self {
+            down,
+            mid: Conv::one(dw, "controlnet_mid_block")?,
+        })
+    }
+
+    /// The residuals of the skips and the mid output; `skips` and `x` are released.
+    pub fn forward(
+        &self,
+        f: &mut Fwd,
+        skips: Vec<Tensor>,
+        x: Tensor,
+        scale: f32,
+    ) -> Result<ControlOut> {
+        ensure!(
+            skips.len() == self.down.len(),
+            "controlnet: {} skips for {} zero convs",
+            skips.len(),
+            self.down.len()
+        );
+        // scale 1 (the default) multiplies by one: no pass
+        let scaled = |f: &mut Fwd, r: Tensor| -> Result<Tensor> {
+            if scale == 1.0 {
+                return Ok(r);
+            }
+            let y = f.ws.alloc(r.shape())?;
+            ew::scale_add(f.rec, scale, &r, 0.0, &r, &y)?;
+            f.ws.release(r);
+            Ok(y)
+        };
+        let mut down = vec![];
+        for (z, sk) in self.down.iter().zip(&skips) {
+            let r = z.forward(f, sk)?;
+            down.push(scaled(f, r)?);
+        }
+        let m = self.mid.forward(f, &x)?;
+        let mid = scaled(f, m)?;
+        f.ws.release(x);
+        Ok(ControlOut { down, mid })
+    }
+}
+
+/// ControlNet outputs: 12 down residuals and the mid residual (already scaled).
+pub struct ControlOut {
+    pub down: Vec<Tensor>,
+    pub mid: Tensor,
+}
+
+impl ControlNet {
+    pub fn load(dw: &DeviceWeights, cfg: &ControlNetConfig) -> Result<Self> {
+        Ok(Self {
+            cfg: cfg.clone(),
+            enc: EncoderHalf::load(dw, &cfg.enc)?,
+            cond: CondEmbedding::load(dw, cfg)?,
+            zero: ZeroConvs::load(dw, cfg)?,
+        })
+    }
+
+    /// cond: (M, Cc, 8H, 8W) -> the conditioning embedding (M, C0, H, W). It depends on the conditioning
+    /// images only, so a sampling loop computes it once and hands it to every step's [`Self::forward_embedded`].
+    pub fn embed(&self, f: &mut Fwd, cond: &Tensor) -> Result<Tensor> {
+        self.cond.forward(f, cond)
     }
 
     /// sample: (N, Cin, H, W), t: (N) f32, context: (N, L, Dc), cond: (M, Cc, 8H, 8W) -> residuals. M = N, or M
@@ -131,24 +200,6 @@ impl ControlNet {
             silu_temb,
         } = self.enc.forward(f, sample, t, context, Some(emb))?;
         f.ws.release(silu_temb);
-        // scale 1 (the default) multiplies by one: no pass
-        let scaled = |f: &mut Fwd, r: Tensor| -> Result<Tensor> {
-            if scale == 1.0 {
-                return Ok(r);
-            }
-            let y = f.ws.alloc(r.shape())?;
-            ew::scale_add(f.rec, scale, &r, 0.0, &r, &y)?;
-            f.ws.release(r);
-            Ok(y)
-        };
-        let mut down = vec![];
-        for (z, sk) in self.down_zero.iter().zip(&skips) {
-            let r = z.forward(f, sk)?;
-            down.push(scaled(f, r)?);
-        }
-        let m = self.mid_zero.forward(f, &x)?;
-        let mid = scaled(f, m)?;
-        f.ws.release(x);
-        Ok(ControlOut { down, mid })
+        self.zero.forward(f, skips, x, scale)
     }
 }

@@ -16,6 +16,7 @@ use super::device::{Fwd, Workspace};
 use super::unet::{Residuals, UNet};
 use super::vae::VaeDecoder;
 use crate::ops::cast;
+use crate::ops::elementwise as ew;
 use crate::ops::elementwise::{lincomb, LinTerm};
 use crate::sampling::{Buf, Op, SamplerPlan};
 use crate::tensor::{DType, Tensor};
@@ -43,49 +44,56 @@ pub struct SampleOutput {
     pub image: Vec<f32>,
 }
 
-pub struct Pipeline {
+/// The model half of a sampling loop: records the noise prediction of one batch. Everything it reads beyond
+/// `x` and `t` (context, conditioning, per-frame tensors) is its own, allocated before planning.
+pub trait Denoiser {
+    /// x: (mb, 4, h, w) in the model dtype, t: (mb) f32 -> eps (mb, 4, h, w) in the model dtype.
+    fn record(&self, f: &mut Fwd, x: &Tensor, t: &Tensor) -> Result<Tensor>;
+}
+
+/// The sampler half, shared by every denoiser: sampler buffers, the model pass recorded once (latent
+/// duplicated into the guided batch, cast, the denoiser, cast back), one recording per sampler step, and the
+/// VAE decode (whose [0, 1] image stays on the device).
+pub struct Sampler {
     ctx: Context,
-    shape: PipelineShape,
     plan: SamplerPlan,
     /// Sampler buffers, f32 (N, 4, h, w); EpsUncond/EpsCond/Eps are views (offsets) into `eps32`.
     bufs: BTreeMap<Buf, Tensor>,
     t: Tensor,
-    context: Tensor,
-    cond: Option<Tensor>,
-    /// The conditioning embedding pass (with a ControlNet), run once per run before the steps.
-    embed: Option<Recording>,
     model: Recording,
     steps: Vec<Recording>,
+    /// The decode and its output clamp(x / 2 + 0.5, 0, 1): (N, 3, 8h, 8w) f32.
     decode: Option<(Recording, Tensor)>,
-    _ws: Workspace,
-    /// Device bytes in use once planned (weights excluded).
-    pub planned_bytes: u64,
 }
 
-impl Pipeline {
-    /// Plans a run. `vae` (with its scaling factor) is optional; `control` needs a conditioning image per run.
+impl Sampler {
+    /// Plans the loop for `batch` images of latent `(h, w)`; `guidance` doubles the model batch
+    /// ([uncond; cond] halves, combined by the plan). `ws` is the model-dtype workspace the denoiser records in.
+    #[allow(clippy::too_many_arguments)]
     pub fn new(
         ctx: &Context,
-        unet: &UNet,
-        control: Option<&ControlNet>,
+        ws: &mut Workspace,
+        denoiser: &dyn Denoiser,
         vae: Option<(&VaeDecoder, f64)>,
-        model_dtype: DType,
-        shape: PipelineShape,
+        batch: usize,
+        latent: (usize, usize),
+        guidance: Option<f64>,
         plan: SamplerPlan,
     ) -> Result<Self> {
-        let (h, w) = shape.latent;
-        let n = shape.batch;
-        ensure!(n > 0 && h > 0 && w > 0, "pipeline: empty shape {shape:?}");
-        let guided = shape.guidance.is_some();
-        let plan = match shape.guidance {
+        let (h, w) = latent;
+        let n = batch;
+        ensure!(
+            n > 0 && h > 0 && w > 0,
+            "sampler: empty shape {n} x {h} x {w}"
+        );
+        let guided = guidance.is_some();
+        let plan = match guidance {
             Some(s) => plan.with_guidance(s),
             None => plan,
         };
         let mb = if guided { 2 * n } else { n };
         let lat = [n, 4, h, w];
         let per = n * 4 * h * w;
-        let before = ctx.allocated_bytes();
-        let mut ws = Workspace::new(ctx, model_dtype);
         let eps32 = Tensor::empty(ctx, &[mb, 4, h, w], DType::F32, "eps32")?;
         let mut bufs = BTreeMap::new();
         for b in plan.buffers() {
@@ -102,40 +110,6 @@ impl Pipeline {
             .context("plan without a Sample buffer")?
             .clone();
         let t = Tensor::zeros(ctx, &[mb], DType::F32, "timestep")?;
-        let context = Tensor::zeros(
-            ctx,
-            &[mb, shape.context.0, shape.context.1],
-            model_dtype,
-            "context",
-        )?;
-        let cond = match control {
-            // one copy of the conditioning images: both guidance halves share them (ControlNet::forward
-            // embeds them once and adds the embedding to each half)
-            Some(c) => Some(Tensor::zeros(
-                ctx,
-                &[n, c.cfg.conditioning_channels, 8 * h, 8 * w],
-                model_dtype,
-                "cond",
-            )?),
-            None => None,
-        };
-
-        // The conditioning embedding, once per run. Its output stays allocated (never released to the
-        // workspace), so the model pass below cannot reuse its memory.
-        let (embed, emb) = match (control, &cond) {
-            (Some(c), Some(cimg)) => {
-                let mut rec = ctx.recorder()?;
-                let emb = c.embed(
-                    &mut Fwd {
-                        rec: &mut rec,
-                        ws: &mut ws,
-                    },
-                    cimg,
-                )?;
-                (Some(rec.finish()?), Some(emb))
-            }
-            _ => (None, None),
-        };
 
         // The model pass.
         let mut rec = ctx.recorder()?;
@@ -155,28 +129,7 @@ impl Pipeline {
         }
         let x = ws.alloc(&[mb, 4, h, w])?;
         cast::cast(&mut rec, &x32, &x)?;
-        let eps = {
-            let mut f = Fwd {
-                rec: &mut rec,
-                ws: &mut ws,
-            };
-            let res = match (control, &emb) {
-                (Some(c), Some(e)) => Some(c.forward_embedded(
-                    &mut f,
-                    &x,
-                    &t,
-                    &context,
-                    e,
-                    shape.conditioning_scale,
-                )?),
-                _ => None,
-            };
-            let r = res.as_ref().map(|o| Residuals {
-                down: &o.down,
-                mid: &o.mid,
-            });
-            unet.forward(&mut f, &x, &t, &context, r)?
-        };
+        let eps = denoiser.record(&mut Fwd { rec: &mut rec, ws }, &x, &t)?;
         cast::cast(&mut rec, &eps, &eps32)?;
         let model = rec.finish()?;
 
@@ -219,7 +172,7 @@ impl Pipeline {
             steps.push(rec.finish()?);
         }
 
-        // VAE decode (f32).
+        // VAE decode (f32), then clamp(x / 2 + 0.5, 0, 1) on the device.
         let decode = match vae {
             Some((dec, scaling)) => {
                 let mut vws = Workspace::new(ctx, DType::F32);
@@ -243,24 +196,208 @@ impl Pipeline {
                     },
                     &z,
                 )?;
-                let r = rec.finish()?;
-                Some((r, img))
+                let unit = Tensor::empty(ctx, img.shape(), DType::F32, "decoded image")?;
+                ew::to_unit(&mut rec, &img, &unit)?;
+                Some((rec.finish()?, unit))
             }
             None => None,
         };
+        Ok(Self {
+            ctx: ctx.clone(),
+            plan,
+            bufs,
+            t,
+            model,
+            steps,
+            decode,
+        })
+    }
+
+    /// The recordings a run replays, by stage: the model pass (once per step), the first sampler step, the
+    /// decode (profiles and dispatch counts).
+    pub fn recordings(&self) -> Vec<(&'static str, &Recording)> {
+        let mut v = vec![("model pass (per step)", &self.model)];
+        if let Some(s) = self.steps.first() {
+            v.push(("sampler update (per step)", s));
+        }
+        if let Some((d, _)) = &self.decode {
+            v.push(("vae decode", d));
+        }
+        v
+    }
+
+    /// The current latent (N, 4, h, w), read back.
+    pub fn latent(&self) -> Result<Vec<f32>> {
+        self.bufs[&Buf::Sample].to_f32(&self.ctx)
+    }
+
+    /// Runs the VAE decode of the current sample (no-op without a VAE).
+    pub fn decode(&self) -> Result<()> {
+        if let Some((r, _)) = &self.decode {
+            r.submit_wait().context("VAE decode")?;
+        }
+        Ok(())
+    }
+
+    /// The decoded [0, 1] image on the device (N, 3, 8h, 8w), written by [`Self::run`] (None without a VAE).
+    pub fn image(&self) -> Option<&Tensor> {
+        self.decode.as_ref().map(|(_, t)| t)
+    }
+
+    /// Runs the planned loop from `x_t` (N, 4, h, w); the denoiser's inputs must be written (and any
+    /// per-run preparation submitted) before. `keep_latents` keeps every step's latent; `decode` runs the VAE
+    /// (its output stays on the device, see [`Self::image`]).
+    pub fn run(
+        &self,
+        x_t: &[f32],
+        keep_latents: bool,
+        decode: bool,
+        mut progress: Option<&mut dyn FnMut(usize, usize)>,
+    ) -> Result<Vec<Vec<f32>>> {
+        let sample = &self.bufs[&Buf::Sample];
+        ensure!(
+            x_t.len() == sample.numel(),
+            "pipeline: x_T has {} values, expected {}",
+            x_t.len(),
+            sample.numel()
+        );
+        // Reset the sampler state: every run starts from x_T with empty rings.
+        for (b, t) in &self.bufs {
+            if *b == Buf::Sample {
+                t.write_f32(&self.ctx, x_t)?;
+            } else {
+                t.write_f32(&self.ctx, &vec![0.0; t.numel()])?;
+            }
+        }
+        let mut latents = vec![];
+        for (s, rec) in self.plan.steps.iter().zip(&self.steps) {
+            self.t
+                .write_f32(&self.ctx, &vec![s.timestep as f32; self.t.numel()])?;
+            self.model
+                .submit_wait()
+                .with_context(|| format!("model pass at step {}", s.index))?;
+            rec.submit_wait()?;
+            if let Some(p) = progress.as_mut() {
+                p(s.index + 1, self.plan.steps.len());
+            }
+            if keep_latents {
+                latents.push(sample.to_f32(&self.ctx)?);
+            }
+        }
+        if decode {
+            self.decode()?;
+        }
+        if !keep_latents {
+            latents.push(sample.to_f32(&self.ctx)?);
+        }
+        Ok(latents)
+    }
+}
+
+/// The plain SD denoiser: UNet (+ ControlNet from a once-per-run conditioning embedding).
+struct SdDenoiser<'a> {
+    unet: &'a UNet,
+    control: Option<(&'a ControlNet, Tensor)>,
+    context: &'a Tensor,
+    conditioning_scale: f32,
+}
+
+impl Denoiser for SdDenoiser<'_> {
+    fn record(&self, f: &mut Fwd, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+        let res = match &self.control {
+            Some((c, e)) => {
+                Some(c.forward_embedded(f, x, t, self.context, e, self.conditioning_scale)?)
+            }
+            None => None,
+        };
+        let r = res.as_ref().map(|o| Residuals {
+            down: &o.down,
+            mid: &o.mid,
+        });
+        self.unet.forward(f, x, t, self.context, r)
+    }
+}
+
+pub struct Pipeline {
+    ctx: Context,
+    shape: PipelineShape,
+    context: Tensor,
+    cond: Option<Tensor>,
+    /// The conditioning embedding pass (with a ControlNet), run once per run before the steps.
+    embed: Option<Recording>,
+    sampler: Sampler,
+    _ws: Workspace,
+    /// Device bytes in use once planned (weights excluded).
+    pub planned_bytes: u64,
+}
+
+impl Pipeline {
+    /// Plans a run. `vae` (with its scaling factor) is optional; `control` needs a conditioning image per run.
+    pub fn new(
+        ctx: &Context,
+        unet: &UNet,
+        control: Option<&ControlNet>,
+        vae: Option<(&VaeDecoder, f64)>,
+        model_dtype: DType,
+        shape: PipelineShape,
+        plan: SamplerPlan,
+    ) -> Result<Self> {
+        let (h, w) = shape.latent;
+        let n = shape.batch;
+        ensure!(n > 0 && h > 0 && w > 0, "pipeline: empty shape {shape:?}");
+        let mb = if shape.guidance.is_some() { 2 * n } else { n };
+        let before = ctx.allocated_bytes();
+        let mut ws = Workspace::new(ctx, model_dtype);
+        let context = Tensor::zeros(
+            ctx,
+            &[mb, shape.context.0, shape.context.1],
+            model_dtype,
+            "context",
+        )?;
+        let cond = match control {
+            // one copy of the conditioning images: both guidance halves share them (ControlNet::forward
+            // embeds them once and adds the embedding to each half)
+            Some(c) => Some(Tensor::zeros(
+                ctx,
+                &[n, c.cfg.conditioning_channels, 8 * h, 8 * w],
+                model_dtype,
+                "cond",
+            )?),
+            None => None,
+        };
+
+        // The conditioning embedding, once per run. Its output stays allocated (never released to the
+        // workspace), so the model pass cannot reuse its memory.
+        let (embed, emb) = match (control, &cond) {
+            (Some(c), Some(cimg)) => {
+                let mut rec = ctx.recorder()?;
+                let emb = c.embed(
+                    &mut Fwd {
+                        rec: &mut rec,
+                        ws: &mut ws,
+                    },
+                    cimg,
+                )?;
+                (Some(rec.finish()?), Some(emb))
+            }
+            _ => (None, None),
+        };
+        let den = SdDenoiser {
+            unet,
+            control: control.zip(emb),
+            context: &context,
+            conditioning_scale: shape.conditioning_scale,
+        };
+        let sampler = Sampler::new(ctx, &mut ws, &den, vae, n, (h, w), shape.guidance, plan)?;
+        drop(den);
         let planned_bytes = ctx.allocated_bytes().saturating_sub(before);
         Ok(Self {
             ctx: ctx.clone(),
             shape,
-            plan,
-            bufs,
-            t,
             context,
             cond,
             embed,
-            model,
-            steps,
-            decode,
+            sampler,
             _ws: ws,
             planned_bytes,
         })
@@ -276,15 +413,8 @@ impl Pipeline {
         context_cond: &[f32],
         cond_image: Option<&[f32]>,
         keep_latents: bool,
-        mut progress: Option<&mut dyn FnMut(usize, usize)>,
+        progress: Option<&mut dyn FnMut(usize, usize)>,
     ) -> Result<SampleOutput> {
-        let sample = &self.bufs[&Buf::Sample];
-        ensure!(
-            x_t.len() == sample.numel(),
-            "pipeline: x_T has {} values, expected {}",
-            x_t.len(),
-            sample.numel()
-        );
         let guided = self.shape.guidance.is_some();
         let ctx_n = self.context.numel() / if guided { 2 } else { 1 };
         ensure!(
@@ -319,42 +449,11 @@ impl Pipeline {
         if let Some(e) = &self.embed {
             e.submit_wait().context("conditioning embedding")?;
         }
-        // Reset the sampler state: every run starts from x_T with empty rings.
-        for (b, t) in &self.bufs {
-            if *b == Buf::Sample {
-                t.write_f32(&self.ctx, x_t)?;
-            } else {
-                t.write_f32(&self.ctx, &vec![0.0; t.numel()])?;
-            }
-        }
-        let mut latents = vec![];
-        for (s, rec) in self.plan.steps.iter().zip(&self.steps) {
-            self.t
-                .write_f32(&self.ctx, &vec![s.timestep as f32; self.t.numel()])?;
-            self.model
-                .submit_wait()
-                .with_context(|| format!("model pass at step {}", s.index))?;
-            rec.submit_wait()?;
-            if let Some(p) = progress.as_mut() {
-                p(s.index + 1, self.plan.steps.len());
-            }
-            if keep_latents {
-                latents.push(sample.to_f32(&self.ctx)?);
-            }
-        }
-        let image = match &self.decode {
-            Some((r, img)) => {
-                r.submit_wait()?;
-                img.to_f32(&self.ctx)?
-                    .iter()
-                    .map(|v| (v / 2.0 + 0.5).clamp(0.0, 1.0))
-                    .collect()
-            }
+        let latents = self.sampler.run(x_t, keep_latents, true, progress)?;
+        let image = match self.sampler.image() {
+            Some(img) => img.to_f32(&self.ctx)?,
             None => vec![],
         };
-        if !keep_latents {
-            latents.push(sample.to_f32(&self.ctx)?);
-        }
         Ok(SampleOutput { latents, image })
     }
 }

@@ -1,4 +1,4 @@
-//! Elementwise launchers: silu, gelu (erf), add/mul with broadcasting, scale-and-add, GEGLU, channel concat.
+//! Elementwise launchers: silu, gelu (erf), relu, to_unit, add/mul with broadcasting, scale-and-add, GEGLU, channel concat.
 use anyhow::{ensure, Result};
 
 use super::{expect_shape, grid_1d, pick, same_dtype, Recorder};
@@ -38,6 +38,16 @@ pub fn silu(rec: &mut Recorder, x: &Tensor, out: &Tensor) -> Result<()> {
 /// out = 0.5 x (1 + erf(x / sqrt 2))
 pub fn gelu(rec: &mut Recorder, x: &Tensor, out: &Tensor) -> Result<()> {
     unary(rec, "gelu", 1, x, out)
+}
+
+/// out = max(x, 0)
+pub fn relu(rec: &mut Recorder, x: &Tensor, out: &Tensor) -> Result<()> {
+    unary(rec, "relu", 2, x, out)
+}
+
+/// out = clamp(x / 2 + 0.5, 0, 1): a decoded image in [-1, 1] to [0, 1] (`x * 0.5 + 0.5` in f32, then clamped)
+pub fn to_unit(rec: &mut Recorder, x: &Tensor, out: &Tensor) -> Result<()> {
+    unary(rec, "to_unit", 3, x, out)
 }
 
 /// Right-aligned broadcast of `s` to `out` (<= 4 dims): element strides, 0 on broadcast dimensions.

@@ -5,6 +5,7 @@ use super::ego::{BicycleModel, EgoState};
 use super::idm::IdmParams;
 use super::lqr::{LqrParams, LqrTracker, TrackerCommand};
 use super::planner::{ObjectView, Planner, PlannerInput};
+use super::sensors::{navigation_command, CameraFrame, SensorState, Sensors};
 use super::trajectory::Trajectory;
 use crate::scene::geometry::{OrientedBox, Pose2};
 use crate::scene::{CameraImage, ObjectClass, Scenario};
@@ -150,6 +151,9 @@ pub struct SimResult {
     pub failure: Option<String>,
     /// IDM agents built at step 0.
     pub idm_agents: usize,
+    /// Wall time per planner step (not part of the trace).
+    #[serde(skip)]
+    pub timing: Vec<StepTiming>,
 }
 
 fn replay_objects(
@@ -231,23 +235,179 @@ pub fn run(sc: &Scenario, planner: &mut dyn Planner, cfg: &SimConfig) -> SimResu
     run_with_images(sc, planner, cfg, &|sc, k| images_at(sc, k))
 }
 
-/// Like [`run`], with a callback giving the camera images for a planning step.
+/// Like [`run`], with a callback giving the recorded camera images (paths) for a planning step.
 pub fn run_with_images(
     sc: &Scenario,
     planner: &mut dyn Planner,
     cfg: &SimConfig,
     images: &dyn Fn(&Scenario, usize) -> Vec<CameraImage>,
 ) -> SimResult {
+    run_with_sensors(sc, planner, cfg, images, None, &mut |_, _| Ok(()))
+}
+
+/// Wall time of one planner step's stages (not part of the trace: traces stay bit-identical across runs).
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct StepTiming {
+    pub step: usize,
+    /// The sensors' own stages (e.g. projection, encode, denoise, decode).
+    pub sensors: Vec<(String, f64)>,
+    pub sensors_ms: f64,
+    pub planner_ms: f64,
+    /// Behaviour (tracker, bicycle, IDM) of the steps up to the next planner call.
+    pub sim_ms: f64,
+}
+
+/// The state the loop carries from step to step.
+struct LoopState {
+    ego: EgoState,
+    idm: Option<IdmManager>,
+    traj: Option<Trajectory>,
+    agents: Vec<AgentRecord>,
+}
+
+/// The fixed parts of a run.
+struct LoopCtx<'a> {
+    sc: &'a Scenario,
+    cfg: &'a SimConfig,
+    tracker: LqrTracker,
+    bicycle: BicycleModel,
+}
+
+/// What a planner step observed and decided; `Err` ends the scenario with that reason.
+fn plan_step(
+    c: &LoopCtx,
+    st: &LoopState,
+    rec: &mut StepRecord,
+    planner: &mut dyn Planner,
+    images: &dyn Fn(&Scenario, usize) -> Vec<CameraImage>,
+    sensors: Option<&mut dyn Sensors>,
+    on_frames: &mut dyn FnMut(usize, &[CameraFrame]) -> anyhow::Result<()>,
+    timing: &mut StepTiming,
+) -> anyhow::Result<Trajectory> {
+    let k = rec.step;
+    let views: Vec<ObjectView> = rec
+        .agents
+        .iter()
+        .map(|a| ObjectView {
+            track: a.track,
+            class: a.class,
+            bbox: a.bbox,
+            velocity: a.velocity,
+        })
+        .collect();
+    let t0 = std::time::Instant::now();
+    let frames = match sensors {
+        Some(s) => {
+            let state = SensorState {
+                scenario: c.sc,
+                step: k,
+                time_s: st.ego.time_s,
+                ego: &st.ego,
+                ego_center: rec.ego_center,
+                agents: &rec.agents,
+            };
+            let f = s
+                .observe(&state)
+                .map_err(|e| e.context(format!("step {k}: renderer {} failed", s.name())))?;
+            timing.sensors = s
+                .last_times()
+                .into_iter()
+                .map(|(n, ms)| (n.to_string(), ms))
+                .collect();
+            f
+        }
+        None => vec![],
+    };
+    timing.sensors_ms = t0.elapsed().as_secs_f64() * 1e3;
+    on_frames(k, &frames).map_err(|e| e.context(format!("step {k}: writing the frames")))?;
+    let imgs = images(c.sc, k);
+    let input = PlannerInput {
+        scenario: c.sc,
+        step: k,
+        time_s: st.ego.time_s,
+        ego: &st.ego,
+        objects: &views,
+        images: &imgs,
+        frames: &frames,
+        command: navigation_command(c.sc, &st.ego.rear_axle),
+    };
+    let t1 = std::time::Instant::now();
+    let t = planner
+        .plan(&input)
+        .map_err(|e| e.context(format!("step {k}")))?;
+    timing.planner_ms = t1.elapsed().as_secs_f64() * 1e3;
+    rec.plan = Some(
+        t.poses
+            .iter()
+            .map(|p| Pose2::new(p.x, p.y, crate::scene::geometry::wrap_angle(p.heading)))
+            .collect(),
+    );
+    Ok(t)
+}
+
+/// One 10 Hz behaviour step from `st` at step `k`: the tracker command on the current trajectory, the ego
+/// (LQR + bicycle or perfect tracking), then the IDM agents; `st` becomes step k + 1.
+fn advance(c: &LoopCtx, st: &mut LoopState, k: usize, rec: &mut StepRecord) -> bool {
+    let (sc, dt) = (c.sc, c.sc.dt);
+    let params = sc.ego_params;
+    let Some(t) = st.traj.as_ref() else {
+        return false;
+    };
+    let cmd = c.tracker.track(st.ego.time_s, &st.ego, t);
+    rec.command = Some(cmd);
+    let next_ego = match c.cfg.controller {
+        Controller::Lqr => c
+            .bicycle
+            .propagate(&st.ego, cmd.accel, cmd.steering_rate, dt),
+        Controller::Perfect => state_on_trajectory(t, &st.ego, (k + 1) as f64 * dt, dt),
+    };
+    if let Some(m) = st.idm.as_mut() {
+        let obs = EgoObservation {
+            footprint: params.footprint(&st.ego.rear_axle),
+            rear_axle_heading: st.ego.rear_axle.heading,
+            speed: st.ego.vx.hypot(st.ego.vy),
+        };
+        let open: Vec<(usize, OrientedBox)> = sc
+            .tracks
+            .iter()
+            .enumerate()
+            .filter(|(_, tr)| tr.class.replayed_in_reactive_mode())
+            .filter_map(|(i, tr)| tr.box_at(k + 1).map(|b| (i, b)))
+            .collect();
+        m.step(&sc.map, Some(&obs), sc.lights_at(k + 1), &open, dt);
+    }
+    st.ego = next_ego;
+    // Keep the time on the 0.1 s grid (no drift from repeated additions).
+    st.ego.time_s = (k + 1) as f64 * dt;
+    st.agents = objects_at(sc, c.cfg.agents, k + 1, st.idm.as_ref());
+    true
+}
+
+/// The closed loop with an observation engine: at every planner step `sensors` (when given) renders the
+/// simulated state, `on_frames` sees the images (a run writes them), and the planner gets them in memory.
+/// A sensor or planner failure ends the scenario with the reason.
+pub fn run_with_sensors(
+    sc: &Scenario,
+    planner: &mut dyn Planner,
+    cfg: &SimConfig,
+    images: &dyn Fn(&Scenario, usize) -> Vec<CameraImage>,
+    mut sensors: Option<&mut dyn Sensors>,
+    on_frames: &mut dyn FnMut(usize, &[CameraFrame]) -> anyhow::Result<()>,
+) -> SimResult {
     let n = cfg.steps.min(sc.len().saturating_sub(1));
     let dt = sc.dt;
     let params = sc.ego_params;
-    let tracker = LqrTracker::new(LqrParams {
-        dt,
-        ..LqrParams::nuplan(params.wheel_base)
-    });
-    let bicycle = BicycleModel::new(&params);
-    let mut ego = EgoState::from_log(&sc.ego, 0, dt);
-    let mut idm = (cfg.agents == AgentMode::Idm).then(|| {
+    let c = LoopCtx {
+        sc,
+        cfg,
+        tracker: LqrTracker::new(LqrParams {
+            dt,
+            ..LqrParams::nuplan(params.wheel_base)
+        }),
+        bicycle: BicycleModel::new(&params),
+    };
+    let ego = EgoState::from_log(&sc.ego, 0, dt);
+    let idm = (cfg.agents == AgentMode::Idm).then(|| {
         IdmManager::build(
             sc,
             Some(&params.footprint(&ego.rear_axle)),
@@ -262,94 +422,77 @@ pub fn run_with_images(
         steps: Vec::with_capacity(n + 1),
         failure: None,
         idm_agents: idm.as_ref().map_or(0, |m| m.agents.len()),
+        timing: vec![],
     };
+    if let Some(s) = sensors.as_deref_mut() {
+        if let Err(e) = s.reset(sc) {
+            result.failure = Some(format!("renderer {} failed to start: {e:#}", s.name()));
+            return result;
+        }
+    }
     if let Err(e) = planner.start(sc) {
         result.failure = Some(format!("planner failed to start: {e:#}"));
         return result;
     }
-    let mut traj: Option<Trajectory> = None;
-    let mut agents = objects_at(sc, cfg.agents, 0, idm.as_ref());
+    let agents = objects_at(sc, cfg.agents, 0, idm.as_ref());
+    let mut st = LoopState {
+        ego,
+        idm,
+        traj: None,
+        agents,
+    };
     for k in 0..=n {
         let mut rec = StepRecord {
             step: k,
-            time_s: ego.time_s,
-            ego,
-            ego_center: params.center_of(&ego.rear_axle),
+            time_s: st.ego.time_s,
+            ego: st.ego,
+            ego_center: params.center_of(&st.ego.rear_axle),
             command: None,
             plan: None,
-            agents: std::mem::take(&mut agents),
+            agents: std::mem::take(&mut st.agents),
         };
         if k == n {
             result.steps.push(rec);
             break;
         }
-        if k % cfg.planner_every.max(1) == 0 || traj.is_none() {
-            let views: Vec<ObjectView> = rec
-                .agents
-                .iter()
-                .map(|a| ObjectView {
-                    track: a.track,
-                    class: a.class,
-                    bbox: a.bbox,
-                    velocity: a.velocity,
-                })
-                .collect();
-            let imgs = images(sc, k);
-            let input = PlannerInput {
-                scenario: sc,
+        if k % cfg.planner_every.max(1) == 0 || st.traj.is_none() {
+            let mut timing = StepTiming {
                 step: k,
-                time_s: ego.time_s,
-                ego: &ego,
-                objects: &views,
-                images: &imgs,
+                ..Default::default()
             };
-            match planner.plan(&input) {
-                Ok(t) => {
-                    rec.plan = Some(
-                        t.poses
-                            .iter()
-                            .map(|p| {
-                                Pose2::new(p.x, p.y, crate::scene::geometry::wrap_angle(p.heading))
-                            })
-                            .collect(),
-                    );
-                    traj = Some(t);
-                }
+            match plan_step(
+                &c,
+                &st,
+                &mut rec,
+                planner,
+                images,
+                match sensors {
+                    Some(ref mut s) => Some(&mut **s),
+                    None => None,
+                },
+                on_frames,
+                &mut timing,
+            ) {
+                Ok(t) => st.traj = Some(t),
                 Err(e) => {
-                    result.failure = Some(format!("step {k}: {e:#}"));
+                    result.failure = Some(format!("{e:#}"));
                     result.steps.push(rec);
+                    result.timing.push(timing);
                     planner.finish();
                     return result;
                 }
             }
+            result.timing.push(timing);
         }
-        let Some(t) = traj.as_ref() else { break };
-        let cmd = tracker.track(ego.time_s, &ego, t);
-        rec.command = Some(cmd);
-        let next_ego = match cfg.controller {
-            Controller::Lqr => bicycle.propagate(&ego, cmd.accel, cmd.steering_rate, dt),
-            Controller::Perfect => state_on_trajectory(t, &ego, (k + 1) as f64 * dt, dt),
-        };
-        if let Some(m) = idm.as_mut() {
-            let obs = EgoObservation {
-                footprint: params.footprint(&ego.rear_axle),
-                rear_axle_heading: ego.rear_axle.heading,
-                speed: ego.vx.hypot(ego.vy),
-            };
-            let open: Vec<(usize, OrientedBox)> = sc
-                .tracks
-                .iter()
-                .enumerate()
-                .filter(|(_, tr)| tr.class.replayed_in_reactive_mode())
-                .filter_map(|(i, tr)| tr.box_at(k + 1).map(|b| (i, b)))
-                .collect();
-            m.step(&sc.map, Some(&obs), sc.lights_at(k + 1), &open, dt);
+        let t0 = std::time::Instant::now();
+        let moved = advance(&c, &mut st, k, &mut rec);
+        if let Some(t) = result.timing.last_mut() {
+            t.sim_ms += t0.elapsed().as_secs_f64() * 1e3;
         }
-        ego = next_ego;
-        // Keep the time on the 0.1 s grid (no drift from repeated additions).
-        ego.time_s = (k + 1) as f64 * dt;
-        agents = objects_at(sc, cfg.agents, k + 1, idm.as_ref());
         result.steps.push(rec);
+        if !moved {
+            break;
+        }
     }
     planner.finish();
     result

@@ -1,26 +1,100 @@
 //! External planner process (`--planner cmd:<command line>`), speaking JSON lines over stdin/stdout; the
-//! protocol is documented in docs/planner_protocol.md. One process per scenario; a reader thread forwards
-//! stdout lines so replies can be awaited with a timeout.
+//! protocol (v1 and v2) is documented in docs/planner_protocol.md. One process per scenario. A writer thread
+//! owns the planner's stdin and a reader thread its stdout, so that every write AND read is under the
+//! timeout: a planner that never reads its input, or closes its stdout but lives on, is ended at the timeout.
 use super::planner::{trajectory_from_ego_frame, Planner, PlannerInput, PLAN_POSES};
+use super::sensors::CameraFrame;
 use super::trajectory::Trajectory;
 use crate::scene::geometry::Pose2;
 use crate::scene::Scenario;
-use anyhow::{anyhow, bail, Context, Result};
+use anyhow::{anyhow, bail, ensure, Context, Result};
 use serde_json::{json, Value};
-use std::io::{BufRead, BufReader, Write};
-use std::process::{Child, ChildStdin, Command, Stdio};
-use std::sync::mpsc::{Receiver, RecvTimeoutError};
-use std::time::Duration;
+use std::io::{BufRead, BufReader, Read, Write};
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::sync::mpsc::{Receiver, RecvTimeoutError, Sender, TryRecvError};
+use std::time::{Duration, Instant};
 
-/// Protocol version sent in every request.
-pub const PROTOCOL_VERSION: u32 = 1;
+/// Newest protocol version.
+pub const PROTOCOL_VERSION: u32 = 2;
+/// Longest reply line accepted (bytes); a longer one ends the scenario.
+pub const MAX_REPLY_BYTES: usize = 4 << 20;
+/// Most poses accepted in a reply (500 s at 0.5 s).
+pub const MAX_POSES: usize = 1000;
+
+/// How a v2 planner wants its images.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ImageMode {
+    /// PNG files written before the request; the request carries their paths.
+    Paths,
+    /// Raw RGB bytes after the request line (`inline_bytes` of them, cameras in request order).
+    Inline,
+    /// No images (a planner that reads boxes only).
+    None,
+}
 
 pub struct ExternalPlanner {
     pub command: String,
     pub timeout: Duration,
+    /// 1 or 2.
+    pub protocol: u32,
+    /// Where v2 image files go (`Paths` mode); a temporary folder when None.
+    pub image_dir: Option<PathBuf>,
     child: Option<Child>,
-    stdin: Option<ChildStdin>,
-    lines: Option<Receiver<std::io::Result<String>>>,
+    writer: Option<Sender<Vec<u8>>>,
+    acks: Option<Receiver<std::io::Result<()>>>,
+    lines: Option<Receiver<std::result::Result<String, String>>>,
+    mode: ImageMode,
+    size: Option<(u32, u32)>,
+    scenario: String,
+}
+
+/// FNV-1a 64 of a byte string (the image checksum of the protocol: over the RGB bytes, row-major (H, W, 3)).
+pub fn fnv1a64(bytes: &[u8]) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for b in bytes {
+        h ^= *b as u64;
+        h = h.wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    h
+}
+
+fn rows3(m: &glam::DMat3) -> [[f64; 3]; 3] {
+    let c = m.to_cols_array_2d();
+    [0, 1, 2].map(|r| [c[0][r], c[1][r], c[2][r]])
+}
+
+fn rows4(m: &glam::DMat4) -> [[f64; 4]; 4] {
+    let c = m.to_cols_array_2d();
+    [0, 1, 2, 3].map(|r| [c[0][r], c[1][r], c[2][r], c[3][r]])
+}
+
+/// Reads `\n`-terminated lines of at most [`MAX_REPLY_BYTES`] (a longer one is an error, not an allocation).
+fn read_lines(out: impl Read, tx: Sender<std::result::Result<String, String>>) {
+    let mut r = BufReader::new(out);
+    loop {
+        let mut buf = Vec::new();
+        let mut limited = (&mut r).take(MAX_REPLY_BYTES as u64 + 1);
+        match limited.read_until(b'\n', &mut buf) {
+            Ok(0) => break,
+            Ok(_) if buf.len() > MAX_REPLY_BYTES => {
+                let _ = tx.send(Err(format!(
+                    "planner reply line longer than {MAX_REPLY_BYTES} bytes"
+                )));
+                break;
+            }
+            Ok(_) => {
+                let s = String::from_utf8_lossy(&buf).trim_end().to_string();
+                if tx.send(Ok(s)).is_err() {
+                    break;
+                }
+            }
+            Err(e) => {
+                let _ = tx.send(Err(format!("reading the planner's output failed: {e}")));
+                break;
+            }
+        }
+    }
 }
 
 impl ExternalPlanner {
@@ -28,13 +102,31 @@ impl ExternalPlanner {
         if command.trim().is_empty() {
             bail!("--planner cmd: needs a command line after `cmd:`");
         }
+        ensure!(
+            timeout > Duration::ZERO && timeout <= Duration::from_secs(24 * 3600),
+            "planner timeout {:?} must be in (0, 24 h]",
+            timeout
+        );
         Ok(Self {
             command: command.to_string(),
             timeout,
+            protocol: 1,
+            image_dir: None,
             child: None,
-            stdin: None,
+            writer: None,
+            acks: None,
             lines: None,
+            mode: ImageMode::None,
+            size: None,
+            scenario: String::new(),
         })
+    }
+
+    /// Protocol v2 (start/plan/end messages, images), files under `image_dir`.
+    pub fn v2(mut self, image_dir: Option<PathBuf>) -> Self {
+        self.protocol = 2;
+        self.image_dir = image_dir;
+        self
     }
 
     fn spawn(&mut self) -> Result<()> {
@@ -54,22 +146,32 @@ impl ExternalPlanner {
             .stdout
             .take()
             .ok_or_else(|| anyhow!("planner stdout unavailable"))?;
-        self.stdin = child.stdin.take();
+        let mut stdin = child
+            .stdin
+            .take()
+            .ok_or_else(|| anyhow!("planner stdin unavailable"))?;
         let (tx, rx) = std::sync::mpsc::channel();
+        std::thread::spawn(move || read_lines(stdout, tx));
+        let (wtx, wrx) = std::sync::mpsc::channel::<Vec<u8>>();
+        let (atx, arx) = std::sync::mpsc::channel();
         std::thread::spawn(move || {
-            for line in BufReader::new(stdout).lines() {
-                if tx.send(line).is_err() {
+            for msg in wrx {
+                let r = stdin.write_all(&msg).and_then(|_| stdin.flush());
+                let failed = r.is_err();
+                if atx.send(r).is_err() || failed {
                     break;
                 }
             }
         });
         self.lines = Some(rx);
+        self.writer = Some(wtx);
+        self.acks = Some(arx);
         self.child = Some(child);
         Ok(())
     }
 
     fn kill(&mut self) {
-        self.stdin = None;
+        self.writer = None;
         if let Some(mut c) = self.child.take() {
             #[cfg(unix)]
             if let Ok(pid) = i32::try_from(c.id()) {
@@ -82,43 +184,137 @@ impl ExternalPlanner {
             let _ = c.wait();
         }
         self.lines = None;
+        self.acks = None;
     }
 
-    fn request(&mut self, msg: &Value) -> Result<Value> {
-        let stdin = self
-            .stdin
-            .as_mut()
-            .ok_or_else(|| anyhow!("planner process is not running"))?;
-        let mut line = serde_json::to_string(msg)?;
-        line.push('\n');
-        stdin
-            .write_all(line.as_bytes())
-            .and_then(|_| stdin.flush())
-            .map_err(|e| anyhow!("planner process crashed or closed its input: {e}"))?;
-        let rx = self
-            .lines
+    fn status(&mut self) -> String {
+        match self.child.as_mut().map(|c| c.try_wait()) {
+            Some(Ok(Some(s))) => format!("exited with {s}"),
+            Some(Ok(None)) => "still running".into(),
+            _ => "unknown".into(),
+        }
+    }
+
+    /// Writes `bytes` under the deadline.
+    fn send(&mut self, bytes: Vec<u8>, deadline: Instant) -> Result<()> {
+        let w = self
+            .writer
             .as_ref()
             .ok_or_else(|| anyhow!("planner process is not running"))?;
+        w.send(bytes)
+            .map_err(|_| anyhow!("planner process crashed or closed its input"))?;
+        let acks = self
+            .acks
+            .as_ref()
+            .ok_or_else(|| anyhow!("planner process is not running"))?;
+        match acks.recv_timeout(deadline.saturating_duration_since(Instant::now())) {
+            Ok(Ok(())) => Ok(()),
+            Ok(Err(e)) => bail!("planner process crashed or closed its input: {e}"),
+            Err(RecvTimeoutError::Timeout) => bail!(
+                "planner timed out: it did not read its input within {:.1} s",
+                self.timeout.as_secs_f64()
+            ),
+            Err(RecvTimeoutError::Disconnected) => {
+                bail!("planner process crashed or closed its input")
+            }
+        }
+    }
+
+    /// One reply line under the deadline.
+    fn receive(&mut self, deadline: Instant) -> Result<Value> {
         loop {
-            match rx.recv_timeout(self.timeout) {
+            let rx = self
+                .lines
+                .as_ref()
+                .ok_or_else(|| anyhow!("planner process is not running"))?;
+            match rx.recv_timeout(deadline.saturating_duration_since(Instant::now())) {
                 Ok(Ok(l)) if l.trim().is_empty() => continue,
                 Ok(Ok(l)) => {
-                    return serde_json::from_str(&l)
-                        .map_err(|e| anyhow!("planner reply is not valid JSON ({e}): {l:.200}"))
+                    return serde_json::from_str(&l).map_err(|e| {
+                        anyhow!("planner reply is not valid JSON ({e}): {:.200}", l)
+                    })
                 }
-                Ok(Err(e)) => bail!("reading the planner's output failed: {e}"),
-                Err(RecvTimeoutError::Timeout) => {
-                    bail!(
-                        "planner timed out: no reply within {:.1} s",
-                        self.timeout.as_secs_f64()
-                    )
-                }
+                Ok(Err(e)) => bail!("{e}"),
+                Err(RecvTimeoutError::Timeout) => bail!(
+                    "planner timed out: no reply within {:.1} s",
+                    self.timeout.as_secs_f64()
+                ),
                 Err(RecvTimeoutError::Disconnected) => {
-                    let status = self.child.as_mut().and_then(|c| c.wait().ok());
-                    bail!("planner process exited without replying (status {status:?})")
+                    let s = self.status();
+                    bail!("planner closed its output or exited without replying (process {s})")
                 }
             }
         }
+    }
+
+    /// Fails if the planner wrote a line nobody asked for (e.g. two replies to one request).
+    fn check_no_pending(&mut self) -> Result<()> {
+        if let Some(rx) = self.lines.as_ref() {
+            loop {
+                match rx.try_recv() {
+                    Ok(Ok(l)) if l.trim().is_empty() => continue,
+                    Ok(Ok(l)) => bail!(
+                        "planner wrote a line no request asked for (two replies to one request?): {:.200}",
+                        l
+                    ),
+                    Ok(Err(e)) => bail!("{e}"),
+                    Err(TryRecvError::Empty) | Err(TryRecvError::Disconnected) => break,
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn request(&mut self, msg: &Value, extra: &[u8], want_reply: bool) -> Result<Option<Value>> {
+        self.check_no_pending()?;
+        let deadline = Instant::now() + self.timeout;
+        let mut bytes = serde_json::to_vec(msg)?;
+        bytes.push(b'\n');
+        bytes.extend_from_slice(extra);
+        self.send(bytes, deadline)?;
+        if !want_reply {
+            return Ok(None);
+        }
+        self.receive(deadline).map(Some)
+    }
+
+    /// The v2 `cameras` entries of a request (files written or bytes appended).
+    fn cameras(&self, step: usize, frames: &[CameraFrame], inline: &mut Vec<u8>) -> Result<Vec<Value>> {
+        let mut out = vec![];
+        for f in frames {
+            let f = match self.size {
+                Some((h, w)) => f.resized(w, h),
+                None => f.clone(),
+            };
+            let mut e = json!({
+                "camera": f.camera, "width": f.width, "height": f.height,
+                "intrinsic": rows3(&f.intrinsic), "cam2ego": rows4(&f.cam2ego), "ego2global": rows4(&f.ego2global),
+                "fnv1a64": fnv1a64(&f.rgb).to_string(),
+            });
+            match self.mode {
+                ImageMode::Paths => {
+                    let dir = self
+                        .image_dir
+                        .clone()
+                        .unwrap_or_else(|| std::env::temp_dir().join("b2dr-planner-images"));
+                    std::fs::create_dir_all(&dir)
+                        .with_context(|| format!("creating {}", dir.display()))?;
+                    let p = dir.join(format!("{}_{step:04}_{}.png", self.scenario, f.camera));
+                    f.to_image()
+                        .save(&p)
+                        .with_context(|| format!("writing {}", p.display()))?;
+                    e["path"] = json!(p.display().to_string());
+                }
+                ImageMode::Inline => {
+                    e["offset"] = json!(inline.len());
+                    e["bytes"] = json!(f.rgb.len());
+                    inline.extend_from_slice(&f.rgb);
+                }
+                ImageMode::None => {}
+            }
+            out.push(e);
+        }
+        Ok(out)
     }
 }
 
@@ -133,6 +329,11 @@ pub fn parse_reply(v: &Value) -> Result<Vec<Pose2>> {
     let arr = poses
         .as_array()
         .ok_or_else(|| anyhow!("planner reply `poses` is not an array"))?;
+    ensure!(
+        arr.len() <= MAX_POSES,
+        "planner reply has {} poses (at most {MAX_POSES} are accepted)",
+        arr.len()
+    );
     arr.iter()
         .enumerate()
         .map(|(i, p)| {
@@ -153,15 +354,58 @@ impl Planner for ExternalPlanner {
     fn name(&self) -> String {
         format!("cmd:{}", self.command)
     }
-    fn start(&mut self, _scenario: &Scenario) -> Result<()> {
+    fn start(&mut self, sc: &Scenario) -> Result<()> {
         self.kill();
-        self.spawn()
+        self.spawn()?;
+        self.scenario = sc.name.replace(['/', '\\', ':'], "_");
+        if self.protocol < 2 {
+            return Ok(());
+        }
+        let p = &sc.ego_params;
+        let rig: Vec<Value> = sc
+            .rig
+            .cameras
+            .iter()
+            .map(|c| json!({"camera": c.name, "width": c.width, "height": c.height,
+                "intrinsic": rows3(&c.intrinsic), "cam2ego": rows4(&c.cam2ego)}))
+            .collect();
+        let msg = json!({
+            "type": "start", "version": 2, "scenario": sc.name, "map": sc.source,
+            "dt_s": sc.dt, "rig": rig,
+            "ego": {"length": p.length, "width": p.width, "wheel_base": p.wheel_base, "rear_axle_to_center": p.rear_axle_to_center},
+            "route": { "roadblock_ids": sc.route.roadblock_ids, "lane_ids": sc.route.lane_ids },
+        });
+        let reply = self
+            .request(&msg, &[], true)?
+            .context("no reply to start")?;
+        if let Some(e) = reply.get("error") {
+            bail!("planner refused the scenario: {e}");
+        }
+        self.mode = match reply.get("images").and_then(Value::as_str).unwrap_or("paths") {
+            "paths" => ImageMode::Paths,
+            "inline" => ImageMode::Inline,
+            "none" => ImageMode::None,
+            other => bail!("planner start reply: images {other:?} (paths, inline or none)"),
+        };
+        self.size = match reply.get("size") {
+            None | Some(Value::Null) => None,
+            Some(v) => {
+                let s: Option<Vec<u32>> = v
+                    .as_array()
+                    .map(|a| a.iter().filter_map(|x| x.as_u64().map(|x| x as u32)).collect());
+                match s.as_deref() {
+                    Some([h, w]) if (1..=4096).contains(h) && (1..=4096).contains(w) => Some((*h, *w)),
+                    _ => bail!("planner start reply: size {v} must be [height, width] in 1..=4096"),
+                }
+            }
+        };
+        Ok(())
     }
     fn plan(&mut self, input: &PlannerInput) -> Result<Trajectory> {
         let e = input.ego;
         let sc = input.scenario;
-        let msg = json!({
-            "version": PROTOCOL_VERSION,
+        let mut msg = json!({
+            "version": self.protocol,
             "scenario": sc.name,
             "step": input.step,
             "time_s": input.time_s,
@@ -176,11 +420,27 @@ impl Planner for ExternalPlanner {
             "images": input.images.iter().map(|i| json!({"camera": i.camera, "path": i.path, "timestamp_us": i.timestamp_us})).collect::<Vec<_>>(),
             "reply": { "poses": PLAN_POSES, "dt_s": super::planner::PLAN_DT_S, "frame": "ego_rear_axle" },
         });
-        let reply = self.request(&msg)?;
+        let mut inline = vec![];
+        if self.protocol >= 2 {
+            msg["type"] = json!("plan");
+            msg["command"] = json!(input.command);
+            msg["cameras"] = json!(self.cameras(input.step, input.frames, &mut inline)?);
+            msg["inline_bytes"] = json!(inline.len());
+        }
+        let reply = self
+            .request(&msg, &inline, true)?
+            .context("no reply")?;
         let local = parse_reply(&reply)?;
         trajectory_from_ego_frame(e, &local, PLAN_POSES)
     }
     fn finish(&mut self) {
+        if self.protocol >= 2 && self.writer.is_some() {
+            // best effort, for at most a second: the process is killed right after
+            let mut line = json!({"type": "end", "version": 2, "scenario": self.scenario}).to_string();
+            line.push('\n');
+            let deadline = Instant::now() + self.timeout.min(Duration::from_secs(1));
+            let _ = self.send(line.into_bytes(), deadline);
+        }
         self.kill();
     }
 }

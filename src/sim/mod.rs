@@ -12,6 +12,7 @@ pub mod idm;
 pub mod lqr;
 pub mod planner;
 pub mod score;
+pub mod sensors;
 pub mod trajectory;
 
 pub use closed_loop::{run, AgentMode, Controller, SimConfig, SimResult, StepRecord};

@@ -29,8 +29,12 @@ pub struct PlannerInput<'a> {
     pub time_s: f64,
     pub ego: &'a EgoState,
     pub objects: &'a [ObjectView],
-    /// Camera images of this step (empty until a renderer produces them).
+    /// Recorded camera images of this step (paths into the log; empty where the log has none).
     pub images: &'a [CameraImage],
+    /// The images of the simulated state from the run's sensors (renderer), in memory; empty without one.
+    pub frames: &'a [super::sensors::CameraFrame],
+    /// The navigation command from the route.
+    pub command: super::sensors::Command,
 }
 
 /// A driving model under test. `plan` returns a global-frame rear-axle trajectory starting at the current

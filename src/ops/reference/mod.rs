@@ -36,6 +36,15 @@ pub fn silu(x: f64) -> f64 {
     x / (1.0 + (-x).exp())
 }
 
+pub fn relu(x: f64) -> f64 {
+    x.max(0.0)
+}
+
+/// clamp(x / 2 + 0.5, 0, 1)
+pub fn to_unit(x: f64) -> f64 {
+    (x * 0.5 + 0.5).clamp(0.0, 1.0)
+}
+
 pub fn gelu(x: f64) -> f64 {
     0.5 * x * (1.0 + erf(x / std::f64::consts::SQRT_2))
 }

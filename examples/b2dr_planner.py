@@ -1,0 +1,236 @@
+#!/usr/bin/env python3
+"""Client module for b2dr's planner protocol v2 (docs/planner_protocol.md): typed requests with the camera
+images, served over JSON lines on stdin/stdout. Plain Python 3 (no dependencies); numpy is used when present
+(`Camera.array()`), PIL when present to read PNG files (a small built-in PNG reader otherwise).
+
+    from b2dr_planner import serve
+    def plan(req):                       # req: Request
+        img = req.camera("CAM_FRONT").rgb()   # bytes, row-major (H, W, 3)
+        return [[4.0 * (k + 1), 0.0, 0.0] for k in range(8)]
+    serve(plan, images="inline", size=(112, 200))
+
+Test modes of b2dr's protocol tests (python3 b2dr_planner.py --mode M): cv, checksum, noread, closeout,
+tworeplies, manyposes, project.
+"""
+import json
+import struct
+import sys
+import zlib
+
+
+def fnv1a64(data):
+    h = 0xCBF29CE484222325
+    for b in data:
+        h ^= b
+        h = (h * 0x100000001B3) & 0xFFFFFFFFFFFFFFFF
+    return h
+
+
+def read_png_rgb(path):
+    """8-bit RGB/RGBA PNG -> (width, height, RGB bytes row-major). PIL when available."""
+    try:
+        from PIL import Image  # type: ignore
+
+        im = Image.open(path).convert("RGB")
+        return im.width, im.height, im.tobytes()
+    except ImportError:
+        pass
+    with open(path, "rb") as f:
+        data = f.read()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n", f"{path}: not a PNG"
+    pos, idat, w, h, ctype = 8, b"", 0, 0, 2
+    while pos < len(data):
+        n, kind = struct.unpack(">I4s", data[pos:pos + 8])
+        body = data[pos + 8:pos + 8 + n]
+        if kind == b"IHDR":
+            w, h, depth, ctype = struct.unpack(">IIBB", body[:10])
+            assert depth == 8 and ctype in (2, 6), f"{path}: only 8-bit RGB/RGBA"
+        elif kind == b"IDAT":
+            idat += body
+        pos += 12 + n
+    bpp = 3 if ctype == 2 else 4
+    raw = zlib.decompress(idat)
+    stride = w * bpp
+    out = bytearray()
+    prev = bytearray(stride)
+    i = 0
+    for _ in range(h):
+        ft = raw[i]
+        row = bytearray(raw[i + 1:i + 1 + stride])
+        i += 1 + stride
+        for x in range(stride):
+            a = row[x - bpp] if x >= bpp else 0
+            b = prev[x]
+            c = prev[x - bpp] if x >= bpp else 0
+            if ft == 1:
+                row[x] = (row[x] + a) & 255
+            elif ft == 2:
+                row[x] = (row[x] + b) & 255
+            elif ft == 3:
+                row[x] = (row[x] + (a + b) // 2) & 255
+            elif ft == 4:
+                p = a + b - c
+                pa, pb, pc = abs(p - a), abs(p - b), abs(p - c)
+                pr = a if pa <= pb and pa <= pc else (b if pb <= pc else c)
+                row[x] = (row[x] + pr) & 255
+        prev = row
+        if bpp == 3:
+            out += row
+        else:
+            for x in range(w):
+                out += row[4 * x:4 * x + 3]
+    return w, h, bytes(out)
+
+
+class Camera:
+    """One camera of a request: calibration at the delivered size and the image."""
+
+    def __init__(self, d, inline):
+        self.name = d["camera"]
+        self.width, self.height = d["width"], d["height"]
+        self.intrinsic = d["intrinsic"]      # 3x3 rows, at (width, height)
+        self.cam2ego = d["cam2ego"]          # 4x4 rows
+        self.ego2global = d["ego2global"]    # 4x4 rows
+        self.checksum = int(d["fnv1a64"])
+        self.path = d.get("path")
+        self._rgb = None
+        if "offset" in d:
+            self._rgb = inline[d["offset"]:d["offset"] + d["bytes"]]
+
+    def rgb(self):
+        """RGB bytes, row-major (height, width, 3)."""
+        if self._rgb is None and self.path:
+            w, h, self._rgb = read_png_rgb(self.path)
+            assert (w, h) == (self.width, self.height), f"{self.path}: {w}x{h}, request says {self.width}x{self.height}"
+        return self._rgb
+
+    def array(self):
+        import numpy as np  # type: ignore
+
+        return np.frombuffer(self.rgb(), dtype=np.uint8).reshape(self.height, self.width, 3)
+
+    def project(self, p_ego):
+        """A point in the ego frame -> pixel (u, v) of this camera, or None behind it."""
+        m = self.cam2ego
+        d = [p_ego[i] - m[i][3] for i in range(3)]
+        # camera <- ego: R^T (p - t)
+        pc = [sum(m[r][c] * d[r] for r in range(3)) for c in range(3)]
+        if pc[2] <= 1e-6:
+            return None
+        k = self.intrinsic
+        u = (k[0][0] * pc[0] + k[0][1] * pc[1] + k[0][2] * pc[2]) / pc[2]
+        v = (k[1][1] * pc[1] + k[1][2] * pc[2]) / pc[2]
+        return u, v
+
+
+class Request:
+    def __init__(self, d, inline):
+        self.raw = d
+        self.scenario = d["scenario"]
+        self.step, self.time_s = d["step"], d["time_s"]
+        self.ego = d["ego"]
+        self.command = d.get("command", "straight")
+        self.route = d.get("route", {})
+        self.poses = d.get("reply", {}).get("poses", 8)
+        self.dt = d.get("reply", {}).get("dt_s", 0.5)
+        self.cameras = [Camera(c, inline) for c in d.get("cameras", [])]
+
+    def camera(self, name):
+        for c in self.cameras:
+            if c.name == name:
+                return c
+        raise KeyError(f"no camera {name} in the request ({[c.name for c in self.cameras]})")
+
+
+def _read_exact(stream, n):
+    buf = b""
+    while len(buf) < n:
+        chunk = stream.read(n - len(buf))
+        if not chunk:
+            raise EOFError("b2dr closed the input mid-message")
+        buf += chunk
+    return buf
+
+
+def serve(plan, images="paths", size=None, on_start=None, on_end=None):
+    """Serves one b2dr process: `plan(Request) -> list of [x, y, heading]` (ego frame, 0.5 s apart) or a dict
+    reply; `images`: "paths", "inline" or "none"; `size`: (height, width) or None (the renderer's size)."""
+    inp, out = sys.stdin.buffer, sys.stdout
+    while True:
+        line = inp.readline()
+        if not line:
+            return
+        line = line.strip()
+        if not line:
+            continue
+        msg = json.loads(line)
+        kind = msg.get("type", "plan")
+        if kind == "start":
+            if on_start:
+                on_start(msg)
+            reply = {"images": images}
+            if size:
+                reply["size"] = list(size)
+            out.write(json.dumps(reply) + "\n")
+            out.flush()
+            continue
+        if kind == "end":
+            if on_end:
+                on_end(msg)
+            continue
+        inline = _read_exact(inp, msg.get("inline_bytes", 0)) if msg.get("inline_bytes") else b""
+        r = plan(Request(msg, inline))
+        reply = r if isinstance(r, dict) else {"poses": r}
+        out.write(json.dumps(reply) + "\n")
+        out.flush()
+
+
+def _cv(req):
+    v = max(0.0, req.ego["vx"])
+    return [[v * req.dt * (k + 1), 0.0, 0.0] for k in range(req.poses)]
+
+
+def main():
+    mode = sys.argv[sys.argv.index("--mode") + 1] if "--mode" in sys.argv else "cv"
+    images = sys.argv[sys.argv.index("--images") + 1] if "--images" in sys.argv else "paths"
+    size = None
+    if "--size" in sys.argv:
+        h, w = sys.argv[sys.argv.index("--size") + 1].split("x")
+        size = (int(h), int(w))
+    if mode == "noread":
+        import time
+
+        time.sleep(3600)
+    if mode == "closeout":
+        import os
+        import time
+
+        os.close(1)
+        sys.stdin.buffer.readline()
+        time.sleep(3600)
+
+    def plan(req):
+        if mode == "checksum":
+            for c in req.cameras:
+                got = fnv1a64(c.rgb())
+                if got != c.checksum:
+                    return {"error": f"{c.name}: checksum {got} != {c.checksum}"}
+        if mode == "project":
+            # where the ego point (10, 0, 0.5) lands in each camera, for the test to compare with b2dr's own
+            # projection at the delivered size
+            dump = sys.argv[sys.argv.index("--dump") + 1]
+            with open(dump, "a") as f:
+                for c in req.cameras:
+                    f.write(json.dumps({"step": req.step, "camera": c.name, "size": [c.height, c.width],
+                                        "uv": c.project([10.0, 0.0, 0.5])}) + "\n")
+        if mode == "tworeplies":
+            sys.stdout.write(json.dumps({"poses": _cv(req)}) + "\n")
+        if mode == "manyposes":
+            return [[0.5 * k, 0.0, 0.0] for k in range(1, 100001)]
+        return _cv(req)
+
+    serve(plan, images=images, size=size)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,90 @@
+"""The built-in model configs: "b2dr-nano" (trained here, on CPU, from the synthetic world) and "b2dr-test" (the
+tiny test config of testing.py, for smoke runs).
+
+A config is a dict with the diffusers kwargs of the three models plus the render size and the context width:
+
+    {"name", "render_size": [H, W], "unet": {...}, "controlnet": {...}, "vae": {...}, "context_dim": D}
+
+b2dr-nano (docs/training.md has the measured step times):
+- render 112 x 200 (latent 14 x 25; block sizes 14x25, 7x13, 4x7, 2x4);
+- UNet and ControlNet: SD1.5 block structure, block_out_channels (32, 64, 64, 64), layers_per_block 1,
+  CrossAttnDownBlock2D x 3 + DownBlock2D / UpBlock2D + CrossAttnUpBlock2D x 3, UNetMidBlock2DCrossAttn,
+  attention heads (2, 4, 4, 4) (head dim 16 everywhere, mid 4 heads of 16), cross_attention_dim 64,
+  norm_num_groups 16 (every channel count divides), eps 1e-5, silu;
+- ControlNet B2D-R parts: conditioning_embedding_out_channels (8, 16, 32, 64) (factor 8, like the VAE),
+  15 mask channels, reference encoder = block_out_channels, Ref-Attn at down.0..down.3 and mid, PE with 16 depth
+  bins (3 D = 48 input channels of each PE MLP), prev_noise_level 200 / prev_noise_max 400, blur sigma 1,
+  ref_dropout 0.2;
+- VAE (AutoencoderKL): block_out_channels (16, 32, 64, 64) (4 blocks = factor 8), layers_per_block 1,
+  latent_channels 4, norm_num_groups 16; its scaling_factor is measured after the VAE stage (1 / std of the
+  latent means, as SD did for 0.18215);
+- context: one fixed random (77, 64) embedding per camera (N(0, 1), seed 0), stored in the package.
+"""
+
+from __future__ import annotations
+
+import copy
+from typing import Any, Dict
+
+DOWN4 = ["CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"]
+UP4 = ["UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"]
+DOWN3 = ["CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"]
+UP3 = ["UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"]
+
+NANO: Dict[str, Any] = {
+    "name": "b2dr-nano",
+    "render_size": [112, 200],
+    "context_dim": 64,
+    "unet": dict(block_out_channels=[32, 64, 64, 64], layers_per_block=1, cross_attention_dim=64,
+                 attention_head_dim=[2, 4, 4, 4], norm_num_groups=16, in_channels=4, out_channels=4,
+                 down_block_types=DOWN4, up_block_types=UP4),
+    "controlnet": dict(block_out_channels=[32, 64, 64, 64], layers_per_block=1, cross_attention_dim=64,
+                       attention_head_dim=[2, 4, 4, 4], norm_num_groups=16, down_block_types=DOWN4,
+                       conditioning_embedding_out_channels=[8, 16, 32, 64], pe_depth_num=16,
+                       prev_noise_level=200, prev_noise_max=400, prev_blur_sigma=1.0, ref_dropout=0.2),
+    "vae": dict(block_out_channels=[16, 32, 64, 64], in_channels=3, out_channels=3, layers_per_block=1,
+                down_block_types=["DownEncoderBlock2D"] * 4, up_block_types=["UpDecoderBlock2D"] * 4,
+                latent_channels=4, norm_num_groups=16, scaling_factor=1.0),
+}
+
+# The test config of testing.py (3 blocks) at a 56 x 104 render (latent 7 x 13): smoke runs in seconds.
+TEST: Dict[str, Any] = {
+    "name": "b2dr-test",
+    "render_size": [56, 104],
+    "context_dim": 32,
+    "unet": dict(block_out_channels=[16, 16, 32], layers_per_block=1, cross_attention_dim=32,
+                 attention_head_dim=[2, 4, 8], norm_num_groups=8, in_channels=4, out_channels=4,
+                 down_block_types=DOWN3, up_block_types=UP3),
+    "controlnet": dict(block_out_channels=[16, 16, 32], layers_per_block=1, cross_attention_dim=32,
+                       attention_head_dim=[2, 4, 8], norm_num_groups=8, down_block_types=DOWN3,
+                       conditioning_embedding_out_channels=[8, 16, 16, 32], pe_depth_num=16),
+    "vae": dict(block_out_channels=[8, 16, 16, 16], in_channels=3, out_channels=3, layers_per_block=1,
+                down_block_types=["DownEncoderBlock2D"] * 4, up_block_types=["UpDecoderBlock2D"] * 4,
+                latent_channels=4, norm_num_groups=4, scaling_factor=1.0),
+}
+
+CONFIGS = {"nano": NANO, "b2dr-nano": NANO, "test": TEST, "b2dr-test": TEST}
+
+
+def get_config(name: str) -> Dict[str, Any]:
+    if name not in CONFIGS:
+        raise ValueError(f"unknown model config {name!r} (have {sorted(CONFIGS)})")
+    return copy.deepcopy(CONFIGS[name])
+
+
+def check_config(cfg: Dict[str, Any]):
+    """The Rust engine's constraints: VAE factor 8 with 4 latent channels; channels divisible by the groups."""
+    v = cfg["vae"]
+    if len(v["block_out_channels"]) != 4 or v["latent_channels"] != 4:
+        raise ValueError(f"{cfg['name']}: the VAE must have 4 blocks (factor 8) and 4 latent channels")
+    for part in ("unet", "controlnet", "vae"):
+        g = cfg[part]["norm_num_groups"]
+        for c in cfg[part]["block_out_channels"]:
+            if c % g:
+                raise ValueError(f"{cfg['name']}: {part} channels {c} not divisible by norm_num_groups {g}")
+    if cfg["unet"]["cross_attention_dim"] != cfg["context_dim"] or \
+            cfg["controlnet"]["cross_attention_dim"] != cfg["context_dim"]:
+        raise ValueError(f"{cfg['name']}: cross_attention_dim must equal context_dim")
+    h, w = cfg["render_size"]
+    if h % 8 or w % 8:
+        raise ValueError(f"{cfg['name']}: render size {h}x{w} must be a multiple of 8")

@@ -1,0 +1,616 @@
+"""Training recipe of the B2D-R renderer (docs/training.md; world.md section 3): the diffusion stage (UNet from scratch
++ B2D-R ControlNet, frozen VAE) and the export to the model package. The VAE stage is vae_train.py.
+
+    python -m b2dr_ref.train --data DIR --vae VAE_RUN/vae --out RUN [--config nano] [--steps N] [--batch B]
+                             [--device cpu|cuda] [--resume]
+    python -m b2dr_ref.train export --run RUN --out MODEL_DIR [--dtype f16]
+
+``--data synthetic[:N]`` trains on the random synthetic source (tests, smoke runs).
+
+Per step (batch of B camera samples):
+- x_0 = VAE mean x scaling of the target; t ~ U{0..999}; eps ~ N(0, 1); x_t = DDPM add_noise (SD1.5 schedule);
+- previous frame: blur sigma 1 -> VAE mean x scaling -> z = sqrt(abar_n) z_prev + sqrt(1 - abar_n) eps_p with
+  n ~ U{0..N_max}; with probability p_noprev (0.1) z = 0 and n = 999 (the engine's "no previous frame");
+- references: VAE latents of both references, PETR encodings (pe.py formulas, vectorised here) of the Ref-Attn
+  locations from the sample's matrices; with probability ref_dropout (0.2) a row skips Ref-Attn (ref_mask, 2e);
+- loss = MSE(UNet(x_t, t, ctx, ControlNet residuals), eps); AdamW, linear warm-up then cosine, clip 1.0.
+All randomness comes from one seeded torch.Generator whose state the checkpoint holds (bit-for-bit resume).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Dict, List, Optional, Protocol, Sequence, Tuple
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from . import nano
+from .controlnet import B2DRControlNetModel, MASK_CHANNELS
+from .frame import SD15_SCHEDULE, gaussian_blur
+from .pe import PeConfig, PixelGrid, cam2cur, depth_bins, location_sizes
+
+CKPT = "checkpoint.pt"
+NO_PREV_NOISE_LEVEL = 999     # src/render/frame.rs NO_PREV_NOISE_LEVEL: zero latent input, n = 999
+
+# ---------------------------------------------------------------------------------------------------------------
+# Data: the SampleSource protocol (what the trainer needs of one camera sample)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Sample:
+    """One camera of one training frame. Images uint8 (3, H, W) at render size; masks {0,1} (15, H, W)."""
+    target: np.ndarray
+    prev: np.ndarray
+    refs: np.ndarray              # (2, 3, H, W): front, rear
+    masks: np.ndarray             # (15, H, W), channel order controlnet.MASK_CHANNELS
+    k: np.ndarray                 # (3, 3) intrinsics at the render size
+    cam2ego: np.ndarray           # (4, 4)
+    ego2global: np.ndarray        # (4, 4) current frame
+    prev_ego2global: np.ndarray   # (4, 4) (not used by the model: the previous frame has no PE)
+    ref_ego2global: np.ndarray    # (2, 4, 4) front, rear
+    camera: str
+
+
+class SampleSource(Protocol):
+    render_size: Tuple[int, int]      # (H, W)
+    cameras: List[str]
+
+    def __len__(self) -> int: ...
+
+    def __getitem__(self, i: int) -> Sample: ...
+
+
+def _rot_z(yaw: float, xyz=(0.0, 0.0, 0.0)) -> np.ndarray:
+    c, s = math.cos(yaw), math.sin(yaw)
+    m = np.eye(4)
+    m[:2, :2] = [[c, -s], [s, c]]
+    m[:3, 3] = xyz
+    return m
+
+
+class SyntheticSource:
+    """Random but learnable samples: the target paints the mask classes with fixed colours over a sky/ground
+    split; prev / refs are shifted copies. Deterministic per index (seed, i)."""
+
+    def __init__(self, n: int = 16, render_size=(56, 104), cameras=("CAM_FRONT", "CAM_BACK"), seed: int = 0):
+        self.n = n
+        self.render_size = (int(render_size[0]), int(render_size[1]))
+        self.cameras = list(cameras)
+        self.seed = seed
+        self.palette = np.random.default_rng(1234).integers(0, 256, size=(len(MASK_CHANNELS), 3))
+
+    def __len__(self):
+        return self.n
+
+    def _image(self, masks, shift):
+        h, w = self.render_size
+        img = np.zeros((3, h, w), np.float64)
+        img[:, : h // 2] = np.array([120, 170, 230])[:, None, None]
+        img[:, h // 2:] = np.array([90, 120, 70])[:, None, None]
+        for c in range(masks.shape[0]):
+            m = np.roll(masks[c], shift, axis=1) > 0
+            img[:, m] = self.palette[c][:, None]
+        return img.clip(0, 255).astype(np.uint8)
+
+    def __getitem__(self, i: int) -> Sample:
+        rng = np.random.default_rng((self.seed, int(i)))
+        h, w = self.render_size
+        masks = np.zeros((len(MASK_CHANNELS), h, w), np.uint8)
+        masks[10, h // 2:] = 1                                      # drivable area
+        for _ in range(3):
+            c = int(rng.integers(0, 10))
+            y0, x0 = int(rng.integers(h // 3, h - 8)), int(rng.integers(0, w - 12))
+            masks[c, y0:y0 + int(rng.integers(4, 12)), x0:x0 + int(rng.integers(6, 24))] = 1
+        cam = self.cameras[int(i) % len(self.cameras)]
+        f = 0.8 * w
+        k = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
+        yaw = 0.0 if cam.endswith("FRONT") else math.pi
+        cam2ego = _rot_z(yaw, (1.5, 0.0, 1.6)) @ np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1.0]])
+        x = float(rng.uniform(-50, 50))
+        e2g = _rot_z(float(rng.uniform(-0.3, 0.3)), (x, float(rng.uniform(-5, 5)), 0.0))
+        d = rng.choice([rng.uniform(2, 5), rng.uniform(5, 10), rng.uniform(10, 15)], p=[0.1, 0.3, 0.6])
+        refs_pose = np.stack([e2g @ _rot_z(0.0, (d, 0, 0)), e2g @ _rot_z(0.0, (-d, 0, 0))])
+        return Sample(target=self._image(masks, 0), prev=self._image(masks, 2),
+                      refs=np.stack([self._image(masks, 5), self._image(masks, -5)]), masks=masks, k=k,
+                      cam2ego=cam2ego, ego2global=e2g, prev_ego2global=e2g @ _rot_z(0.0, (-3.0, 0, 0)),
+                      ref_ego2global=refs_pose, camera=cam)
+
+
+class DatasetSource:
+    """The exported training data (world.md 2, docs/training_data.md) read by ``b2dr_ref.dataset.TrainingSet``,
+    one Sample per (frame, camera): index ``i = frame * n_cameras + camera``. ``ds``: an opened TrainingSet (or
+    anything with its interface: cameras, mask_channels, height, width, __len__, __getitem__ -> the sample dict)."""
+
+    def __init__(self, directory: Optional[str] = None, ds=None):
+        if ds is None:
+            from .dataset import TrainingSet      # python/b2dr_ref/dataset.py (the export's reader)
+
+            ds = TrainingSet(directory)
+        self.ds = ds
+        if list(ds.mask_channels) != list(MASK_CHANNELS):
+            raise ValueError(f"{directory}: mask channels {list(ds.mask_channels)} differ from the model's "
+                             f"{MASK_CHANNELS}")
+        self.render_size = (int(ds.height), int(ds.width))
+        self.cameras = list(ds.cameras)
+        self._frame = (None, None)
+
+    def __len__(self):
+        return len(self.ds) * len(self.cameras)
+
+    def __getitem__(self, i: int) -> Sample:
+        f, c = divmod(int(i), len(self.cameras))
+        if self._frame[0] != f:
+            self._frame = (f, self.ds[f])
+        s = self._frame[1]
+        return Sample(target=s["target"][c], prev=s["prev"][c], refs=s["ref"][c], masks=s["masks"][c],
+                      k=np.asarray(s["intrinsics"][c], np.float64), cam2ego=np.asarray(s["cam2ego"][c], np.float64),
+                      ego2global=np.asarray(s["ego2global"][c], np.float64),
+                      prev_ego2global=np.asarray(s["prev_ego2global"][c], np.float64),
+                      ref_ego2global=np.asarray(s["ref_ego2global"][c], np.float64), camera=self.cameras[c])
+
+
+def open_source(data: str, render_size=None) -> SampleSource:
+    """``synthetic[:N]`` -> SyntheticSource (at the config's render size), else the exported dataset folder."""
+    if data.startswith("synthetic"):
+        n = int(data.split(":")[1]) if ":" in data else 16
+        return SyntheticSource(n=n, render_size=render_size or (56, 104))
+    return DatasetSource(data)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# PETR geometry (pe.py's formulas, vectorised over pixels and depths)
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def position_encoding_np(k, img_w: int, img_h: int, m, h: int, w: int, cfg: PeConfig) -> np.ndarray:
+    """pe.position_encoding, vectorised: (3 D, h, w) float32, channel d * 3 + axis."""
+    k = np.asarray(k, np.float64)
+    m = np.asarray(m, np.float64)
+    kinv = np.linalg.inv(k)
+    sx, sy = img_w / w, img_h / h
+    xs, ys = np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)
+    if cfg.grid == PixelGrid.CENTRE:
+        u, v = (xs + 0.5) * sx - 0.5, (ys + 0.5) * sy - 0.5
+    else:
+        u, v = xs * sx, ys * sy
+    uu, vv = np.meshgrid(u, v)                                           # (h, w)
+    pix = np.stack([uu, vv, np.ones_like(uu)], -1)                       # (h, w, 3)
+    ray = pix @ kinv.T
+    d = np.maximum(np.asarray(depth_bins(cfg)), cfg.eps)
+    q = ray[None] * d[:, None, None, None]                               # (D, h, w, 3)
+    p = q @ m[:3, :3].T + m[:3, 3]
+    r = cfg.position_range
+    lo, span = np.array(r[:3]), np.array(r[3:]) - np.array(r[:3])
+    x = np.clip((p - lo) / span, 0.0, 1.0)
+    x = np.log(np.maximum(x, cfg.eps) / np.maximum(1.0 - x, cfg.eps))
+    return np.ascontiguousarray(x.transpose(0, 3, 1, 2).reshape(-1, h, w)).astype(np.float32)
+
+
+def sample_pe(s: Sample, cfg: PeConfig, sizes, render_hw) -> Tuple[List[np.ndarray], List[np.ndarray]]:
+    """pe_cur[j] (3D, h_j, w_j), pe_ref[j] (2, 3D, h_j, w_j) of one sample (pe.pe_inputs for one camera)."""
+    H, W = render_hw
+    m_cur = cam2cur(s.cam2ego, s.ego2global, s.ego2global)
+    m_ref = [cam2cur(s.cam2ego, s.ref_ego2global[r], s.ego2global) for r in range(2)]
+    cur, ref = [], []
+    for (h, w) in sizes:
+        cur.append(position_encoding_np(s.k, W, H, m_cur, h, w, cfg))
+        ref.append(np.stack([position_encoding_np(s.k, W, H, m, h, w, cfg) for m in m_ref]))
+    return cur, ref
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Models, schedule, checkpoints
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def make_noise_scheduler():
+    from diffusers import DDPMScheduler
+
+    return DDPMScheduler(**SD15_SCHEDULE)
+
+
+def build_diffusion_models(cfg, seed: int = 0):
+    from diffusers import UNet2DConditionModel
+
+    torch.manual_seed(seed)
+    unet = UNet2DConditionModel(**cfg["unet"])
+    controlnet = B2DRControlNetModel.from_config(cfg["controlnet"])
+    return unet, controlnet
+
+
+def make_context(cfg, cameras: Sequence[str], seed: int = 0) -> torch.Tensor:
+    """The fixed per-camera context (n_cams, 77, D): N(0, 1) from a seeded generator (not trained)."""
+    g = torch.Generator().manual_seed(seed)
+    return torch.randn((len(cameras), 77, int(cfg["context_dim"])), generator=g)
+
+
+def lr_lambda(warmup: int, total: int, min_ratio: float = 0.0):
+    def f(step):
+        if step < warmup:
+            return (step + 1) / max(1, warmup)
+        p = min(1.0, (step - warmup) / max(1, total - warmup))
+        return min_ratio + (1 - min_ratio) * 0.5 * (1 + math.cos(math.pi * p))
+    return f
+
+
+def set_threads(device: str, threads: Optional[int]):
+    torch.set_flush_denormal(True)     # denormal floats are ~100x slower on x86 CPUs
+    if device == "cpu":
+        torch.set_num_threads(int(threads) if threads else (os.cpu_count() or 1))
+
+
+def save_checkpoint(path: str, state: Dict):
+    tmp = path + ".tmp"
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+class Ema:
+    def __init__(self, models, decay: float):
+        self.decay = decay
+        self.shadow = {f"{i}.{k}": v.detach().clone() for i, m in enumerate(models)
+                       for k, v in m.state_dict().items()}
+
+    @torch.no_grad()
+    def update(self, models):
+        for i, m in enumerate(models):
+            for k, v in m.state_dict().items():
+                s = self.shadow[f"{i}.{k}"]
+                if v.dtype.is_floating_point:
+                    s.mul_(self.decay).add_(v.detach(), alpha=1 - self.decay)
+                else:
+                    s.copy_(v)
+
+    def state_for(self, i: int) -> Dict[str, torch.Tensor]:
+        p = f"{i}."
+        return {k[len(p):]: v for k, v in self.shadow.items() if k.startswith(p)}
+
+
+class CsvLog:
+    def __init__(self, path: str, fields: Sequence[str], resume_step: int):
+        rows = []
+        if resume_step > 0 and os.path.exists(path):
+            with open(path) as f:
+                rows = [r for r in csv.DictReader(f) if int(r["step"]) <= resume_step]
+        self.f = open(path, "w", newline="")
+        self.w = csv.DictWriter(self.f, fieldnames=list(fields))
+        self.w.writeheader()
+        for r in rows:
+            self.w.writerow(r)
+        self.f.flush()
+
+    def write(self, row):
+        self.w.writerow(row)
+        self.f.flush()
+
+    def close(self):
+        self.f.close()
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# The diffusion stage
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def load_vae(path: str):
+    from diffusers import AutoencoderKL
+
+    return AutoencoderKL.from_pretrained(path, torch_dtype=torch.float32).eval().requires_grad_(False)
+
+
+class Batcher:
+    """Turns sample indices into model inputs; caches the frozen-VAE latents and the PE per sample index (they are
+    deterministic), up to ``cache`` samples."""
+
+    def __init__(self, source, vae, controlnet: B2DRControlNetModel, device, cache: int = 100000):
+        self.source, self.vae, self.device = source, vae, device
+        cfg = controlnet.config
+        self.pe_cfg = PeConfig.from_controlnet_config(cfg)
+        self.render_hw = tuple(source.render_size)
+        H, W = self.render_hw
+        self.sizes = location_sizes(cfg.ref_attn, len(cfg.block_out_channels), (H // 8, W // 8))
+        self.sigma = float(cfg.prev_blur_sigma)
+        self.cam_index = {c: i for i, c in enumerate(source.cameras)}
+        self.cache_max = cache
+        self.cache: Dict[int, Tuple] = {}
+
+    @torch.no_grad()
+    def _encode(self, imgs_u8: np.ndarray, blur: bool) -> torch.Tensor:
+        """One image at a time, so a latent does not depend on which batch it was first seen in (exact resume)."""
+        out = []
+        for img in imgs_u8:
+            x = torch.from_numpy(np.ascontiguousarray(img[None])).float().div(255.0)
+            if blur:
+                x = gaussian_blur(x, self.sigma)        # on the CPU (frame.gaussian_blur builds its taps there)
+            x = x.to(self.device)
+            out.append((self.vae.encode(2.0 * x - 1.0).latent_dist.mean * self.vae.config.scaling_factor).cpu())
+        return torch.cat(out)
+
+    def _prepare(self, idx: Sequence[int]):
+        todo = sorted(set(i for i in idx if i not in self.cache))
+        local = {}
+        if todo:
+            ss = [self.source[i] for i in todo]
+            x0 = self._encode(np.stack([s.target for s in ss]), False)
+            zp = self._encode(np.stack([s.prev for s in ss]), True)
+            zr = self._encode(np.concatenate([s.refs for s in ss]), False).reshape(len(ss), 2, 4, *x0.shape[-2:])
+            for n, (i, s) in enumerate(zip(todo, ss)):
+                pc, pr = sample_pe(s, self.pe_cfg, self.sizes, self.render_hw)
+                local[i] = (x0[n], zp[n], zr[n], torch.from_numpy(np.ascontiguousarray(s.masks)).to(torch.uint8),
+                            self.cam_index[s.camera], [torch.from_numpy(a) for a in pc],
+                            [torch.from_numpy(a) for a in pr])
+                if len(self.cache) < self.cache_max:
+                    self.cache[i] = local[i]
+        return [self.cache[i] if i in self.cache else local[i] for i in idx]
+
+    def batch(self, idx: Sequence[int]):
+        items = self._prepare(idx)
+        nl = len(self.sizes)
+        dev = self.device
+        return dict(x0=torch.stack([it[0] for it in items]).to(dev), z_prev=torch.stack([it[1] for it in items]).to(dev),
+                    ref_latents=torch.stack([it[2] for it in items]).to(dev),
+                    masks=torch.stack([it[3] for it in items]).float().to(dev),
+                    cams=torch.tensor([it[4] for it in items], dtype=torch.int64),
+                    pe_cur=[torch.stack([it[5][j] for it in items]).to(dev) for j in range(nl)],
+                    pe_ref=[torch.stack([it[6][j] for it in items]).to(dev) for j in range(nl)])
+
+
+def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: torch.Tensor, p_noprev: float = 0.1,
+                   ref_dropout: Optional[float] = None):
+    """One batch's epsilon loss (all random draws from ``gen``, on the CPU, then moved to the device)."""
+    cfg = controlnet.config
+    dev = b["x0"].device
+    B = b["x0"].shape[0]
+    t = torch.randint(0, 1000, (B,), generator=gen)
+    eps = torch.randn(b["x0"].shape, generator=gen).to(dev)
+    n = torch.randint(0, int(cfg.prev_noise_max) + 1, (B,), generator=gen)
+    eps_p = torch.randn(b["z_prev"].shape, generator=gen).to(dev)
+    noprev = torch.rand((B,), generator=gen) < p_noprev
+    rd = float(cfg.ref_dropout) if ref_dropout is None else ref_dropout
+    ref_mask = torch.rand((B,), generator=gen) >= rd
+
+    a = abar.to(dev)
+    at = a[t.to(dev)].reshape(B, 1, 1, 1)
+    x_t = at.sqrt() * b["x0"] + (1 - at).sqrt() * eps                  # DDPMScheduler.add_noise
+    an = a[n.to(dev)].reshape(B, 1, 1, 1)
+    z = an.sqrt() * b["z_prev"] + (1 - an).sqrt() * eps_p
+    keep = (~noprev).to(dev).float().reshape(B, 1, 1, 1)
+    z = z * keep
+    n = torch.where(noprev, torch.full_like(n, NO_PREV_NOISE_LEVEL), n)
+    ctx = context.to(dev)[b["cams"].to(dev)]
+    refs = None
+    if bool(ref_mask.any()):
+        m = ref_mask.to(dev)
+        refs = controlnet.prepare_references(b["ref_latents"][m], [p[m] for p in b["pe_cur"]],
+                                             [p[m] for p in b["pe_ref"]])
+    down, mid = controlnet(x_t, t.to(dev), ctx, b["masks"], z, n.to(dev), refs=refs,
+                           ref_mask=ref_mask.to(dev) if refs is not None else None)
+    pred = unet(x_t, t.to(dev), ctx, down_block_additional_residuals=down, mid_block_additional_residual=mid).sample
+    return F.mse_loss(pred.float(), eps.float())
+
+
+def run_config(args) -> Dict:
+    cfg = nano.get_config(args.config)
+    nano.check_config(cfg)
+    return cfg
+
+
+def train(args):
+    device = torch.device(args.device)
+    set_threads(args.device, args.threads)
+    os.makedirs(args.out, exist_ok=True)
+    ck_path = os.path.join(args.out, CKPT)
+    resume = args.resume and os.path.exists(ck_path)
+    ck = torch.load(ck_path, map_location="cpu", weights_only=False) if resume else None
+    cfg = ck["cfg"] if ck else run_config(args)
+    source = open_source(args.data, cfg["render_size"])
+    if list(source.render_size) != list(cfg["render_size"]):
+        raise SystemExit(f"data render size {source.render_size} != config {cfg['render_size']}")
+    vae_path = ck["vae_path"] if ck and not args.vae else args.vae
+    if not vae_path:
+        raise SystemExit("--vae VAE_DIR (the trained VAE: vae_train's RUN/vae) is required")
+    vae = load_vae(vae_path).to(device)
+    unet, controlnet = build_diffusion_models(cfg, seed=args.seed)
+    cameras = ck["cameras"] if ck else list(source.cameras)
+    context = ck["context"] if ck else make_context(cfg, cameras, seed=args.seed)
+    unet.to(device).train()
+    controlnet.to(device).train()
+    params = list(unet.parameters()) + list(controlnet.parameters())
+    opt = torch.optim.AdamW(params, lr=args.lr, weight_decay=args.weight_decay)
+    total = ck["total_steps"] if ck else args.steps
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_lambda(args.warmup, total))
+    gen = torch.Generator().manual_seed(args.seed)
+    ema = Ema([unet, controlnet], args.ema) if args.ema > 0 else None
+    step = 0
+    if ck:
+        unet.load_state_dict(ck["unet"])
+        controlnet.load_state_dict(ck["controlnet"])
+        opt.load_state_dict(ck["optimizer"])
+        sched.load_state_dict(ck["lr_scheduler"])
+        gen.set_state(ck["generator"])
+        torch.set_rng_state(ck["torch_rng"])
+        if ema is not None and ck.get("ema") is not None:
+            ema.shadow = {k: v.to(device) for k, v in ck["ema"].items()}
+        step = ck["step"]
+    steps = args.steps if not ck else max(args.steps, step)
+    if args.stop_after:
+        steps = min(steps, step + args.stop_after)
+    abar = make_noise_scheduler().alphas_cumprod.to(torch.float32)
+    batcher = Batcher(source, vae, controlnet, device, cache=args.cache)
+    run_meta = dict(cfg=cfg, cameras=cameras, vae_path=os.path.abspath(vae_path), total_steps=total,
+                    args={k: v for k, v in vars(args).items() if k != "func"})
+    with open(os.path.join(args.out, "run.json"), "w") as f:
+        json.dump(run_meta, f, indent=2)
+    log = CsvLog(os.path.join(args.out, "log.csv"), ["step", "loss", "lr", "grad_norm", "sec"], step)
+    losses = []
+    try:
+        while step < steps:
+            t0 = time.perf_counter()
+            idx = list(range(args.batch)) if args.fixed_batch else \
+                torch.randint(0, len(source), (args.batch,), generator=gen).tolist()
+            b = batcher.batch(idx)
+            loss = diffusion_loss(unet, controlnet, context, b, gen, abar, p_noprev=args.p_noprev)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            gn = torch.nn.utils.clip_grad_norm_(params, args.clip)
+            opt.step()
+            sched.step()
+            if ema is not None:
+                ema.update([unet, controlnet])
+            step += 1
+            lv = float(loss.detach())
+            losses.append(lv)
+            log.write(dict(step=step, loss=f"{lv:.6f}", lr=f"{sched.get_last_lr()[0]:.3e}", grad_norm=f"{float(gn):.4f}",
+                           sec=f"{time.perf_counter() - t0:.3f}"))
+            if step % args.log_every == 0:
+                print(f"step {step} loss {lv:.4f} ({time.perf_counter() - t0:.2f} s)", flush=True)
+            if step % args.ckpt_every == 0 or step == steps:
+                save_checkpoint(ck_path, dict(
+                    run_meta, step=step, unet=unet.state_dict(), controlnet=controlnet.state_dict(),
+                    optimizer=opt.state_dict(), lr_scheduler=sched.state_dict(), generator=gen.get_state(),
+                    torch_rng=torch.get_rng_state(), ema=ema.shadow if ema is not None else None, context=context))
+    finally:
+        log.close()
+    return losses
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Export
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def export(args):
+    from .package import make_meta, save_package
+
+    ck = torch.load(os.path.join(args.run, CKPT), map_location="cpu", weights_only=False)
+    cfg = ck["cfg"]
+    unet, controlnet = build_diffusion_models(cfg)
+    use_ema = ck.get("ema") is not None and not args.no_ema
+    if use_ema:
+        sh = ck["ema"]
+        unet.load_state_dict({k[2:]: v for k, v in sh.items() if k.startswith("0.")})
+        controlnet.load_state_dict({k[2:]: v for k, v in sh.items() if k.startswith("1.")})
+    else:
+        unet.load_state_dict(ck["unet"])
+        controlnet.load_state_dict(ck["controlnet"])
+    vae = load_vae(args.vae or ck["vae_path"])
+    meta = make_meta(cfg["render_size"], ck["cameras"], sampler="unipc", steps=20, ref_guidance=2.0, dtype=args.dtype)
+    save_package(args.out, unet.eval(), controlnet.eval(), vae, ck["context"], meta)
+    size = sum(os.path.getsize(os.path.join(r, f)) for r, _, fs in os.walk(args.out) for f in fs)
+    print(f"exported step {ck['step']}{' (EMA)' if use_ema else ''} to {args.out}: {size / 1e6:.1f} MB")
+    return size
+
+
+# ---------------------------------------------------------------------------------------------------------------
+
+
+def bench(args):
+    """Seconds per optimizer step (UNet + B2D-R ControlNet, forward + backward + AdamW) on random inputs at the
+    config's render size, with references (dropout as configured) and the previous frame; the VAE / PE work is
+    not timed (the trainer caches it per sample)."""
+    from .vae_train import build_vae
+
+    set_threads(args.device, args.threads)
+    device = torch.device(args.device)
+    cfg = run_config(args)
+    src = SyntheticSource(n=args.batch, render_size=cfg["render_size"])
+    vae = build_vae(cfg).to(device).eval().requires_grad_(False)
+    unet, controlnet = build_diffusion_models(cfg)
+    unet.to(device).train()
+    controlnet.to(device).train()
+    params = list(unet.parameters()) + list(controlnet.parameters())
+    n_unet = sum(p.numel() for p in unet.parameters())
+    n_cn = sum(p.numel() for p in controlnet.parameters())
+    opt = torch.optim.AdamW(params, lr=1e-4)
+    ctx = make_context(cfg, src.cameras)
+    t0 = time.perf_counter()
+    b = Batcher(src, vae, controlnet, device).batch(list(range(args.batch)))
+    t_prep = time.perf_counter() - t0
+    gen = torch.Generator().manual_seed(0)
+    abar = make_noise_scheduler().alphas_cumprod.to(torch.float32)
+    times, cpu = [], []
+    for i in range(args.steps):
+        t0 = time.perf_counter()
+        c0 = time.process_time()
+        loss = diffusion_loss(unet, controlnet, ctx, b, gen, abar, ref_dropout=args.ref_dropout)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(params, 1.0)
+        opt.step()
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+        times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+    warm = times[1:] if len(times) > 1 else times
+    wcpu = cpu[1:] if len(cpu) > 1 else cpu
+    res = dict(config=cfg["name"], batch=args.batch, threads=torch.get_num_threads(), device=args.device,
+               render_size=cfg["render_size"], unet_params=n_unet, controlnet_params=n_cn,
+               step_s_median=float(np.median(warm)), step_s_min=float(min(warm)), first_step_s=times[0],
+               cpu_s_per_step_median=float(np.median(wcpu)),
+               cpu_s_per_step_per_thread=float(np.median(wcpu)) / torch.get_num_threads(),
+               prep_s_per_sample=t_prep / args.batch, ref_dropout=args.ref_dropout)
+    print(json.dumps(res))
+    return res
+
+
+def add_common(p: argparse.ArgumentParser):
+    p.add_argument("--data", required=True, help="exported dataset folder, or synthetic[:N]")
+    p.add_argument("--out", required=True, help="run folder (checkpoint.pt, log.csv, run.json)")
+    p.add_argument("--config", default="nano", help="model config (nano.py): nano or test")
+    p.add_argument("--steps", type=int, default=10000)
+    p.add_argument("--batch", type=int, default=8)
+    p.add_argument("--lr", type=float, default=1e-4)
+    p.add_argument("--weight-decay", type=float, default=1e-2)
+    p.add_argument("--warmup", type=int, default=500)
+    p.add_argument("--clip", type=float, default=1.0)
+    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--threads", type=int, default=None, help="CPU threads (default: all cores)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--ckpt-every", type=int, default=250)
+    p.add_argument("--log-every", type=int, default=10)
+    p.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.pt")
+    p.add_argument("--stop-after", type=int, default=0,
+                   help="stop after this many steps of this invocation (the schedule still spans --steps)")
+    p.add_argument("--fixed-batch", action="store_true", help="always samples 0..B-1 (overfit check)")
+
+
+def main(argv=None):
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "export":
+        p = argparse.ArgumentParser(prog="python -m b2dr_ref.train export")
+        p.add_argument("--run", required=True)
+        p.add_argument("--out", required=True)
+        p.add_argument("--dtype", default="f16", choices=["f16", "f32"])
+        p.add_argument("--vae", default=None, help="VAE folder (default: the one the run trained with)")
+        p.add_argument("--no-ema", action="store_true", help="export the raw weights even when the run kept an EMA")
+        return export(p.parse_args(argv[1:]))
+    if argv and argv[0] == "bench":
+        p = argparse.ArgumentParser(prog="python -m b2dr_ref.train bench")
+        p.add_argument("--config", default="nano")
+        p.add_argument("--batch", type=int, default=8)
+        p.add_argument("--steps", type=int, default=6)
+        p.add_argument("--threads", type=int, default=None)
+        p.add_argument("--device", default="cpu")
+        p.add_argument("--ref-dropout", type=float, default=0.0, help="0 = every row uses references (worst case)")
+        return bench(p.parse_args(argv[1:]))
+    p = argparse.ArgumentParser(prog="python -m b2dr_ref.train")
+    add_common(p)
+    p.add_argument("--vae", default=None, help="the trained VAE folder (vae_train's RUN/vae)")
+    p.add_argument("--ema", type=float, default=0.0, help="EMA decay (0 = off); export uses the EMA when kept")
+    p.add_argument("--p-noprev", type=float, default=0.1, help="probability of 'no previous frame' (z = 0, n = 999)")
+    p.add_argument("--cache", type=int, default=100000, help="samples whose latents + PE are kept in memory")
+    return train(p.parse_args(argv))
+
+
+if __name__ == "__main__":
+    main()

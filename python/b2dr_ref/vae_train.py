@@ -1,0 +1,161 @@
+"""VAE stage of the built-in model (docs/training.md): a small AutoencoderKL (4 blocks = factor 8, 4 latent channels)
+trained on the dataset's target images with an L1 reconstruction loss + a small KL term (LDM style).
+
+    python -m b2dr_ref.vae_train --data DIR --out VAE_RUN [--config nano] [--steps N] [--batch B] [--device cpu|cuda]
+                                 [--crop HxW] [--resume]
+
+Loss per step (LDM's autoencoder without the perceptual / GAN terms): the sums over pixels and latent elements
+per image, averaged over the batch, divided by 3 H W so the figure reads as a per-pixel L1:
+``(sum |x - D(z)| + kl_weight * KL(q(z|x) || N(0, 1))) / (3 H W)``, z sampled from q, kl_weight 1e-6.
+At the end (and at every checkpoint) VAE_RUN/vae/ is written (diffusers folder) with ``scaling_factor`` =
+1 / std of the latent means over up to 256 training images (SD's 0.18215 was found this way); the diffusion stage
+reads that folder with ``--vae VAE_RUN/vae``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+import numpy as np
+import torch
+
+from . import nano
+from .train import CKPT, CsvLog, add_common, lr_lambda, open_source, save_checkpoint, set_threads
+
+
+def build_vae(cfg, seed: int = 0):
+    from diffusers import AutoencoderKL
+
+    torch.manual_seed(seed)
+    return AutoencoderKL(**cfg["vae"])
+
+
+def images(source, idx, device) -> torch.Tensor:
+    x = np.stack([source[i].target for i in idx])
+    return torch.from_numpy(x).float().div(255.0).mul(2.0).sub(1.0).to(device)
+
+
+def parse_crop(text: str):
+    h, w = (int(v) for v in text.lower().split("x"))
+    if h % 8 or w % 8 or h <= 0 or w <= 0:
+        raise argparse.ArgumentTypeError(f"--crop {text}: HxW, multiples of 8")
+    return h, w
+
+
+def random_crop(x: torch.Tensor, hw, gen: torch.Generator) -> torch.Tensor:
+    """One random HxW window (offsets on the 8-pixel grid) of the whole batch; the VAE is convolutional, so
+    training on crops is LDM's usual speed-up."""
+    h, w = hw
+    H, W = x.shape[-2:]
+    if h > H or w > W:
+        raise ValueError(f"crop {h}x{w} larger than the images {H}x{W}")
+    y0 = 8 * int(torch.randint(0, (H - h) // 8 + 1, (1,), generator=gen))
+    x0 = 8 * int(torch.randint(0, (W - w) // 8 + 1, (1,), generator=gen))
+    return x[..., y0:y0 + h, x0:x0 + w]
+
+
+def vae_loss(vae, x, gen: torch.Generator, kl_weight: float):
+    post = vae.encode(x).latent_dist
+    eps = torch.randn(post.mean.shape, generator=gen).to(x.device)
+    z = post.mean + post.std * eps
+    rec = vae.decode(z).sample
+    per_pixel = float(np.prod(x.shape[1:]))
+    l1 = (rec - x).abs().flatten(1).sum(1).mean()
+    kl = post.kl().mean()
+    return (l1 + kl_weight * kl) / per_pixel, (l1 / per_pixel).detach(), kl.detach()
+
+
+@torch.no_grad()
+def measure_scaling(vae, source, device, n: int = 256, batch: int = 16) -> float:
+    zs = []
+    idx = list(range(min(n, len(source))))
+    for i in range(0, len(idx), batch):
+        zs.append(vae.encode(images(source, idx[i:i + batch], device)).latent_dist.mean.float().cpu())
+    std = torch.cat(zs).std().item()
+    return 1.0 / max(std, 1e-6)
+
+
+def save_vae(vae, source, out: str, device):
+    was = vae.training
+    vae.eval()
+    sf = measure_scaling(vae, source, device)
+    vae.register_to_config(scaling_factor=float(sf))
+    vae.save_pretrained(os.path.join(out, "vae"), safe_serialization=True)
+    vae.train(was)
+    return sf
+
+
+def train_vae(args):
+    device = torch.device(args.device)
+    set_threads(args.device, args.threads)
+    os.makedirs(args.out, exist_ok=True)
+    ck_path = os.path.join(args.out, CKPT)
+    ck = torch.load(ck_path, map_location="cpu", weights_only=False) if args.resume and os.path.exists(ck_path) \
+        else None
+    cfg = ck["cfg"] if ck else nano.get_config(args.config)
+    nano.check_config(cfg)
+    source = open_source(args.data, cfg["render_size"])
+    vae = build_vae(cfg, args.seed).to(device).train()
+    opt = torch.optim.AdamW(vae.parameters(), lr=args.lr, weight_decay=args.weight_decay)
+    total = ck["total_steps"] if ck else args.steps
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_lambda(args.warmup, total))
+    gen = torch.Generator().manual_seed(args.seed)
+    step = 0
+    if ck:
+        vae.load_state_dict(ck["vae"])
+        opt.load_state_dict(ck["optimizer"])
+        sched.load_state_dict(ck["lr_scheduler"])
+        gen.set_state(ck["generator"])
+        torch.set_rng_state(ck["torch_rng"])
+        step = ck["step"]
+    steps = max(args.steps, step)
+    if args.stop_after:
+        steps = min(steps, step + args.stop_after)
+    log = CsvLog(os.path.join(args.out, "log.csv"), ["step", "loss", "l1", "kl", "lr", "sec"], step)
+    losses = []
+    try:
+        while step < steps:
+            t0 = time.perf_counter()
+            idx = list(range(args.batch)) if args.fixed_batch else \
+                torch.randint(0, len(source), (args.batch,), generator=gen).tolist()
+            x = images(source, idx, device)
+            if args.crop:
+                x = random_crop(x, args.crop, gen)
+            loss, l1, kl = vae_loss(vae, x, gen, args.kl_weight)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            torch.nn.utils.clip_grad_norm_(vae.parameters(), args.clip)
+            opt.step()
+            sched.step()
+            step += 1
+            losses.append(float(loss.detach()))
+            log.write(dict(step=step, loss=f"{losses[-1]:.6f}", l1=f"{float(l1):.6f}", kl=f"{float(kl):.3f}",
+                           lr=f"{sched.get_last_lr()[0]:.3e}", sec=f"{time.perf_counter() - t0:.3f}"))
+            if step % args.log_every == 0:
+                print(f"vae step {step} loss {losses[-1]:.4f} kl {float(kl):.1f}", flush=True)
+            if step % args.ckpt_every == 0 or step == steps:
+                save_checkpoint(ck_path, dict(cfg=cfg, total_steps=total, step=step, vae=vae.state_dict(),
+                                              optimizer=opt.state_dict(), lr_scheduler=sched.state_dict(),
+                                              generator=gen.get_state(), torch_rng=torch.get_rng_state()))
+                sf = save_vae(vae, source, args.out, device)
+                print(f"vae step {step}: wrote {os.path.join(args.out, 'vae')} (scaling_factor {sf:.5f})", flush=True)
+    finally:
+        log.close()
+    return losses
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog="python -m b2dr_ref.vae_train")
+    add_common(p)
+    p.set_defaults(lr=2e-4, warmup=200, ckpt_every=500)
+    p.add_argument("--kl-weight", type=float, default=1e-6)
+    p.add_argument("--crop", type=parse_crop, default=None,
+                   help="train on random HxW crops (multiples of 8), e.g. 56x104: ~4x cheaper steps")
+    return train_vae(p.parse_args(sys.argv[1:] if argv is None else argv))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,161 @@
+"""Smoke tests of the training recipe (b2dr_ref.train, b2dr_ref.vae_train) on the synthetic source, test config."""
+
+import csv
+import json
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from b2dr_ref import nano, pe
+from b2dr_ref import train as T
+from b2dr_ref import vae_train as V
+
+COMMON = ["--config", "test", "--threads", "1", "--log-every", "1000"]
+
+
+def read_log(run):
+    with open(os.path.join(run, "log.csv")) as f:
+        return [float(r["loss"]) for r in csv.DictReader(f)]
+
+
+@pytest.fixture(scope="module")
+def vae_run(tmp_path_factory):
+    out = str(tmp_path_factory.mktemp("vae"))
+    losses = V.main(["--data", "synthetic:4", "--out", out, "--steps", "20", "--batch", "2", "--lr", "2e-3",
+                     "--warmup", "2", "--fixed-batch", "--ckpt-every", "1000"] + COMMON)
+    return out, losses
+
+
+def test_vae_stage_overfits(vae_run):
+    out, losses = vae_run
+    assert all(np.isfinite(losses))
+    assert np.mean(losses[-3:]) < 0.7 * np.mean(losses[:3])
+    with open(os.path.join(out, "vae", "config.json")) as f:
+        cfg = json.load(f)
+    assert len(cfg["block_out_channels"]) == 4 and cfg["latent_channels"] == 4
+    assert cfg["scaling_factor"] > 0 and cfg["scaling_factor"] != 1.0   # measured
+
+
+def diffusion(vae_dir, out, *extra):
+    return T.main(["--data", "synthetic:6", "--vae", vae_dir, "--out", out, "--batch", "3", "--warmup", "2",
+                   "--ckpt-every", "1000"] + COMMON + list(extra))
+
+
+def test_diffusion_stage_overfits(vae_run, tmp_path):
+    losses = diffusion(os.path.join(vae_run[0], "vae"), str(tmp_path / "run"), "--steps", "20", "--lr", "2e-3",
+                       "--fixed-batch")
+    assert len(losses) == 20 and all(np.isfinite(losses))
+    assert np.mean(losses[-5:]) < 0.85 * np.mean(losses[:5])
+    assert read_log(str(tmp_path / "run")) == pytest.approx(losses, abs=1e-6)
+
+
+def test_resume_continues_exactly(vae_run, tmp_path):
+    vae = os.path.join(vae_run[0], "vae")
+    full = diffusion(vae, str(tmp_path / "a"), "--steps", "4", "--ema", "0.9")
+    first = diffusion(vae, str(tmp_path / "b"), "--steps", "4", "--stop-after", "2", "--ema", "0.9")
+    rest = diffusion(vae, str(tmp_path / "b"), "--steps", "4", "--resume", "--ema", "0.9")
+    assert len(first) == 2 and len(rest) == 2
+    assert first + rest == pytest.approx(full, rel=1e-6, abs=1e-7)
+    assert read_log(str(tmp_path / "b")) == pytest.approx(full, rel=1e-6, abs=1e-6)
+    a = torch.load(str(tmp_path / "a" / T.CKPT), weights_only=False)
+    b = torch.load(str(tmp_path / "b" / T.CKPT), weights_only=False)
+    assert a["step"] == b["step"] == 4
+    for k in a["controlnet"]:
+        torch.testing.assert_close(a["controlnet"][k], b["controlnet"][k], rtol=1e-5, atol=1e-6)
+
+
+def test_vae_resume_continues_exactly(tmp_path):
+    args = ["--data", "synthetic:4", "--steps", "4", "--batch", "2", "--warmup", "1", "--ckpt-every", "1000",
+            "--crop", "32x48"] + COMMON
+    full = V.main(args + ["--out", str(tmp_path / "a")])
+    first = V.main(args + ["--out", str(tmp_path / "b"), "--stop-after", "2"])
+    rest = V.main(args + ["--out", str(tmp_path / "b"), "--resume"])
+    assert first + rest == pytest.approx(full, rel=1e-6, abs=1e-7)
+
+
+def test_export_round_trip(vae_run, tmp_path):
+    from b2dr_ref.controlnet import B2DRControlNetModel
+    from b2dr_ref.package import load_package
+
+    run = str(tmp_path / "run")
+    diffusion(os.path.join(vae_run[0], "vae"), run, "--steps", "2")
+    model = str(tmp_path / "model")
+    size = T.main(["export", "--run", run, "--out", model, "--dtype", "f16"])
+    assert size < 30e6
+    pkg = load_package(model)
+    assert pkg.meta["dtype"] == "f16" and pkg.meta["sampler"] == "unipc" and pkg.meta["steps"] == 20
+    assert pkg.meta["ref_guidance"] == 2.0 and pkg.meta["render_size"] == nano.TEST["render_size"]
+    assert pkg.meta["cameras"] == ["CAM_FRONT", "CAM_BACK"]
+    assert isinstance(pkg.controlnet, B2DRControlNetModel)
+    with open(os.path.join(model, "controlnet", "config.json")) as f:
+        cfg = json.load(f)
+    assert cfg["_class_name"] == "B2DRControlNetModel"
+    B2DRControlNetModel.from_config(cfg)                      # parses strictly
+    assert tuple(pkg.context.shape) == (2, 77, nano.TEST["context_dim"])
+    ck = torch.load(os.path.join(run, T.CKPT), weights_only=False)
+    for k, v in ck["controlnet"].items():
+        torch.testing.assert_close(pkg.controlnet.state_dict()[k], v.half().float())
+    torch.testing.assert_close(pkg.context, ck["context"].half().float())
+
+
+def test_pe_vectorised_matches_pe_py():
+    cfg = pe.PeConfig(depth_num=4)
+    s = T.SyntheticSource(n=1, render_size=(56, 104))[0]
+    m = pe.cam2cur(s.cam2ego, s.ref_ego2global[0], s.ego2global)
+    for grid in (pe.PixelGrid.CENTRE, pe.PixelGrid.PETR_CORNER):
+        cfg.grid = grid
+        ref = pe.position_encoding(s.k, 104, 56, m, 4, 7, cfg)
+        np.testing.assert_allclose(T.position_encoding_np(s.k, 104, 56, m, 4, 7, cfg), ref, rtol=1e-5, atol=1e-5)
+
+
+def test_dataset_adapter():
+    class FakeSet:
+        cameras = ["CAM_FRONT", "CAM_BACK", "CAM_LEFT"]
+        mask_channels = list(T.MASK_CHANNELS)
+        height, width = 16, 24
+
+        def __len__(self):
+            return 2
+
+        def __getitem__(self, f):
+            c = len(self.cameras)
+            r = np.random.default_rng(f)
+            return {"target": r.integers(0, 255, (c, 3, 16, 24), dtype=np.uint8),
+                    "prev": r.integers(0, 255, (c, 3, 16, 24), dtype=np.uint8),
+                    "ref": r.integers(0, 255, (c, 2, 3, 16, 24), dtype=np.uint8),
+                    "masks": r.integers(0, 2, (c, 15, 16, 24), dtype=np.uint8),
+                    "intrinsics": np.tile(np.eye(3), (c, 1, 1)) * (f + 1), "cam2ego": np.tile(np.eye(4), (c, 1, 1)),
+                    "ego2global": np.tile(np.eye(4), (c, 1, 1)), "prev_ego2global": np.tile(np.eye(4), (c, 1, 1)),
+                    "ref_ego2global": np.tile(np.eye(4), (c, 2, 1, 1)), "cameras": self.cameras}
+
+    fake = FakeSet()
+    src = T.DatasetSource(ds=fake)
+    assert len(src) == 6 and src.render_size == (16, 24) and src.cameras == fake.cameras
+    s = src[4]                                                   # frame 1, camera 1
+    assert s.camera == "CAM_BACK" and s.refs.shape == (2, 3, 16, 24) and s.masks.shape == (15, 16, 24)
+    np.testing.assert_array_equal(s.target, fake[1]["target"][1])
+    assert s.k[0, 0] == 2.0
+
+
+def test_nano_config_is_engine_shaped():
+    from diffusers import AutoencoderKL, UNet2DConditionModel
+
+    from b2dr_ref.controlnet import B2DRControlNetModel
+
+    cfg = nano.get_config("nano")
+    nano.check_config(cfg)
+    assert cfg["render_size"] == [112, 200]
+    cn = B2DRControlNetModel.from_config(cfg["controlnet"])
+    assert list(cn.config.ref_attn) == ["down.0", "down.1", "down.2", "down.3", "mid"]
+    unet = UNet2DConditionModel(**cfg["unet"])
+    vae = AutoencoderKL(**cfg["vae"])
+    heads = cfg["unet"]["attention_head_dim"]
+    for c, h in zip(cfg["unet"]["block_out_channels"], heads):
+        assert c % h == 0 and (c // h) % 4 == 0
+    n = sum(p.numel() for m in (unet, cn, vae) for p in m.parameters())
+    assert n * 2 < 30e6                                          # the f16 package stays small
+    with torch.no_grad():
+        z = vae.encode(torch.zeros(1, 3, 112, 200)).latent_dist.mean
+    assert tuple(z.shape) == (1, 4, 14, 25)

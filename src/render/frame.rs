@@ -1,0 +1,584 @@
+//! One Bench2Drive-R frame on the device (`docs/b2dr_controlnet.md` sections 3 and 4), planned once per
+//! shape and replayed every frame:
+//! - `prev`: previous frame (N, 3, H, W) -> Gaussian blur -> 2x - 1 -> VAE encode -> posterior mean x scaling
+//!   -> `sqrt(abar_n) z + sqrt(1 - abar_n) eps_prev` -> model dtype, repeated for each guidance half;
+//! - `cond`: the masks' conditioning embedding, the noise-level embedding, and with references their VAE
+//!   latents -> reference encoder, the position-encoding MLPs and the Ref-Attn keys/values (once per frame);
+//! - the sampler half ([`Sampler`]) with the B2D-R denoiser (UNet + B2D-R ControlNet; batch `[no-ref; ref]`
+//!   under reference guidance), then the VAE decode to [0, 1], which stays on the device: the next frame's
+//!   `prev` can be copied from it (`Prev::Carried`) without leaving the device;
+//! - optionally a bicubic upsample of the decoded frame (the planner's size).
+use anyhow::{bail, ensure, Context as _, Result};
+
+use crate::nn::b2dr::{B2drControlNet, FrameTensors, PreparedFrame, RefRows};
+use crate::nn::device::{Fwd, Workspace};
+use crate::nn::pipeline::{Denoiser, Sampler};
+use crate::nn::unet::{Residuals, UNet};
+use crate::nn::vae::{VaeDecoder, VaeEncoder};
+use crate::ops::elementwise::{self as ew, lincomb, LinTerm};
+use crate::ops::{blur, cast, resample};
+use crate::sampling::{NoiseSchedule, SamplerPlan};
+use crate::tensor::{DType, Tensor};
+use crate::vk::{Context, Recording};
+
+/// The noise level used when a frame has no previous frame (its latent input is zero): the end of the
+/// schedule, where the noised latent carries no information.
+pub const NO_PREV_NOISE_LEVEL: usize = 999;
+
+/// The model on the device: what a frame needs.
+pub struct B2drModel<'a> {
+    pub unet: &'a UNet,
+    pub control: &'a B2drControlNet,
+    pub vae_encoder: &'a VaeEncoder,
+    pub vae_decoder: &'a VaeDecoder,
+    pub scaling_factor: f64,
+    pub dtype: DType,
+}
+
+/// The shape and options of a planned frame.
+#[derive(Clone, Debug)]
+pub struct FrameShape {
+    /// Cameras N.
+    pub cameras: usize,
+    /// Render size (H, W), multiples of 8.
+    pub size: (usize, usize),
+    /// Whether the frame uses references (Ref-Attn); false is the masks-only model.
+    pub refs: bool,
+    /// Reference guidance scale w (used with references; 1 runs the reference half only).
+    pub ref_guidance: f64,
+    /// Optional bicubic upsample of the decoded frame (H', W').
+    pub out_size: Option<(usize, usize)>,
+}
+
+/// The previous frame of a frame.
+pub enum Prev<'a> {
+    /// An image (N, 3, H, W) in [0, 1] (the recorded frame at the first step, or any given image).
+    Image(&'a [f32]),
+    /// The frame this renderer decoded last (it stayed on the device).
+    Carried,
+    /// No previous frame: the latent input is zero and the noise level [`NO_PREV_NOISE_LEVEL`].
+    None,
+}
+
+/// The references of a frame: images (N, 2, 3, H, W) in [0, 1] (front, rear per camera) and per Ref-Attn
+/// location the PETR geometry `pe_cur: (N, 3D, h_j, w_j)`, `pe_ref: (N, 2, 3D, h_j, w_j)`.
+pub struct RefInputs<'a> {
+    pub images: &'a [f32],
+    pub pe_cur: Vec<&'a [f32]>,
+    pub pe_ref: Vec<&'a [f32]>,
+}
+
+/// One frame's host inputs.
+pub struct FrameInputs<'a> {
+    /// (N, 15, H, W) in {0, 1}
+    pub masks: &'a [f32],
+    pub prev: Prev<'a>,
+    /// Required iff the shape has references.
+    pub refs: Option<RefInputs<'a>>,
+    /// Initial latent (N, 4, h, w).
+    pub x_t: &'a [f32],
+    /// The noise of the previous-frame latent (N, 4, h, w).
+    pub eps_prev: &'a [f32],
+}
+
+/// Wall time per stage of one frame (milliseconds; each stage ends with a fence wait).
+#[derive(Clone, Debug, Default, serde::Serialize)]
+pub struct FrameTimes {
+    pub encode_ms: f64,
+    pub denoise_ms: f64,
+    pub decode_ms: f64,
+}
+
+struct B2drDenoiser<'a> {
+    unet: &'a UNet,
+    control: &'a B2drControlNet,
+    context: &'a Tensor,
+    zprev: &'a Tensor,
+    frame: &'a PreparedFrame,
+    rows: RefRows,
+}
+
+impl Denoiser for B2drDenoiser<'_> {
+    fn record(&self, f: &mut Fwd, x: &Tensor, t: &Tensor) -> Result<Tensor> {
+        let s = x.shape();
+        let x8 = f.ws.alloc(&[s[0], 8, s[2], s[3]])?;
+        ew::concat_channels(f.rec, x, self.zprev, &x8)?;
+        let res = self
+            .control
+            .forward(f, &x8, t, self.context, self.frame, self.rows, 1.0)?;
+        f.ws.release(x8);
+        self.unet.forward(
+            f,
+            x,
+            t,
+            self.context,
+            Some(Residuals {
+                down: &res.down,
+                mid: &res.mid,
+            }),
+        )
+    }
+}
+
+/// A planned Bench2Drive-R frame (see the module docs).
+pub struct FrameRenderer {
+    ctx: Context,
+    shape: FrameShape,
+    latent: (usize, usize),
+    noise_level: usize,
+    abar: Vec<f64>,
+    // host-written inputs
+    masks: Tensor,
+    prev_img: Tensor,
+    eps_prev: Tensor,
+    noise_t: Tensor,
+    ref_imgs: Option<Tensor>,
+    pe_cur: Vec<Tensor>,
+    pe_ref: Vec<Tensor>,
+    /// The repeated, noised previous-frame latent in the model dtype (mb, 4, h, w).
+    zprev: Tensor,
+    /// The noised latent before the cast (N, 4, h, w) f32 (kept for checks).
+    zprev32: Tensor,
+    prev_rec: Recording,
+    cond_rec: Recording,
+    carry: Recording,
+    sampler: Sampler,
+    upsample: Option<(Recording, Tensor)>,
+    _ws: Workspace,
+    _vws: Workspace,
+    _prepared: PreparedFrame,
+    /// Device bytes in use once planned (weights excluded).
+    pub planned_bytes: u64,
+}
+
+impl FrameRenderer {
+    /// Plans a frame. `context`: (N, L, D) text embedding rows (one per camera); `plan`: the sampler plan.
+    pub fn new(
+        ctx: &Context,
+        m: &B2drModel,
+        shape: FrameShape,
+        context: &[f32],
+        plan: SamplerPlan,
+    ) -> Result<Self> {
+        let cfg = &m.control.cfg;
+        let (ih, iw) = shape.size;
+        let n = shape.cameras;
+        ensure!(n >= 1, "render: no cameras");
+        ensure!(
+            ih >= 8 && iw >= 8 && ih % 8 == 0 && iw % 8 == 0,
+            "render: size {ih}x{iw} must be multiples of 8"
+        );
+        ensure!(
+            shape.ref_guidance.is_finite() && shape.ref_guidance > 0.0,
+            "render: reference guidance {} must be a finite number > 0",
+            shape.ref_guidance
+        );
+        let (h, w) = (ih / 8, iw / 8);
+        let guided = shape.refs && shape.ref_guidance != 1.0;
+        let mb = if guided { 2 * n } else { n };
+        let rows = match (shape.refs, guided) {
+            (false, _) => RefRows::None,
+            (true, false) => RefRows::All,
+            (true, true) => RefRows::SecondHalf,
+        };
+        let before = ctx.allocated_bytes();
+        let dt = m.dtype;
+        let f32t = |s: &[usize], name: &str| Tensor::zeros(ctx, s, DType::F32, name);
+        let masks32 = f32t(&[n, 15, ih, iw], "masks")?;
+        let prev_img = f32t(&[n, 3, ih, iw], "prev image")?;
+        let eps_prev = f32t(&[n, 4, h, w], "eps prev")?;
+        let noise_t = f32t(&[1], "noise level")?;
+        let zprev32 = f32t(&[n, 4, h, w], "z prev")?;
+        let zprev = Tensor::zeros(ctx, &[mb, 4, h, w], dt, "z prev (model dtype)")?;
+        let uc = &m.unet.cfg.enc;
+        let l = context.len() / (n * uc.cross_attention_dim).max(1);
+        ensure!(
+            l >= 1 && context.len() == n * l * uc.cross_attention_dim,
+            "render: context has {} values, not ({n}, L, {})",
+            context.len(),
+            uc.cross_attention_dim
+        );
+        let mut crep = vec![];
+        for _ in 0..mb / n {
+            crep.extend_from_slice(context);
+        }
+        let ctx_t = Tensor::from_f32(ctx, &[mb, l, uc.cross_attention_dim], dt, &crep, "context")?;
+        let ones = Tensor::from_f32(
+            ctx,
+            &[n * 2, 3, ih, iw],
+            DType::F32,
+            &vec![1.0; n * 2 * 3 * ih * iw],
+            "ones",
+        )?;
+        let mut vws = Workspace::new(ctx, DType::F32);
+        let mut ws = Workspace::new(ctx, dt);
+        let sched = NoiseSchedule::sd15();
+        let abar: Vec<f64> = sched.alphas_cumprod().to_vec();
+        let noise_level = cfg.prev_noise_level;
+
+        // VAE encode of images in [0, 1] -> (M, 4, h, w) f32 = posterior mean x scaling.
+        let encode = |rec: &mut crate::vk::Recorder,
+                      vws: &mut Workspace,
+                      img: &Tensor|
+         -> Result<Tensor> {
+            let s = img.shape().to_vec();
+            let ones = ones.reshape(&[2 * n * 3 * ih * iw])?;
+            let ones = if s[0] == 2 * n {
+                ones.reshape(&s)?
+            } else {
+                // the first n images' worth of ones
+                let o = vws.alloc(&s)?;
+                lincomb(
+                    rec,
+                    &[LinTerm {
+                        x: &ones,
+                        offset: 0,
+                        coeff: 1.0,
+                    }],
+                    &o,
+                    0,
+                    o.numel(),
+                )?;
+                o
+            };
+            let x = vws.alloc(&s)?;
+            ew::scale_add(rec, 2.0, img, -1.0, &ones, &x)?;
+            let mom = m.vae_encoder.forward(&mut Fwd { rec, ws: vws }, &x)?;
+            vws.release(x);
+            let ms = mom.shape().to_vec();
+            ensure!(
+                ms[1] == 8 && ms[2] == h && ms[3] == w,
+                "render: the VAE encodes {ih}x{iw} to {ms:?}; the model needs (M, 8, {h}, {w}) (a VAE that \
+                 downsamples by 8 with 4 latent channels)"
+            );
+            let z = vws.alloc(&[s[0], 4, h, w])?;
+            let plane = 4 * h * w;
+            for k in 0..s[0] {
+                lincomb(
+                    rec,
+                    &[LinTerm {
+                        x: &mom,
+                        offset: k * 2 * plane,
+                        coeff: m.scaling_factor as f32,
+                    }],
+                    &z,
+                    k * plane,
+                    plane,
+                )?;
+            }
+            vws.release(mom);
+            Ok(z)
+        };
+
+        // prev chain
+        let prev_rec = {
+            let mut rec = ctx.recorder()?;
+            let tmp = vws.alloc(&[n, 3, ih, iw])?;
+            let bl = vws.alloc(&[n, 3, ih, iw])?;
+            blur::gaussian_blur(&mut rec, &prev_img, cfg.prev_blur_sigma as f32, &tmp, &bl)?;
+            vws.release(tmp);
+            let z = encode(&mut rec, &mut vws, &bl)?;
+            vws.release(bl);
+            let a = abar[noise_level.min(abar.len() - 1)];
+            lincomb(
+                &mut rec,
+                &[
+                    LinTerm {
+                        x: &z,
+                        offset: 0,
+                        coeff: (a as f32).sqrt(),
+                    },
+                    LinTerm {
+                        x: &eps_prev,
+                        offset: 0,
+                        coeff: (1.0 - a as f32).sqrt(),
+                    },
+                ],
+                &zprev32,
+                0,
+                z.numel(),
+            )?;
+            vws.release(z);
+            let zc = ws.alloc(&[n, 4, h, w])?;
+            cast::cast(&mut rec, &zprev32, &zc)?;
+            for k in 0..mb / n {
+                lincomb(
+                    &mut rec,
+                    &[LinTerm {
+                        x: &zc,
+                        offset: 0,
+                        coeff: 1.0,
+                    }],
+                    &zprev,
+                    k * zc.numel(),
+                    zc.numel(),
+                )?;
+            }
+            ws.release(zc);
+            rec.finish()?
+        };
+
+        // the frame-constant conditioning
+        let masks = Tensor::zeros(ctx, &[n, 15, ih, iw], dt, "masks (model dtype)")?;
+        let mut ref_imgs = None;
+        let mut pe_cur = vec![];
+        let mut pe_ref = vec![];
+        let (cond_rec, prepared) = {
+            let mut rec = ctx.recorder()?;
+            cast::cast(&mut rec, &masks32, &masks)?;
+            let d3 = 3 * cfg.pe_depth_num;
+            let lat = if shape.refs {
+                let imgs = f32t(&[2 * n, 3, ih, iw], "reference images")?;
+                let z = encode(&mut rec, &mut vws, &imgs)?;
+                let zc = Tensor::zeros(ctx, &[2 * n, 4, h, w], dt, "reference latents")?;
+                cast::cast(&mut rec, &z, &zc)?;
+                vws.release(z);
+                ref_imgs = Some(imgs);
+                for &at in &cfg.ref_attn {
+                    let (fh, fw) = cfg.location_size(at, (h, w));
+                    let c32 = f32t(&[n, d3, fh, fw], "pe cur")?;
+                    let r32 = f32t(&[2 * n, d3, fh, fw], "pe ref")?;
+                    pe_cur.push(c32);
+                    pe_ref.push(r32);
+                }
+                Some(zc)
+            } else {
+                None
+            };
+            let mut pcur_md = vec![];
+            let mut pref_md = vec![];
+            for (c32, r32) in pe_cur.iter().zip(&pe_ref) {
+                let c = Tensor::zeros(ctx, c32.shape(), dt, "pe cur (model dtype)")?;
+                let r = Tensor::zeros(ctx, r32.shape(), dt, "pe ref (model dtype)")?;
+                cast::cast(&mut rec, c32, &c)?;
+                cast::cast(&mut rec, r32, &r)?;
+                pcur_md.push(c);
+                pref_md.push(r);
+            }
+            let ft = FrameTensors {
+                masks: &masks,
+                noise_level: &noise_t,
+                refs: lat.as_ref().map(|l| (l, &pcur_md[..], &pref_md[..])),
+            };
+            let prepared = m.control.prepare(
+                &mut Fwd {
+                    rec: &mut rec,
+                    ws: &mut ws,
+                },
+                &ft,
+            )?;
+            (rec.finish()?, prepared)
+        };
+
+        let den = B2drDenoiser {
+            unet: m.unet,
+            control: m.control,
+            context: &ctx_t,
+            zprev: &zprev,
+            frame: &prepared,
+            rows,
+        };
+        let sampler = Sampler::new(
+            ctx,
+            &mut ws,
+            &den,
+            Some((m.vae_decoder, m.scaling_factor)),
+            n,
+            (h, w),
+            guided.then_some(shape.ref_guidance),
+            plan,
+        )?;
+        let img = sampler.image().context("decode")?.clone();
+        ensure!(
+            img.shape() == [n, 3, ih, iw],
+            "render: the VAE decodes to {:?}, expected ({n}, 3, {ih}, {iw})",
+            img.shape()
+        );
+        let carry = {
+            let mut rec = ctx.recorder()?;
+            lincomb(
+                &mut rec,
+                &[LinTerm {
+                    x: &img,
+                    offset: 0,
+                    coeff: 1.0,
+                }],
+                &prev_img,
+                0,
+                img.numel(),
+            )?;
+            rec.finish()?
+        };
+        let upsample = match shape.out_size {
+            None => None,
+            Some((oh, ow)) => {
+                ensure!(oh >= 1 && ow >= 1, "render: empty output size");
+                let out = Tensor::zeros(ctx, &[n, 3, oh, ow], DType::F32, "upsampled")?;
+                let mut rec = ctx.recorder()?;
+                resample::resize_bicubic(&mut rec, &img, &out, (oh, ow))?;
+                Some((rec.finish()?, out))
+            }
+        };
+        let planned_bytes = ctx.allocated_bytes().saturating_sub(before);
+        Ok(Self {
+            ctx: ctx.clone(),
+            shape,
+            latent: (h, w),
+            noise_level,
+            abar,
+            masks: masks32,
+            prev_img,
+            eps_prev,
+            noise_t,
+            ref_imgs,
+            pe_cur,
+            pe_ref,
+            zprev,
+            zprev32,
+            prev_rec,
+            cond_rec,
+            carry,
+            sampler,
+            upsample,
+            _ws: ws,
+            _vws: vws,
+            _prepared: prepared,
+            planned_bytes,
+        })
+    }
+
+    pub fn shape(&self) -> &FrameShape {
+        &self.shape
+    }
+
+    /// Latent (h, w).
+    pub fn latent_size(&self) -> (usize, usize) {
+        self.latent
+    }
+
+    /// `abar` of the SD1.5 schedule at the configured previous-frame noise level.
+    pub fn prev_alpha_bar(&self) -> f64 {
+        self.abar[self.noise_level]
+    }
+
+    fn write(&self, t: &Tensor, v: &[f32], what: &str) -> Result<()> {
+        ensure!(
+            v.len() == t.numel(),
+            "render: {what} has {} values, expected {} {:?}",
+            v.len(),
+            t.numel(),
+            t.shape()
+        );
+        ensure!(
+            v.iter().all(|x| x.is_finite()),
+            "render: {what} holds NaN or infinite values"
+        );
+        t.write_f32(&self.ctx, v)
+    }
+
+    /// Renders one frame; the decoded [0, 1] image (N, 3, H, W) stays on the device ([`Self::image`]).
+    pub fn render(&self, x: &FrameInputs) -> Result<FrameTimes> {
+        let t0 = std::time::Instant::now();
+        self.write(&self.masks, x.masks, "masks (N, 15, H, W)")?;
+        self.write(
+            &self.eps_prev,
+            x.eps_prev,
+            "previous-frame noise (N, 4, h, w)",
+        )?;
+        let level = match x.prev {
+            Prev::None => NO_PREV_NOISE_LEVEL,
+            _ => self.noise_level,
+        };
+        self.noise_t.write_f32(&self.ctx, &[level as f32])?;
+        match x.prev {
+            Prev::Image(img) => {
+                self.write(&self.prev_img, img, "previous frame (N, 3, H, W)")?;
+                self.prev_rec
+                    .submit_wait()
+                    .context("previous-frame chain")?;
+            }
+            Prev::Carried => {
+                self.carry.submit_wait()?;
+                self.prev_rec
+                    .submit_wait()
+                    .context("previous-frame chain")?;
+            }
+            Prev::None => {
+                self.zprev
+                    .write_f32(&self.ctx, &vec![0.0; self.zprev.numel()])?;
+                self.zprev32
+                    .write_f32(&self.ctx, &vec![0.0; self.zprev32.numel()])?;
+            }
+        }
+        match (&x.refs, &self.ref_imgs) {
+            (Some(r), Some(t)) => {
+                self.write(t, r.images, "reference images (N, 2, 3, H, W)")?;
+                ensure!(
+                    r.pe_cur.len() == self.pe_cur.len() && r.pe_ref.len() == self.pe_ref.len(),
+                    "render: {} / {} position encodings for {} Ref-Attn locations",
+                    r.pe_cur.len(),
+                    r.pe_ref.len(),
+                    self.pe_cur.len()
+                );
+                for (j, (c, rr)) in r.pe_cur.iter().zip(&r.pe_ref).enumerate() {
+                    self.write(&self.pe_cur[j], c, &format!("pe_cur[{j}]"))?;
+                    self.write(&self.pe_ref[j], rr, &format!("pe_ref[{j}]"))?;
+                }
+            }
+            (None, None) => {}
+            (Some(_), None) => {
+                bail!("render: references given, but the frame was planned without them")
+            }
+            (None, Some(_)) => bail!("render: the frame was planned with references, none given"),
+        }
+        self.cond_rec.submit_wait().context("frame conditioning")?;
+        let t1 = std::time::Instant::now();
+        self.sampler.run(x.x_t, false, false, None)?;
+        let t2 = std::time::Instant::now();
+        self.sampler.decode()?;
+        if let Some((r, _)) = &self.upsample {
+            r.submit_wait().context("bicubic upsample")?;
+        }
+        let t3 = std::time::Instant::now();
+        let ms = |a: std::time::Instant, b: std::time::Instant| (b - a).as_secs_f64() * 1e3;
+        Ok(FrameTimes {
+            encode_ms: ms(t0, t1),
+            denoise_ms: ms(t1, t2),
+            decode_ms: ms(t2, t3),
+        })
+    }
+
+    /// The last decoded frame (N, 3, H, W) in [0, 1], read back.
+    pub fn image(&self) -> Result<Vec<f32>> {
+        self.sampler.image().context("decode")?.to_f32(&self.ctx)
+    }
+
+    /// The last frame upsampled to `out_size` (N, 3, H', W'), when planned with one.
+    pub fn upsampled(&self) -> Result<Option<Vec<f32>>> {
+        self.upsample
+            .as_ref()
+            .map(|(_, t)| t.to_f32(&self.ctx))
+            .transpose()
+    }
+
+    /// The recordings a frame replays, by stage (profiles and dispatch counts): the previous-frame chain and
+    /// the frame conditioning (references, PE MLPs: once per frame), then the sampler's.
+    pub fn recordings(&self) -> Vec<(&'static str, &Recording)> {
+        let mut v = vec![
+            ("previous frame (per frame)", &self.prev_rec),
+            ("conditioning + references (per frame)", &self.cond_rec),
+        ];
+        v.extend(self.sampler.recordings());
+        v
+    }
+
+    /// The last frame's final latent (N, 4, h, w), read back.
+    pub fn latent(&self) -> Result<Vec<f32>> {
+        self.sampler.latent()
+    }
+
+    /// The noised previous-frame latent of the last frame (N, 4, h, w), read back (checks).
+    pub fn prev_latent(&self) -> Result<Vec<f32>> {
+        self.zprev32.to_f32(&self.ctx)
+    }
+}

@@ -1,0 +1,354 @@
+//! The model package (`docs/b2dr_controlnet.md` section 5): `b2dr.json`, `unet/`, `controlnet/` (a B2D-R
+//! ControlNet), `vae/`, `context.safetensors`; and the built-in model with seeded weights.
+use std::path::Path;
+
+use anyhow::{bail, ensure, Context as _, Result};
+use serde::{Deserialize, Serialize};
+
+use super::frame::B2drModel;
+use crate::nn::b2dr::{expected_b2dr, B2drControlNet};
+use crate::nn::b2dr_config::{B2drConfig, ControlNetKind};
+use crate::nn::config::{UNetConfig, VaeConfig};
+use crate::nn::device::DeviceWeights;
+use crate::nn::run::read_component;
+use crate::nn::unet::UNet;
+use crate::nn::vae::{VaeDecoder, VaeEncoder};
+use crate::nn::weights::{expected_unet, expected_vae, FileDType, HostTensor, Weights};
+use crate::tensor::DType;
+use crate::vk::Context;
+
+/// `b2dr.json`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PackageMeta {
+    pub format: String,
+    pub version: u32,
+    /// [H, W]
+    pub render_size: [usize; 2],
+    pub cameras: Vec<String>,
+    pub sampler: String,
+    pub steps: usize,
+    pub ref_guidance: f64,
+    /// Storage dtype of the weights (f32 or f16).
+    pub dtype: String,
+}
+
+impl PackageMeta {
+    pub fn check(&self, where_: &str) -> Result<()> {
+        ensure!(
+            self.format == "b2dr-model" && self.version == 1,
+            "{where_}: format {:?} version {}, expected \"b2dr-model\" version 1",
+            self.format,
+            self.version
+        );
+        let [h, w] = self.render_size;
+        ensure!(
+            h >= 8 && w >= 8 && h % 8 == 0 && w % 8 == 0 && h <= 4096 && w <= 4096,
+            "{where_}: render_size [{h}, {w}] must be multiples of 8 in 8..=4096"
+        );
+        ensure!(
+            !self.cameras.is_empty()
+                && self.cameras.len() <= 64
+                && (1..self.cameras.len()).all(|i| !self.cameras[..i].contains(&self.cameras[i])),
+            "{where_}: cameras must be 1 to 64 distinct names"
+        );
+        ensure!(
+            self.sampler == "unipc" || self.sampler == "ddim",
+            "{where_}: sampler {:?} (unipc or ddim)",
+            self.sampler
+        );
+        ensure!(
+            (1..=1000).contains(&self.steps),
+            "{where_}: steps {} must be in 1..=1000",
+            self.steps
+        );
+        ensure!(
+            self.ref_guidance.is_finite() && self.ref_guidance > 0.0 && self.ref_guidance <= 100.0,
+            "{where_}: ref_guidance {} must be in (0, 100]",
+            self.ref_guidance
+        );
+        ensure!(
+            self.dtype == "f32" || self.dtype == "f16",
+            "{where_}: dtype {:?} (f32 or f16)",
+            self.dtype
+        );
+        Ok(())
+    }
+}
+
+/// A model package on the host.
+#[derive(Clone, Debug)]
+pub struct ModelPackage {
+    pub meta: PackageMeta,
+    pub unet_cfg: UNetConfig,
+    pub unet: Weights,
+    pub control_cfg: B2drConfig,
+    pub control: Weights,
+    pub vae_cfg: VaeConfig,
+    pub vae: Weights,
+    /// "cond": (77, D) (all cameras) or (n_cameras, 77, D) (one per camera of `meta.cameras`).
+    pub context: HostTensor,
+    /// Where it came from (a folder, or `builtin:NAME`).
+    pub source: String,
+}
+
+/// The built-in model names.
+pub const BUILTIN: &[&str] = &["b2dr-tiny"];
+
+impl ModelPackage {
+    /// Reads a package folder; every error names the file.
+    pub fn load(dir: &Path) -> Result<Self> {
+        ensure!(
+            dir.is_dir(),
+            "--model {}: not a folder (a model package holds b2dr.json, unet/, controlnet/, vae/, \
+             context.safetensors)",
+            dir.display()
+        );
+        let mp = dir.join("b2dr.json");
+        let text =
+            std::fs::read_to_string(&mp).with_context(|| format!("reading {}", mp.display()))?;
+        let meta: PackageMeta =
+            serde_json::from_str(&text).with_context(|| format!("{}: invalid", mp.display()))?;
+        meta.check(&mp.display().to_string())?;
+        let comp = |name: &str| -> Result<(serde_json::Value, std::path::PathBuf)> {
+            read_component(&dir.join(name))
+        };
+        let (uj, uw) = comp("unet")?;
+        let unet_cfg = UNetConfig::from_json(uj)
+            .with_context(|| format!("in {}", dir.join("unet/config.json").display()))?;
+        let unet = Weights::load(&uw, &expected_unet(&unet_cfg))?;
+        let cpath = dir.join("controlnet/config.json");
+        let control_cfg = match ControlNetKind::from_file(&cpath)? {
+            ControlNetKind::B2dr(c) => c,
+            ControlNetKind::Plain(_) => bail!(
+                "{}: a plain ControlNetModel; the renderer needs a B2DRControlNetModel (15 mask channels, \
+                 8-channel conv_in, references)",
+                cpath.display()
+            ),
+        };
+        let control = Weights::load(
+            &dir.join("controlnet/diffusion_pytorch_model.safetensors"),
+            &expected_b2dr(&control_cfg),
+        )?;
+        let (vj, vw) = comp("vae")?;
+        let vae_cfg = VaeConfig::from_json(vj)
+            .with_context(|| format!("in {}", dir.join("vae/config.json").display()))?;
+        let vae = Weights::load(&vw, &expected_vae(&vae_cfg))?;
+        let xp = dir.join("context.safetensors");
+        let xw = Weights::from_bytes_unchecked(
+            &std::fs::read(&xp).with_context(|| format!("reading {}", xp.display()))?,
+            &xp.display().to_string(),
+        )?;
+        ensure!(
+            xw.tensors.len() == 1 && xw.tensors.contains_key("cond"),
+            "{}: tensors {:?}, expected only `cond`",
+            xp.display(),
+            xw.tensors.keys().collect::<Vec<_>>()
+        );
+        let context = xw.get("cond")?.clone();
+        let p = Self {
+            meta,
+            unet_cfg,
+            unet,
+            control_cfg,
+            control,
+            vae_cfg,
+            vae,
+            context,
+            source: dir.display().to_string(),
+        };
+        p.check()
+            .with_context(|| format!("model package {}", dir.display()))?;
+        Ok(p)
+    }
+
+    /// Consistency of the parts with each other.
+    pub fn check(&self) -> Result<()> {
+        let d = self.unet_cfg.enc.cross_attention_dim;
+        let s = &self.context.shape;
+        let ok = (s.len() == 2 && s[1] == d && s[0] >= 1)
+            || (s.len() == 3 && s[0] == self.meta.cameras.len() && s[2] == d && s[1] >= 1);
+        ensure!(
+            ok,
+            "context.safetensors: cond {s:?} must be (L, {d}) or ({}, L, {d}) (one per camera)",
+            self.meta.cameras.len()
+        );
+        ensure!(
+            self.context.data.iter().all(|v| v.is_finite()),
+            "context.safetensors: cond holds NaN or infinite values"
+        );
+        let (ue, ce) = (&self.unet_cfg.enc, &self.control_cfg.base.enc);
+        ensure!(
+            ue.block_out_channels == ce.block_out_channels
+                && ue.layers_per_block == ce.layers_per_block
+                && ue.down_blocks == ce.down_blocks
+                && ue.cross_attention_dim == ce.cross_attention_dim,
+            "controlnet/config.json: its encoder (blocks {:?}, layers {}, cross-attention {}) does not match the \
+             UNet's ({:?}, {}, {})",
+            ce.block_out_channels,
+            ce.layers_per_block,
+            ce.cross_attention_dim,
+            ue.block_out_channels,
+            ue.layers_per_block,
+            ue.cross_attention_dim
+        );
+        ensure!(
+            self.vae_cfg.latent_channels == 4 && ue.in_channels == 4,
+            "the VAE must have 4 latent channels and the UNet 4 input channels"
+        );
+        ensure!(
+            self.vae_cfg.block_out_channels.len() == 4,
+            "vae/config.json: {} blocks: the renderer needs a VAE that downsamples by 8 (4 blocks)",
+            self.vae_cfg.block_out_channels.len()
+        );
+        for (what, w) in [
+            ("unet", &self.unet),
+            ("controlnet", &self.control),
+            ("vae", &self.vae),
+        ] {
+            if let Some((n, _)) = w
+                .tensors
+                .iter()
+                .find(|(_, t)| t.data.iter().any(|v| !v.is_finite()))
+            {
+                bail!("{what}/diffusion_pytorch_model.safetensors: tensor `{n}` holds NaN or infinite values");
+            }
+        }
+        Ok(())
+    }
+
+    /// The built-in model `name` (seeded random weights: an untrained renderer for tests and timing).
+    pub fn builtin(name: &str) -> Result<Self> {
+        match name {
+            "b2dr-tiny" => {
+                let unet_cfg = UNetConfig::b2dr_tiny();
+                let control_cfg = B2drConfig::from_unet(&unet_cfg, vec![16, 32, 96, 256]);
+                let vae_cfg = VaeConfig::b2dr_tiny();
+                let d = unet_cfg.enc.cross_attention_dim;
+                let ctxw = Weights::random(&[("cond".to_string(), vec![77, d])], 77);
+                let cameras = crate::scene::import::nuscenes_like_cameras()
+                    .into_iter()
+                    .map(|c| c.name)
+                    .collect();
+                Ok(Self {
+                    meta: PackageMeta {
+                        format: "b2dr-model".into(),
+                        version: 1,
+                        render_size: [112, 200],
+                        cameras,
+                        sampler: "unipc".into(),
+                        steps: 20,
+                        ref_guidance: 2.0,
+                        dtype: "f32".into(),
+                    },
+                    unet: Weights::random(&expected_unet(&unet_cfg), 1),
+                    control: Weights::random(&expected_b2dr(&control_cfg), 4),
+                    vae: Weights::random(&expected_vae(&vae_cfg), 3),
+                    context: ctxw.get("cond")?.clone(),
+                    unet_cfg,
+                    control_cfg,
+                    vae_cfg,
+                    source: format!("builtin:{name} (seeded random weights)"),
+                })
+            }
+            other => bail!("unknown built-in model {other:?} (built-in: {BUILTIN:?})"),
+        }
+    }
+
+    /// Writes the package folder (weights in `dtype`).
+    pub fn save(&self, dir: &Path, dtype: FileDType) -> Result<()> {
+        let write_json = |p: &Path, v: &serde_json::Value| -> Result<()> {
+            std::fs::write(p, serde_json::to_string_pretty(v)?)
+                .with_context(|| format!("writing {}", p.display()))
+        };
+        for (name, cfg, w) in [
+            ("unet", self.unet_cfg.to_json(), &self.unet),
+            ("controlnet", self.control_cfg.to_json(), &self.control),
+            ("vae", self.vae_cfg.to_json(), &self.vae),
+        ] {
+            let d = dir.join(name);
+            std::fs::create_dir_all(&d).with_context(|| format!("creating {}", d.display()))?;
+            write_json(&d.join("config.json"), &cfg)?;
+            w.save(&d.join("diffusion_pytorch_model.safetensors"), dtype)?;
+        }
+        let mut meta = self.meta.clone();
+        meta.dtype = match dtype {
+            FileDType::F16 => "f16".into(),
+            _ => "f32".into(),
+        };
+        write_json(&dir.join("b2dr.json"), &serde_json::to_value(&meta)?)?;
+        let mut c = Weights::default();
+        c.tensors.insert("cond".into(), self.context.clone());
+        c.save(&dir.join("context.safetensors"), dtype)
+    }
+
+    /// The context rows of `cameras` (N, L, D): the shared embedding repeated, or each camera's own.
+    pub fn context_for(&self, cameras: &[String]) -> Result<Vec<f32>> {
+        let s = &self.context.shape;
+        let mut out = vec![];
+        for c in cameras {
+            if s.len() == 2 {
+                out.extend_from_slice(&self.context.data);
+            } else {
+                let i = self
+                    .meta
+                    .cameras
+                    .iter()
+                    .position(|m| m == c)
+                    .with_context(|| {
+                        format!(
+                            "camera {c:?} is not one the model was trained for ({:?}): its context is per camera",
+                            self.meta.cameras
+                        )
+                    })?;
+                let per = s[1] * s[2];
+                out.extend_from_slice(&self.context.data[i * per..(i + 1) * per]);
+            }
+        }
+        Ok(out)
+    }
+}
+
+/// A package's modules on the device.
+pub struct DeviceModel {
+    pub unet: UNet,
+    pub control: B2drControlNet,
+    pub vae_encoder: VaeEncoder,
+    pub vae_decoder: VaeDecoder,
+    pub scaling_factor: f64,
+    pub dtype: DType,
+    /// Device bytes of the weights.
+    pub weight_bytes: u64,
+    _weights: Vec<DeviceWeights>,
+}
+
+impl DeviceModel {
+    /// Uploads a package: UNet and ControlNet in `dtype`, the VAE in f32.
+    pub fn upload(ctx: &Context, p: &ModelPackage, dtype: DType) -> Result<Self> {
+        let u = DeviceWeights::upload(ctx, &p.unet, "", dtype)?;
+        let c = DeviceWeights::upload(ctx, &p.control, "", dtype)?;
+        let v = DeviceWeights::upload(ctx, &p.vae, "", DType::F32)?;
+        let m = Self {
+            unet: UNet::load(&u, &p.unet_cfg).context("unet")?,
+            control: B2drControlNet::load(&c, &p.control_cfg).context("controlnet")?,
+            vae_encoder: VaeEncoder::load(&v, &p.vae_cfg).context("vae encoder")?,
+            vae_decoder: VaeDecoder::load(&v, &p.vae_cfg).context("vae decoder")?,
+            scaling_factor: p.vae_cfg.scaling_factor,
+            dtype,
+            weight_bytes: u.bytes() + c.bytes() + v.bytes(),
+            _weights: vec![u, c, v],
+        };
+        Ok(m)
+    }
+
+    pub fn as_model(&self) -> B2drModel<'_> {
+        B2drModel {
+            unet: &self.unet,
+            control: &self.control,
+            vae_encoder: &self.vae_encoder,
+            vae_decoder: &self.vae_decoder,
+            scaling_factor: self.scaling_factor,
+            dtype: self.dtype,
+        }
+    }
+}

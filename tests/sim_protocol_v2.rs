@@ -1,0 +1,171 @@
+//! Planner protocol v2 end to end with a Python planner (examples/b2dr_planner.py): images by path and inline
+//! reach the planner with the checksum the request states, intrinsics match the delivered size, and hostile
+//! planners (never reads, closes stdout but lives, two replies, 10^5 poses) end only their scenario, within the
+//! timeout, with a reason.
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use b2dr::scene::import::synthetic;
+use b2dr::scene::Scenario;
+use b2dr::sim::closed_loop::run_with_sensors;
+use b2dr::sim::external::ExternalPlanner;
+use b2dr::sim::sensors::{CameraFrame, SensorState, Sensors};
+use b2dr::sim::{AgentMode, SimConfig};
+
+fn python() -> bool {
+    std::process::Command::new("python3")
+        .arg("--version")
+        .output()
+        .is_ok()
+}
+
+/// A test camera source: a deterministic gradient per camera and step at 112 x 200 from the scenario rig.
+struct Gradient;
+
+impl Sensors for Gradient {
+    fn name(&self) -> String {
+        "gradient".into()
+    }
+    fn reset(&mut self, _: &Scenario) -> anyhow::Result<()> {
+        Ok(())
+    }
+    fn observe(&mut self, s: &SensorState) -> anyhow::Result<Vec<CameraFrame>> {
+        let (w, h) = (200u32, 112u32);
+        Ok(s.scenario
+            .rig
+            .cameras
+            .iter()
+            .enumerate()
+            .map(|(ci, c)| {
+                let mut rgb = Vec::with_capacity((w * h * 3) as usize);
+                for y in 0..h {
+                    for x in 0..w {
+                        rgb.extend([(x % 256) as u8, (y * 2) as u8, (ci * 40 + s.step) as u8]);
+                    }
+                }
+                CameraFrame {
+                    camera: c.name.clone(),
+                    width: w,
+                    height: h,
+                    rgb: Arc::new(rgb),
+                    intrinsic: c.intrinsic_scaled(w, h),
+                    cam2ego: c.cam2ego,
+                    ego2global: s.ego2global(),
+                }
+            })
+            .collect())
+    }
+}
+
+fn planner(args: &str, timeout_s: f64, dir: &std::path::Path) -> ExternalPlanner {
+    let cmd = format!(
+        // exec: the shell is replaced, so the planner process itself holds the pipes (a closed stdout is seen)
+        "exec python3 {}/examples/b2dr_planner.py {args}",
+        env!("CARGO_MANIFEST_DIR")
+    );
+    ExternalPlanner::new(&cmd, Duration::from_secs_f64(timeout_s))
+        .unwrap()
+        .v2(Some(dir.to_path_buf()))
+}
+
+fn cfg() -> SimConfig {
+    SimConfig {
+        agents: AgentMode::Idm,
+        steps: 12,
+        ..SimConfig::default()
+    }
+}
+
+fn run(sc: &Scenario, p: &mut ExternalPlanner) -> b2dr::sim::SimResult {
+    run_with_sensors(sc, p, &cfg(), &|_, _| vec![], Some(&mut Gradient), &mut |_, _| Ok(()))
+}
+
+fn tmp(name: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("b2dr-proto-{}-{name}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+#[test]
+fn images_reach_the_planner_exactly() {
+    if !python() {
+        println!("SKIP: python3 not available");
+        return;
+    }
+    let sc = synthetic::town(1, None);
+    for images in ["paths", "inline"] {
+        let d = tmp(images);
+        let r = run(&sc, &mut planner(&format!("--mode checksum --images {images}"), 20.0, &d));
+        assert!(r.failure.is_none(), "{images}: {:?}", r.failure);
+        assert_eq!(r.steps.len(), 13);
+        if images == "paths" {
+            assert!(std::fs::read_dir(&d).unwrap().count() >= 6 * 3, "image files written");
+        }
+    }
+    // a requested size: the planner gets images and intrinsics at that size; its projection of an ego point
+    // equals b2dr's at that size
+    let d = tmp("size");
+    let dump = d.join("dump.jsonl");
+    let r = run(
+        &sc,
+        &mut planner(
+            &format!("--mode project --images inline --size 56x100 --dump {}", dump.display()),
+            20.0,
+            &d,
+        ),
+    );
+    assert!(r.failure.is_none(), "{:?}", r.failure);
+    let text = std::fs::read_to_string(&dump).unwrap();
+    let mut n = 0;
+    for line in text.lines() {
+        let v: serde_json::Value = serde_json::from_str(line).unwrap();
+        assert_eq!(v["size"], serde_json::json!([56, 100]));
+        let cam = sc
+            .rig
+            .cameras
+            .iter()
+            .find(|c| c.name == v["camera"].as_str().unwrap())
+            .unwrap();
+        // b2dr's projection of the ego point through the camera at 100 x 56
+        let k = cam.intrinsic_scaled(100, 56);
+        let pc = cam.cam2ego.inverse().transform_point3(glam::DVec3::new(10.0, 0.0, 0.5));
+        if pc.z <= 1e-6 {
+            assert!(v["uv"].is_null(), "{line}");
+            continue;
+        }
+        let p = k * (pc / pc.z);
+        let uv = v["uv"].as_array().unwrap();
+        let (u, vv) = (uv[0].as_f64().unwrap(), uv[1].as_f64().unwrap());
+        assert!((u - p.x).abs() < 1e-6 && (vv - p.y).abs() < 1e-6, "{line} vs {p:?}");
+        n += 1;
+    }
+    assert!(n >= 3, "the point is in front of several cameras ({n})");
+}
+
+#[test]
+fn hostile_planners_end_only_their_scenario() {
+    if !python() {
+        println!("SKIP: python3 not available");
+        return;
+    }
+    let sc = synthetic::town(1, None);
+    for (mode, needle) in [
+        ("noread", "timed out"),
+        ("closeout", "closed its output"),
+        ("tworeplies", "two replies"),
+        ("manyposes", "at most 1000"),
+    ] {
+        let d = tmp(mode);
+        let t0 = Instant::now();
+        let r = run(&sc, &mut planner(&format!("--mode {mode} --images inline"), 2.0, &d));
+        let f = r.failure.clone().unwrap_or_default();
+        println!("{mode}: {f} ({:.2} s)", t0.elapsed().as_secs_f64());
+        assert!(f.contains(needle), "{mode}: {f}");
+        assert!(t0.elapsed() < Duration::from_secs(12), "{mode} took too long");
+    }
+    // the next scenario runs normally
+    let d = tmp("after");
+    let r = run(&sc, &mut planner("--mode cv --images none", 20.0, &d));
+    assert!(r.failure.is_none(), "{:?}", r.failure);
+}
