@@ -5,7 +5,7 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use b2dr::scene::import::synthetic;
+use b2dr::world::town as synthetic;
 use b2dr::scene::Scenario;
 use b2dr::sim::closed_loop::run_with_sensors;
 use b2dr::sim::external::ExternalPlanner;
