@@ -38,6 +38,7 @@ fn world_writes_images_and_rejects_bad_input() {
         "CAM_FRONT.png",
         "CAM_BACK_overlay.png",
         "CAM_FRONT_class.png",
+        "CAM_FRONT_depth.png",
     ] {
         let img = image::open(dir.join(f)).unwrap();
         assert!(img.width() > 0, "{f}");

@@ -439,7 +439,17 @@ impl Canvas {
                     fr.depth[p] = z;
                     fr.class[p] = class;
                     fr.instance[p] = inst;
-                    put(&mut fr.rgb, p, lerp3(col, horizon, smoothstep(fs, fe, z)));
+                    // Fog by distance (as the ground's): z times the length of the pixel's z = 1 ray.
+                    let (rx, ry) = (
+                        kinv.x_axis.x * i as f64 + kinv.y_axis.x * jf + kinv.z_axis.x,
+                        kinv.y_axis.y * jf + kinv.z_axis.y,
+                    );
+                    let dist = z * ((rx * rx + ry * ry + 1.0).sqrt() as f32);
+                    put(
+                        &mut fr.rgb,
+                        p,
+                        lerp3(col, horizon, smoothstep(fs, fe, dist)),
+                    );
                 }
             });
         }

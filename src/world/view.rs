@@ -363,7 +363,8 @@ fn save(img: &RgbImage, path: &Path) -> Result<()> {
         .with_context(|| format!("writing {}", path.display()))
 }
 
-/// Writes `<dir>/<CAM>.png`, `<dir>/<CAM>_overlay.png`, `<dir>/<CAM>_class.png`, `<dir>/bev.png`,
+/// Writes `<dir>/<CAM>.png`, `<dir>/<CAM>_overlay.png`, `<dir>/<CAM>_class.png`, `<dir>/<CAM>_depth.png` (16-bit,
+/// centimetres, 0 = sky), `<dir>/bev.png`,
 /// `<dir>/mosaic.png` (cameras + BEV) and `<dir>/overlay_mosaic.png`.
 pub fn write_view(out: &ViewOutput, sc: &Scenario, step: usize, dir: &Path) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -392,6 +393,27 @@ pub fn write_view(out: &ViewOutput, sc: &Scenario, step: usize, dir: &Path) -> R
             cls.put_pixel((p % f.width) as u32, (p / f.width) as u32, Rgb(col));
         }
         save(&cls, &dir.join(format!("{}_class.png", cam.name)))?;
+        // Depth as 16-bit PNG in centimetres (0 = sky or beyond 655 m).
+        let depth: Vec<u16> = f
+            .depth
+            .iter()
+            .map(|&d| {
+                if d.is_finite() && d * 100.0 < 65535.0 {
+                    (d * 100.0).round() as u16
+                } else {
+                    0
+                }
+            })
+            .collect();
+        let path = dir.join(format!("{}_depth.png", cam.name));
+        image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_raw(
+            f.width as u32,
+            f.height as u32,
+            depth,
+        )
+        .context("depth image size")?
+        .save(&path)
+        .with_context(|| format!("writing {}", path.display()))?;
         images.push(img);
         overlays.push(ov);
     }
