@@ -7,7 +7,6 @@
 //! - [`render`]: the deterministic CPU renderer (RGB, depth, class id, instance id per camera).
 //! - [`images`]: the image store resolving a log's recorded images (`builtin://` paths are rendered on demand and
 //!   cached in memory; files are read from disk).
-//! - [`sensors`]: the renderer as the closed loop's `groundtruth` observation engine (`sim::sensors::Sensors`).
 //! - [`view`]: the `b2dr world` command's logic (ground truth of any state, mosaics, mask overlays).
 //! - [`export`]: training samples (`b2dr export-training`, docs/training_data.md).
 pub mod export;
@@ -16,7 +15,6 @@ pub mod objects;
 pub mod palette;
 pub mod render;
 pub mod scenery;
-pub mod sensors;
 pub mod shapes;
 pub mod town;
 pub mod view;
