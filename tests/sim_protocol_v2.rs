@@ -5,12 +5,12 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use b2dr::world::town as synthetic;
 use b2dr::scene::Scenario;
 use b2dr::sim::closed_loop::run_with_sensors;
 use b2dr::sim::external::ExternalPlanner;
 use b2dr::sim::sensors::{CameraFrame, SensorState, Sensors};
 use b2dr::sim::{AgentMode, SimConfig};
+use b2dr::world::town as synthetic;
 
 fn python() -> bool {
     std::process::Command::new("python3")

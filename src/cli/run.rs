@@ -11,7 +11,8 @@ pub struct RunArgs {
     #[arg(long, default_value = "builtin:town")]
     pub scenario: String,
     /// b2dr (generative renderer), b2dr-noref-noprev (masks only), log-replay, groundtruth (synthetic
-    /// scenarios), none (boxes only, as `b2dr sim`)
+    /// scenarios), none (boxes only, as `b2dr sim`); a comma-separated list runs each and writes the
+    /// comparison table (comparison.md) and side-by-side frames
     #[arg(long, default_value = "b2dr")]
     pub renderer: String,
     /// Model package folder or builtin:NAME for the b2dr renderers (default: builtin:b2dr-nano)
@@ -53,7 +54,14 @@ pub struct RunArgs {
 }
 
 pub fn run(device: Option<String>, a: RunArgs) -> Result<()> {
-    let renderer: RendererMode = a.renderer.parse()?;
+    let modes: Vec<RendererMode> = a
+        .renderer
+        .split(',')
+        .map(|m| m.trim().parse())
+        .collect::<Result<_>>()?;
+    anyhow::ensure!(!modes.is_empty(), "--renderer: no renderer given");
+    let renderer = modes[0];
+    let any_model = modes.iter().any(|m| m.uses_model());
     let size = b2dr::world::view::parse_size(&a.size).map_err(|e| e.context("--size"))?;
     let mut cfg = RunConfig {
         scenario: a.scenario,
@@ -70,7 +78,7 @@ pub fn run(device: Option<String>, a: RunArgs) -> Result<()> {
         dtype: a.dtype,
         gif: !a.no_gif,
     };
-    let ctx = if renderer.uses_model() {
+    let ctx = if any_model {
         Some(Context::new(&ContextOptions {
             device,
             ..Default::default()
@@ -78,7 +86,7 @@ pub fn run(device: Option<String>, a: RunArgs) -> Result<()> {
     } else {
         None
     };
-    if renderer.uses_model() {
+    if any_model {
         // the model's render size is the run's
         let pkg_size = match &cfg.model {
             Some(d) => {
@@ -93,6 +101,11 @@ pub fn run(device: Option<String>, a: RunArgs) -> Result<()> {
             }
         };
         cfg.size = (pkg_size[0], pkg_size[1]);
+    }
+    if modes.len() > 1 {
+        b2dr::eval::compare::compare(ctx.as_ref(), &cfg, &modes, &a.out, a.resume)?;
+        eprintln!("comparison -> {}", a.out.join("comparison.md").display());
+        return Ok(());
     }
     let s = run::run(ctx.as_ref(), &cfg, &a.out, a.resume)?;
     eprintln!(

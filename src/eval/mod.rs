@@ -2,5 +2,6 @@
 //! generative renderer (`render`), the synthetic world's exact renderer (`world`) or log replay, behind the
 //! simulator's [`crate::sim::sensors::Sensors`] trait. This layer sits above sim, world and render; the
 //! simulator itself never touches the GPU.
+pub mod compare;
 pub mod run;
 pub mod sensors;

@@ -107,7 +107,10 @@ pub fn nano_dir() -> std::path::PathBuf {
 
 /// The model of `--model`: a folder, `builtin:NAME`, or (None) the default built-in model.
 pub fn resolve_model(spec: Option<&Path>) -> Result<ModelPackage> {
-    match spec.and_then(|p| p.to_str()).and_then(|s| s.strip_prefix("builtin:")) {
+    match spec
+        .and_then(|p| p.to_str())
+        .and_then(|s| s.strip_prefix("builtin:"))
+    {
         Some(name) => ModelPackage::builtin(name),
         None => match spec {
             Some(d) => ModelPackage::load(d),
@@ -118,8 +121,18 @@ pub fn resolve_model(spec: Option<&Path>) -> Result<ModelPackage> {
 
 /// b2dr-nano's configs (python/b2dr_ref/nano.py NANO, the same numbers).
 fn nano_configs() -> (UNetConfig, B2drConfig, VaeConfig) {
-    let down = ["CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"];
-    let up = ["UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"];
+    let down = [
+        "CrossAttnDownBlock2D",
+        "CrossAttnDownBlock2D",
+        "CrossAttnDownBlock2D",
+        "DownBlock2D",
+    ];
+    let up = [
+        "UpBlock2D",
+        "CrossAttnUpBlock2D",
+        "CrossAttnUpBlock2D",
+        "CrossAttnUpBlock2D",
+    ];
     let unet = UNetConfig::from_json(serde_json::json!({
         "block_out_channels": [32, 64, 64, 64], "layers_per_block": 1, "cross_attention_dim": 64,
         "attention_head_dim": [2, 4, 4, 4], "norm_num_groups": 16, "in_channels": 4, "out_channels": 4,
