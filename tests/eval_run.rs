@@ -188,3 +188,65 @@ fn b2dr_renderer_reruns_bit_identically_and_resume_checks_the_config() {
     );
     common::assert_no_validation_errors();
 }
+
+/// Each frame of `b2dr run --renderer b2dr` equals a standalone render (a separately planned renderer) of the
+/// same inputs, bit for bit: the loop adds no state of its own beyond the carried previous frame.
+#[test]
+fn b2dr_loop_frames_equal_standalone_renders() {
+    use b2dr::eval::sensors::{B2dr, B2drEngine};
+    use b2dr::render::frame::{FrameInputs, Prev, RefInputs};
+    use b2dr::sim::closed_loop::run_with_sensors;
+    let Some(ctx) = common::ctx() else { return };
+    let sc = b2dr::world::load_all("builtin:town:2").unwrap().remove(0);
+    let store = ImageStore::new(&sc, None);
+    let mut engine = B2drEngine::new(
+        &ctx,
+        b2dr_package::small_package(),
+        b2dr::tensor::DType::F32,
+        vec!["CAM_FRONT".into(), "CAM_BACK_LEFT".into()],
+        true,
+        None,
+        None,
+        7,
+    )
+    .unwrap();
+    let standalone = engine.standalone().unwrap();
+    let mut sensors = B2dr::new(&mut engine, &store).unwrap();
+    sensors.record = Some(vec![]);
+    let cfg = b2dr::sim::SimConfig {
+        agents: AgentMode::Idm,
+        steps: 15,
+        ..Default::default()
+    };
+    let r = run_with_sensors(
+        &sc,
+        &mut b2dr::sim::ExpertPlanner,
+        &cfg,
+        &|_, _| vec![],
+        Some(&mut sensors),
+        &mut |_, _| Ok(()),
+    );
+    assert!(r.failure.is_none(), "{:?}", r.failure);
+    let frames = sensors.record.take().unwrap();
+    assert_eq!(frames.len(), 3);
+    for (k, f) in frames.iter().enumerate() {
+        standalone
+            .render(&FrameInputs {
+                masks: &f.masks,
+                prev: match &f.prev {
+                    Some(p) => Prev::Image(p),
+                    None => Prev::Carried,
+                },
+                refs: Some(RefInputs {
+                    images: &f.ref_images,
+                    pe_cur: f.pe_cur.iter().map(|v| &v[..]).collect(),
+                    pe_ref: f.pe_ref.iter().map(|v| &v[..]).collect(),
+                }),
+                x_t: &f.x_t,
+                eps_prev: &f.eps_prev,
+            })
+            .unwrap();
+        assert_eq!(standalone.image().unwrap(), f.image, "frame {k} differs from the standalone render");
+    }
+    common::assert_no_validation_errors();
+}

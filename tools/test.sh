@@ -1,9 +1,15 @@
 #!/usr/bin/env bash
 # The test command (README, .ci/run): installs missing system packages, then runs the whole suite with the
-# Khronos validation layer enabled (tests fail on any validation error).
+# Khronos validation layer enabled (tests fail on any validation error), then the python/ tests (pytest, in a
+# cached virtualenv: tools/ensure-python.sh).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 . tools/ensure-deps.sh
 export B2DR_VALIDATION=1
 # Mesa 22.3's lavapipe uses one worker thread per core by default; nothing to tune for correctness.
-cargo test --all-targets --no-fail-fast "$@"
+status=0
+cargo test --all-targets --no-fail-fast "$@" || status=$?
+# the Python side (reference modules, trainer, dataset reader): pytest in the cached environment
+. tools/ensure-python.sh
+(cd python && OMP_NUM_THREADS=1 "$B2DR_PY" -m pytest -q) || status=$?
+exit $status

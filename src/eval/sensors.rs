@@ -305,10 +305,42 @@ impl B2drEngine {
         self.renderer.as_ref().context("renderer")
     }
 
+    /// A fresh, separately planned renderer of the same shape (a standalone `render` of the same inputs).
+    pub fn standalone(&self) -> Result<FrameRenderer> {
+        FrameRenderer::new(
+            &self.ctx,
+            &self.model.as_model(),
+            FrameShape {
+                cameras: self.cameras.len(),
+                size: self.size(),
+                refs: self.refs_and_prev,
+                ref_guidance: self.ref_guidance,
+                out_size: None,
+            },
+            &self.package.context_for(&self.cameras)?,
+            sampler_plan(&self.package.meta.sampler, self.steps)?,
+        )
+    }
+
     /// Device bytes in use (weights + the planned frame).
     pub fn device_bytes(&self) -> u64 {
         self.ctx.allocated_bytes()
     }
+}
+
+/// The host inputs of one rendered frame, as the renderer got them (`prev` is None when the frame started
+/// from the carried previous frame, or had none).
+#[derive(Clone, Debug, PartialEq)]
+pub struct FrameRecord {
+    pub masks: Vec<f32>,
+    pub prev: Option<Vec<f32>>,
+    pub ref_images: Vec<f32>,
+    pub pe_cur: Vec<Vec<f32>>,
+    pub pe_ref: Vec<Vec<f32>>,
+    pub x_t: Vec<f32>,
+    pub eps_prev: Vec<f32>,
+    /// The decoded frame (N, 3, H, W) in [0, 1].
+    pub image: Vec<f32>,
 }
 
 /// The generative renderer on one scenario.
@@ -319,6 +351,8 @@ pub struct B2dr<'a> {
     map: MapLayer,
     frame: u64,
     times: Vec<(&'static str, f64)>,
+    /// When set, every frame's inputs and output are kept (tests).
+    pub record: Option<Vec<FrameRecord>>,
 }
 
 impl<'a> B2dr<'a> {
@@ -332,6 +366,7 @@ impl<'a> B2dr<'a> {
             map: map_layer(&sc.map),
             frame: 0,
             times: vec![],
+            record: None,
         })
     }
 }
@@ -431,6 +466,18 @@ impl Sensors for B2dr<'_> {
             img.iter().all(|v| v.is_finite()),
             "the renderer produced NaN or infinite pixels"
         );
+        if let Some(rec) = self.record.as_mut() {
+            rec.push(FrameRecord {
+                masks: masks.clone(),
+                prev: (refs_on && frame == 0).then(|| prev.clone()),
+                ref_images: ref_imgs.clone(),
+                pe_cur: geom.pe_cur.clone(),
+                pe_ref: geom.pe_ref.clone(),
+                x_t: x_t.clone(),
+                eps_prev: eps.clone(),
+                image: img.clone(),
+            });
+        }
         self.frame += 1;
         let (h, w) = size;
         let per = 3 * h * w;
