@@ -246,7 +246,11 @@ fn b2dr_loop_frames_equal_standalone_renders() {
                 eps_prev: &f.eps_prev,
             })
             .unwrap();
-        assert_eq!(standalone.image().unwrap(), f.image, "frame {k} differs from the standalone render");
+        assert_eq!(
+            standalone.image().unwrap(),
+            f.image,
+            "frame {k} differs from the standalone render"
+        );
     }
     common::assert_no_validation_errors();
 }
