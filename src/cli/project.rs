@@ -121,7 +121,8 @@ pub fn run(args: ProjectArgs) -> Result<()> {
     let mut masks = LayoutMasks::new(rw as usize, rh as usize);
     let mut cams_json = serde_json::Map::new();
     for (cam, img) in &frame.cameras {
-        let dir = args.out.join(&cam.name);
+        // camera names come from the frame file: never let one leave --out
+        let dir = args.out.join(b2dr::scene::safe_name(&cam.name));
         std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
         let render = CameraProjector::new(cam, &img.ego2global, rw, rh)?;
         renderer.render(&render, &frame.boxes, &map, &cfg, &mut masks);

@@ -109,8 +109,8 @@ pub fn run(args: SimArgs) -> Result<()> {
     if args.steps == 0 {
         bail!("--steps must be at least 1");
     }
-    if !(args.planner_timeout > 0.0 && args.planner_timeout.is_finite()) {
-        bail!("--planner-timeout must be a positive number of seconds");
+    if !(args.planner_timeout > 0.0 && args.planner_timeout <= 86400.0) {
+        bail!("--planner-timeout must be in (0, 86400] seconds");
     }
     // Validate the planner spec before doing any work.
     sim::planner_from_spec(&args.planner, Duration::from_secs_f64(args.planner_timeout))?;

@@ -116,21 +116,7 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 
 /// A folder name from a scenario name (no separators or dots that could leave `--out`).
 pub fn folder_name(name: &str) -> String {
-    let s: String = name
-        .chars()
-        .map(|c| {
-            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
-                c
-            } else {
-                '_'
-            }
-        })
-        .collect();
-    if s.is_empty() {
-        "_".into()
-    } else {
-        s
-    }
+    crate::scene::safe_name(name)
 }
 
 fn planner(cfg: &RunConfig, dir: &Path) -> Result<Box<dyn Planner>> {

@@ -144,7 +144,7 @@ pub fn run(ctx: &Context, j: &RenderJob) -> Result<serde_json::Value> {
         [d] if d.is_dir() => {
             for (c, _) in &cams {
                 prev.extend(inputs::read_planar(
-                    &d.join(format!("{}.png", c.name)),
+                    &d.join(format!("{}.png", crate::scene::safe_name(&c.name))),
                     size,
                 )?);
             }
@@ -235,11 +235,12 @@ pub fn run(ctx: &Context, j: &RenderJob) -> Result<serde_json::Value> {
     let per = 3 * ih * iw;
     for (k, name) in names.iter().enumerate() {
         let chw = &img[k * per..(k + 1) * per];
-        let p = j.out.join(format!("{name}.png"));
+        let stem = crate::scene::safe_name(name);
+        let p = j.out.join(format!("{stem}.png"));
         inputs::to_rgb(chw, size)
             .save(&p)
             .with_context(|| format!("writing {}", p.display()))?;
-        write_exr(&j.out.join(format!("{name}.exr")), chw, ih, iw)?;
+        write_exr(&j.out.join(format!("{stem}.exr")), chw, ih, iw)?;
     }
     let report = json!({
         "device": ctx.info().name, "model": pkg.source, "frame": j.frame.display().to_string(),

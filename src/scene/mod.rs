@@ -172,3 +172,35 @@ impl Scenario {
         &self.traffic_lights[k.min(self.traffic_lights.len() - 1)]
     }
 }
+
+/// A file or folder name made from data (scenario or camera names): ASCII letters, digits, `-` and `_` kept,
+/// everything else (separators, dots, spaces) replaced by `_`, so the path stays inside its output folder.
+pub fn safe_name(name: &str) -> String {
+    let s: String = name
+        .chars()
+        .map(|c| {
+            if c.is_ascii_alphanumeric() || c == '-' || c == '_' {
+                c
+            } else {
+                '_'
+            }
+        })
+        .collect();
+    if s.is_empty() {
+        "_".into()
+    } else {
+        s
+    }
+}
+
+#[cfg(test)]
+mod safe_name_tests {
+    #[test]
+    fn names_from_data_stay_inside_their_folder() {
+        assert_eq!(super::safe_name("CAM_FRONT"), "CAM_FRONT");
+        assert_eq!(super::safe_name("../../etc/passwd"), "______etc_passwd");
+        assert_eq!(super::safe_name("a/b\\c:d e"), "a_b_c_d_e");
+        assert_eq!(super::safe_name(""), "_");
+        assert!(!super::safe_name("..").contains('.'));
+    }
+}
