@@ -287,19 +287,7 @@ impl B2drEngine {
 
     fn renderer(&mut self) -> Result<&FrameRenderer> {
         if self.renderer.is_none() {
-            let r = FrameRenderer::new(
-                &self.ctx,
-                &self.model.as_model(),
-                FrameShape {
-                    cameras: self.cameras.len(),
-                    size: self.size(),
-                    refs: self.refs_and_prev,
-                    ref_guidance: self.ref_guidance,
-                    out_size: None,
-                },
-                &self.package.context_for(&self.cameras)?,
-                sampler_plan(&self.package.meta.sampler, self.steps)?,
-            )?;
+            let r = self.standalone()?;
             self.renderer = Some(r);
         }
         self.renderer.as_ref().context("renderer")

@@ -280,67 +280,70 @@ impl ModelPackage {
                     p.source = format!("builtin:b2dr-nano (trained, {})", dir.display());
                     return Ok(p);
                 }
-                let (unet_cfg, control_cfg, vae_cfg) = nano_configs();
-                let d = unet_cfg.enc.cross_attention_dim;
-                let cameras: Vec<String> = crate::scene::import::nuscenes_like_cameras()
-                    .into_iter()
-                    .map(|c| c.name)
-                    .collect();
-                let ctxw = Weights::random(&[("cond".to_string(), vec![cameras.len(), 77, d])], 77);
-                Ok(Self {
-                    meta: PackageMeta {
-                        format: "b2dr-model".into(),
-                        version: 1,
-                        render_size: [112, 200],
-                        cameras,
-                        sampler: "unipc".into(),
-                        steps: 20,
-                        ref_guidance: 2.0,
-                        dtype: "f32".into(),
-                    },
-                    unet: Weights::random(&expected_unet(&unet_cfg), 1),
-                    control: Weights::random(&expected_b2dr(&control_cfg), 4),
-                    vae: Weights::random(&expected_vae(&vae_cfg), 3),
-                    context: ctxw.get("cond")?.clone(),
-                    unet_cfg,
-                    control_cfg,
-                    vae_cfg,
-                    source: "builtin:b2dr-nano (not trained yet: seeded random weights)".into(),
-                })
+                let (u, c, v) = nano_configs();
+                Self::seeded(
+                    u,
+                    c,
+                    v,
+                    true,
+                    "builtin:b2dr-nano (not trained yet: seeded random weights)",
+                )
             }
             "b2dr-tiny" => {
-                let unet_cfg = UNetConfig::b2dr_tiny();
-                let control_cfg = B2drConfig::from_unet(&unet_cfg, vec![16, 32, 96, 256]);
-                let vae_cfg = VaeConfig::b2dr_tiny();
-                let d = unet_cfg.enc.cross_attention_dim;
-                let ctxw = Weights::random(&[("cond".to_string(), vec![77, d])], 77);
-                let cameras = crate::scene::import::nuscenes_like_cameras()
-                    .into_iter()
-                    .map(|c| c.name)
-                    .collect();
-                Ok(Self {
-                    meta: PackageMeta {
-                        format: "b2dr-model".into(),
-                        version: 1,
-                        render_size: [112, 200],
-                        cameras,
-                        sampler: "unipc".into(),
-                        steps: 20,
-                        ref_guidance: 2.0,
-                        dtype: "f32".into(),
-                    },
-                    unet: Weights::random(&expected_unet(&unet_cfg), 1),
-                    control: Weights::random(&expected_b2dr(&control_cfg), 4),
-                    vae: Weights::random(&expected_vae(&vae_cfg), 3),
-                    context: ctxw.get("cond")?.clone(),
-                    unet_cfg,
-                    control_cfg,
-                    vae_cfg,
-                    source: format!("builtin:{name} (seeded random weights)"),
-                })
+                let u = UNetConfig::b2dr_tiny();
+                let c = B2drConfig::from_unet(&u, vec![16, 32, 96, 256]);
+                Self::seeded(
+                    u,
+                    c,
+                    VaeConfig::b2dr_tiny(),
+                    false,
+                    "builtin:b2dr-tiny (seeded random weights)",
+                )
             }
             other => bail!("unknown built-in model {other:?} (built-in: {BUILTIN:?})"),
         }
+    }
+
+    /// A package of seeded random weights (unet 1, controlnet 4, vae 3, context 77) at 112 x 200 for the
+    /// nuScenes-like rig; `per_camera` gives each camera its own context.
+    fn seeded(
+        unet_cfg: UNetConfig,
+        control_cfg: B2drConfig,
+        vae_cfg: VaeConfig,
+        per_camera: bool,
+        source: &str,
+    ) -> Result<Self> {
+        let cameras: Vec<String> = crate::scene::import::nuscenes_like_cameras()
+            .into_iter()
+            .map(|c| c.name)
+            .collect();
+        let d = unet_cfg.enc.cross_attention_dim;
+        let shape = if per_camera {
+            vec![cameras.len(), 77, d]
+        } else {
+            vec![77, d]
+        };
+        let ctxw = Weights::random(&[("cond".to_string(), shape)], 77);
+        Ok(Self {
+            meta: PackageMeta {
+                format: "b2dr-model".into(),
+                version: 1,
+                render_size: [112, 200],
+                cameras,
+                sampler: "unipc".into(),
+                steps: 20,
+                ref_guidance: 2.0,
+                dtype: "f32".into(),
+            },
+            unet: Weights::random(&expected_unet(&unet_cfg), 1),
+            control: Weights::random(&expected_b2dr(&control_cfg), 4),
+            vae: Weights::random(&expected_vae(&vae_cfg), 3),
+            context: ctxw.get("cond")?.clone(),
+            unet_cfg,
+            control_cfg,
+            vae_cfg,
+            source: source.into(),
+        })
     }
 
     /// Writes the package folder (weights in `dtype`).
