@@ -355,6 +355,8 @@ fn renderer(
             refs: true,
             ref_guidance: w,
             out_size: None,
+            prev_noise_level: None,
+            prev_blur_sigma: None,
         },
         &c.context(n),
         plan,

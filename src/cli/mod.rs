@@ -2,6 +2,7 @@
 use clap::{Parser, Subcommand};
 
 mod bench;
+mod eval_render;
 mod export;
 mod forward;
 mod info;
@@ -46,6 +47,9 @@ pub enum Command {
     Render(render::RenderArgs),
     /// The closed loop with rendered cameras: a planner drives on images of the simulated world.
     Run(run::RunArgs),
+    /// Fidelity of a model against the synthetic world's ground truth: PSNR / SSIM / layout score on held-out
+    /// scenarios, the deviation sweep, autoregressive drift, ablations and the copy-nearest-frame baseline.
+    EvalRender(eval_render::EvalRenderArgs),
     /// Closed-loop simulation of a planner over scenarios, with the nuPlan closed-loop score.
     Sim(sim::SimArgs),
     /// Ground truth of a scenario state: camera images, mosaic + BEV, overlays of the projected masks.
@@ -113,6 +117,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Sample(a) => sample::run(cli.device, a),
         Command::Render(a) => render::run(cli.device, a),
         Command::Run(a) => run::run(cli.device, a),
+        Command::EvalRender(a) => eval_render::run(cli.device, a),
         Command::Sim(a) => sim::run(a),
         Command::World(a) => world::run(a),
         Command::ExportTraining(a) => export::run(a),

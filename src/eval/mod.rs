@@ -3,5 +3,6 @@
 //! simulator's [`crate::sim::sensors::Sensors`] trait. This layer sits above sim, world and render; the
 //! simulator itself never touches the GPU.
 pub mod compare;
+pub mod fidelity;
 pub mod run;
 pub mod sensors;

@@ -189,7 +189,11 @@ pub fn nearest_recorded<'s>(
         .min_by_key(|i| (i.timestamp_us - t).unsigned_abs())
 }
 
-fn recorded_pixels(store: &ImageStore, img: &CameraImage, size: (usize, usize)) -> Result<Vec<u8>> {
+pub fn recorded_pixels(
+    store: &ImageStore,
+    img: &CameraImage,
+    size: (usize, usize),
+) -> Result<Vec<u8>> {
     let px = store.image(img, size.1, size.0)?;
     Ok(px.data.clone())
 }
@@ -230,6 +234,41 @@ impl Sensors for LogReplay<'_> {
             })
             .collect()
     }
+}
+
+/// The references of each camera retrieved from the log at `e2g` (front and rear; one image twice when the
+/// log has images on one side only): the images `(N, 2, 3, H, W)` in [0, 1] and their PETR geometry.
+pub fn references(
+    store: &ImageStore,
+    cfg: &crate::nn::b2dr_config::B2drConfig,
+    cameras: &[Camera],
+    size: (usize, usize),
+    e2g: &DMat4,
+) -> Result<(Vec<f32>, inputs::Geometry)> {
+    let sc = store.world().scenario;
+    let (mut ref_imgs, mut geoms) = (vec![], vec![]);
+    for c in cameras {
+        let r = retrieve(&sc.rig.frames, &c.name, e2g);
+        let pick = |x: &Option<crate::projection::retrieval::Reference>| {
+            x.as_ref().map(|r| &sc.rig.frames[r.frame].images[r.image])
+        };
+        let (a, b) = match (pick(&r.front), pick(&r.rear)) {
+            (Some(a), Some(b)) => (a, b),
+            (Some(a), None) | (None, Some(a)) => (a, a),
+            (None, None) => bail!("no recorded image of {} to retrieve", c.name),
+        };
+        for img in [a, b] {
+            ref_imgs.extend(planar(&recorded_pixels(store, img, size)?, size));
+        }
+        geoms.push(inputs::geometry(
+            cfg,
+            c,
+            size,
+            e2g,
+            [&a.ego2global, &b.ego2global],
+        )?);
+    }
+    Ok((ref_imgs, inputs::stack(&geoms)))
 }
 
 /// The B2D-R model on the device with its planned frame, kept across scenarios.
@@ -295,15 +334,29 @@ impl B2drEngine {
 
     /// A fresh, separately planned renderer of the same shape (a standalone `render` of the same inputs).
     pub fn standalone(&self) -> Result<FrameRenderer> {
+        self.plan(self.refs_and_prev, self.ref_guidance, None, None)
+    }
+
+    /// A renderer of this engine's cameras with other options (evaluation ablations): references on or off,
+    /// reference guidance, and the previous-frame noise level / blur sigma (None: the model's).
+    pub fn plan(
+        &self,
+        refs: bool,
+        ref_guidance: f64,
+        prev_noise_level: Option<usize>,
+        prev_blur_sigma: Option<f64>,
+    ) -> Result<FrameRenderer> {
         FrameRenderer::new(
             &self.ctx,
             &self.model.as_model(),
             FrameShape {
                 cameras: self.cameras.len(),
                 size: self.size(),
-                refs: self.refs_and_prev,
-                ref_guidance: self.ref_guidance,
+                refs,
+                ref_guidance,
                 out_size: None,
+                prev_noise_level,
+                prev_blur_sigma,
             },
             &self.package.context_for(&self.cameras)?,
             sampler_plan(&self.package.meta.sampler, self.steps)?,
@@ -393,29 +446,15 @@ impl Sensors for B2dr<'_> {
         )?;
         let t1 = std::time::Instant::now();
         let refs_on = self.engine.refs_and_prev;
-        let (mut ref_imgs, mut geoms, mut prev) = (vec![], vec![], vec![]);
+        let (mut ref_imgs, mut geom, mut prev) = (vec![], inputs::stack(&[]), vec![]);
         if refs_on {
-            for c in &self.cameras {
-                let r = retrieve(&sc.rig.frames, &c.name, &e2g);
-                let pick = |x: &Option<crate::projection::retrieval::Reference>| {
-                    x.as_ref().map(|r| &sc.rig.frames[r.frame].images[r.image])
-                };
-                let (a, b) = match (pick(&r.front), pick(&r.rear)) {
-                    (Some(a), Some(b)) => (a, b),
-                    (Some(a), None) | (None, Some(a)) => (a, a),
-                    (None, None) => bail!("no recorded image of {} to retrieve", c.name),
-                };
-                for img in [a, b] {
-                    ref_imgs.extend(planar(&recorded_pixels(self.store, img, size)?, size));
-                }
-                geoms.push(inputs::geometry(
-                    &self.engine.package.control_cfg,
-                    c,
-                    size,
-                    &e2g,
-                    [&a.ego2global, &b.ego2global],
-                )?);
-            }
+            (ref_imgs, geom) = references(
+                self.store,
+                &self.engine.package.control_cfg,
+                &self.cameras,
+                size,
+                &e2g,
+            )?;
             if self.frame == 0 {
                 for c in &self.cameras {
                     let img = nearest_recorded(sc, &c.name, s.time_s)
@@ -424,7 +463,6 @@ impl Sensors for B2dr<'_> {
                 }
             }
         }
-        let geom = inputs::stack(&geoms);
         let t2 = std::time::Instant::now();
         let n = self.cameras.len();
         let seed = self.engine.seed;

@@ -58,6 +58,8 @@ pub fn run(
             refs: true,
             ref_guidance,
             out_size: None,
+            prev_noise_level: None,
+            prev_blur_sigma: None,
         },
         &pkg.context_for(&names)?,
         sampler_plan(&pkg.meta.sampler, steps)?,

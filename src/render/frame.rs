@@ -48,6 +48,12 @@ pub struct FrameShape {
     pub ref_guidance: f64,
     /// Optional bicubic upsample of the decoded frame (H', W').
     pub out_size: Option<(usize, usize)>,
+    /// Inference-time override of the previous-frame noise level `n` (default: the model's
+    /// `prev_noise_level`; evaluation of noise modulation, world.md 4).
+    pub prev_noise_level: Option<usize>,
+    /// Inference-time override of the previous-frame blur sigma (default: the model's `prev_blur_sigma`; 0 = no
+    /// blur).
+    pub prev_blur_sigma: Option<f64>,
 }
 
 /// The previous frame of a frame.
@@ -214,7 +220,17 @@ impl FrameRenderer {
         let mut ws = Workspace::new(ctx, dt);
         let sched = NoiseSchedule::sd15();
         let abar: Vec<f64> = sched.alphas_cumprod().to_vec();
-        let noise_level = cfg.prev_noise_level;
+        let noise_level = shape.prev_noise_level.unwrap_or(cfg.prev_noise_level);
+        ensure!(
+            noise_level < abar.len(),
+            "render: previous-frame noise level {noise_level} is not a step of the schedule (0..{})",
+            abar.len()
+        );
+        let blur_sigma = shape.prev_blur_sigma.unwrap_or(cfg.prev_blur_sigma);
+        ensure!(
+            blur_sigma.is_finite() && blur_sigma >= 0.0,
+            "render: previous-frame blur sigma {blur_sigma} must be a finite number >= 0"
+        );
 
         // VAE encode of images in [0, 1] -> (M, 4, h, w) f32 = posterior mean x scaling.
         let encode = |rec: &mut crate::vk::Recorder,
@@ -273,12 +289,17 @@ impl FrameRenderer {
         // prev chain
         let prev_rec = {
             let mut rec = ctx.recorder()?;
-            let tmp = vws.alloc(&[n, 3, ih, iw])?;
-            let bl = vws.alloc(&[n, 3, ih, iw])?;
-            blur::gaussian_blur(&mut rec, &prev_img, cfg.prev_blur_sigma as f32, &tmp, &bl)?;
-            vws.release(tmp);
-            let z = encode(&mut rec, &mut vws, &bl)?;
-            vws.release(bl);
+            let z = if blur_sigma > 0.0 {
+                let tmp = vws.alloc(&[n, 3, ih, iw])?;
+                let bl = vws.alloc(&[n, 3, ih, iw])?;
+                blur::gaussian_blur(&mut rec, &prev_img, blur_sigma as f32, &tmp, &bl)?;
+                vws.release(tmp);
+                let z = encode(&mut rec, &mut vws, &bl)?;
+                vws.release(bl);
+                z
+            } else {
+                encode(&mut rec, &mut vws, &prev_img)?
+            };
             let a = abar[noise_level.min(abar.len() - 1)];
             lincomb(
                 &mut rec,

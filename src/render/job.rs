@@ -213,6 +213,8 @@ pub fn run(ctx: &Context, j: &RenderJob) -> Result<serde_json::Value> {
             refs: !j.no_refs,
             ref_guidance: w,
             out_size: None,
+            prev_noise_level: None,
+            prev_blur_sigma: None,
         },
         &context,
         plan,

@@ -1,0 +1,617 @@
+//! `b2dr eval-render`: the fidelity of a B2D-R model against the synthetic world's ground-truth renderer
+//! (world.md 4), on scenarios it was not trained on.
+//!
+//! Three experiments, every image scored by PSNR, SSIM and the layout score ([`metrics`]):
+//! - single frames at recorded frames `--frames`, on the logged path and displaced (`--lateral`, `--yaw`): the
+//!   objects of the log at that step, the previous frame = the ground truth 0.5 s earlier at the same
+//!   displacement (teacher forcing), references retrieved from the log at the displaced pose; settings: the
+//!   model as packaged ("b2dr"), reference guidance `--guidance`, no references, no previous frame, masks only,
+//!   and the copy-nearest-frame baseline (the recorded image nearest by position: on the logged path it IS the
+//!   ground truth, the ceiling). Displaced cases run b2dr, no-refs, masks-only and copy-nearest.
+//! - autoregressive drift: `--drift-frames` consecutive frames of the logged path (2 Hz), frame 1 from the
+//!   recorded image, then each frame's previous frame is the model's own last output; settings: the model's
+//!   noise modulation and blur, n = 0 (inference-time proxy of a model trained without noise modulation),
+//!   blur sigma 0 / 1 / 2, and the other precision (f16 when evaluating f32).
+//! - the classifier ceiling: the layout classifier applied to the ground truth itself.
+//!
+//! Every setting of a case gets the same initial noise (paired comparison). Outputs are deterministic: a rerun
+//! writes the same eval.json, eval.md and images (timing goes to timing.json).
+pub mod metrics;
+pub mod plot;
+mod report;
+pub mod scene;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::{ensure, Context as _, Result};
+use serde::Serialize;
+
+use self::metrics::{IouCounts, PaletteClassifier};
+use self::scene::Deviation;
+use crate::eval::sensors::{rig_cameras, B2drEngine};
+use crate::projection::scene::map_layer;
+use crate::render::frame::{FrameInputs, FrameRenderer, Prev, RefInputs};
+use crate::render::inputs::{self, Geometry};
+use crate::scene::camera::Camera;
+use crate::scene::import::{resolve, Source};
+use crate::tensor::DType;
+use crate::vk::Context;
+use crate::world::images::ImageStore;
+
+/// What `eval-render` measures (stored in `<out>/config.json`).
+#[derive(Clone, Debug, Serialize)]
+pub struct EvalConfig {
+    /// Model package folder or `builtin:NAME`; None: the built-in default.
+    pub model: Option<PathBuf>,
+    /// Scenario specs (each may name several, e.g. a folder).
+    pub scenarios: Vec<String>,
+    /// Cameras scored (each must be one the model renders).
+    pub cameras: Vec<String>,
+    /// Recorded-frame indices of the single-frame cases (each needs a frame before it).
+    pub frames: Vec<usize>,
+    pub lateral_m: Vec<f64>,
+    pub yaw_deg: Vec<f64>,
+    /// Reference-guidance scales evaluated beside the model's own.
+    pub guidance: Vec<f64>,
+    /// Frames of the drift experiment (0: off); run on the first `drift_scenarios` scenarios.
+    pub drift_frames: usize,
+    pub drift_scenarios: usize,
+    /// Sampler steps (None: the model's).
+    pub steps: Option<usize>,
+    pub seed: u64,
+    /// Compute precision of the main runs: f32 or f16.
+    pub dtype: String,
+}
+
+impl Default for EvalConfig {
+    fn default() -> Self {
+        Self {
+            model: None,
+            scenarios: vec![],
+            cameras: vec!["CAM_FRONT".into()],
+            frames: vec![8, 20, 32],
+            lateral_m: vec![0.0, 1.0, 2.0, 4.0],
+            yaw_deg: vec![0.0, 5.0, 10.0],
+            guidance: vec![1.0, 2.0, 3.0],
+            drift_frames: 40,
+            drift_scenarios: 1,
+            steps: None,
+            seed: 0,
+            dtype: "f32".into(),
+        }
+    }
+}
+
+/// How one image is made.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct Setting {
+    pub name: String,
+    pub refs: bool,
+    pub prev: bool,
+    pub guidance: f64,
+    pub noise_level: Option<usize>,
+    pub blur_sigma: Option<f64>,
+    /// Runs on the other precision's engine.
+    pub other_dtype: bool,
+    /// The copy-nearest-frame baseline (no model).
+    pub copy: bool,
+}
+
+impl Setting {
+    fn model(name: &str, refs: bool, prev: bool, guidance: f64) -> Self {
+        Self {
+            name: name.into(),
+            refs,
+            prev,
+            guidance,
+            noise_level: None,
+            blur_sigma: None,
+            other_dtype: false,
+            copy: false,
+        }
+    }
+
+    fn key(&self) -> String {
+        format!(
+            "{}|{}|{:?}|{:?}|{}",
+            self.refs,
+            if self.refs { self.guidance } else { 1.0 },
+            self.noise_level,
+            self.blur_sigma,
+            self.other_dtype
+        )
+    }
+}
+
+/// One scored image.
+#[derive(Clone, Debug, Serialize)]
+pub struct Score {
+    pub scenario: String,
+    pub camera: String,
+    /// Recorded frame index.
+    pub frame: usize,
+    pub step: usize,
+    pub deviation: Deviation,
+    pub setting: String,
+    /// None: identical to the ground truth.
+    pub psnr: Option<f64>,
+    pub ssim: f64,
+    pub vehicle_iou: Option<f64>,
+    pub mean_iou: Option<f64>,
+    #[serde(skip)]
+    iou: IouCounts,
+}
+
+/// A scored image with its pixels (kept until the classifier is fitted).
+struct Kept {
+    score: Score,
+    rgb: Vec<u8>,
+    truth: usize,
+}
+
+struct Renderers<'e> {
+    main: &'e B2drEngine,
+    other: Option<&'e B2drEngine>,
+    planned: BTreeMap<String, FrameRenderer>,
+}
+
+impl Renderers<'_> {
+    fn get(&mut self, s: &Setting) -> Result<&FrameRenderer> {
+        let k = s.key();
+        if !self.planned.contains_key(&k) {
+            let e = if s.other_dtype {
+                self.other
+                    .context("internal: no engine of the other precision")?
+            } else {
+                self.main
+            };
+            let r = e
+                .plan(s.refs, s.guidance, s.noise_level, s.blur_sigma)
+                .with_context(|| format!("planning setting {}", s.name))?;
+            self.planned.insert(k.clone(), r);
+        }
+        self.planned.get(&k).context("internal: renderer")
+    }
+}
+
+/// The model's inputs of one case (shared by its settings).
+struct CaseInputs<'a> {
+    masks: &'a [f32],
+    prev: Option<&'a [f32]>,
+    refs: Option<&'a (Vec<f32>, Geometry)>,
+    noise_id: u64,
+}
+
+/// Renders one setting of a case; per camera interleaved RGB8.
+fn render(
+    r: &mut Renderers,
+    s: &Setting,
+    x: &CaseInputs,
+    carried: bool,
+    seed: u64,
+    size: (usize, usize),
+    n: usize,
+) -> Result<Vec<Vec<u8>>> {
+    let fr = r.get(s)?;
+    let (x_t, eps) = inputs::frame_noise(seed, x.noise_id, n, fr.latent_size());
+    let prev = match (s.prev, carried, x.prev) {
+        (false, _, _) => Prev::None,
+        (true, true, _) => Prev::Carried,
+        (true, false, Some(p)) => Prev::Image(p),
+        (true, false, None) => Prev::None,
+    };
+    let refs = match (s.refs, x.refs) {
+        (true, Some((imgs, g))) => Some(RefInputs {
+            images: imgs,
+            pe_cur: g.pe_cur.iter().map(|v| &v[..]).collect(),
+            pe_ref: g.pe_ref.iter().map(|v| &v[..]).collect(),
+        }),
+        _ => None,
+    };
+    fr.render(&FrameInputs {
+        masks: x.masks,
+        prev,
+        refs,
+        x_t: &x_t,
+        eps_prev: &eps,
+    })?;
+    let img = fr.image()?;
+    let per = 3 * size.0 * size.1;
+    ensure!(
+        img.len() == n * per,
+        "internal: decoded {} values",
+        img.len()
+    );
+    Ok((0..n)
+        .map(|k| {
+            // Non-finite pixels become 0 here; they are counted separately (drift) so they cannot hide.
+            inputs::to_rgb(&img[k * per..(k + 1) * per], size).into_raw()
+        })
+        .collect())
+}
+
+/// The whole evaluation's results (eval.json).
+#[derive(Debug, Serialize)]
+pub struct Results {
+    pub config: EvalConfig,
+    pub model: String,
+    pub render_size: [usize; 2],
+    pub single: Vec<Score>,
+    pub drift: Vec<Score>,
+    /// Non-finite pixel values seen per drift setting.
+    pub drift_nonfinite: BTreeMap<String, usize>,
+    pub classifier_ceiling: BTreeMap<String, Option<f64>>,
+    pub skipped: Vec<String>,
+}
+
+fn single_settings(default_w: f64, guidance: &[f64]) -> Vec<Setting> {
+    let mut v = vec![Setting::model("b2dr", true, true, default_w)];
+    for &g in guidance {
+        if g != default_w {
+            v.push(Setting::model(&format!("b2dr w={g}"), true, true, g));
+        }
+    }
+    v.push(Setting::model("no-refs", false, true, 1.0));
+    v.push(Setting::model("no-prev", true, false, default_w));
+    v.push(Setting::model("masks-only", false, false, 1.0));
+    v
+}
+
+fn deviated_settings(default_w: f64) -> Vec<Setting> {
+    vec![
+        Setting::model("b2dr", true, true, default_w),
+        Setting::model("no-refs", false, true, 1.0),
+        Setting::model("masks-only", false, false, 1.0),
+    ]
+}
+
+fn drift_settings(default_w: f64, blur: f64, other: &str) -> Vec<Setting> {
+    let base = Setting::model("b2dr", true, true, default_w);
+    let mut v = vec![base.clone()];
+    v.push(Setting {
+        name: "n=0".into(),
+        noise_level: Some(0),
+        ..base.clone()
+    });
+    for b in [0.0, 1.0, 2.0] {
+        if b != blur {
+            v.push(Setting {
+                name: format!("blur {b}"),
+                blur_sigma: Some(b),
+                ..base.clone()
+            });
+        }
+    }
+    v.push(Setting {
+        name: other.into(),
+        other_dtype: true,
+        ..base
+    });
+    v
+}
+
+fn copy_setting() -> Setting {
+    Setting {
+        copy: true,
+        ..Setting::model("copy-nearest", false, false, 1.0)
+    }
+}
+
+fn check(cfg: &EvalConfig) -> Result<()> {
+    ensure!(
+        !cfg.scenarios.is_empty(),
+        "eval-render: no --scenario given"
+    );
+    ensure!(!cfg.cameras.is_empty(), "eval-render: no --cameras given");
+    for &l in &cfg.lateral_m {
+        ensure!(
+            l.is_finite() && l.abs() <= 20.0,
+            "--lateral {l}: metres in [-20, 20]"
+        );
+    }
+    for &y in &cfg.yaw_deg {
+        ensure!(
+            y.is_finite() && y.abs() <= 90.0,
+            "--yaw {y}: degrees in [-90, 90]"
+        );
+    }
+    for &g in &cfg.guidance {
+        ensure!(
+            g.is_finite() && g > 0.0 && g <= 20.0,
+            "--guidance {g}: in (0, 20]"
+        );
+    }
+    ensure!(cfg.drift_frames <= 1000, "--drift-frames: at most 1000");
+    if let Some(s) = cfg.steps {
+        ensure!((1..=1000).contains(&s), "--steps {s}: in 1..=1000");
+    }
+    Ok(())
+}
+
+fn deviations(cfg: &EvalConfig) -> Vec<Deviation> {
+    let mut v: Vec<Deviation> = vec![];
+    let mut push = |d: Deviation| {
+        if !v.contains(&d) {
+            v.push(d)
+        }
+    };
+    push(Deviation::NONE);
+    for &l in &cfg.lateral_m {
+        push(Deviation {
+            lateral_m: l,
+            yaw_deg: 0.0,
+        });
+    }
+    for &y in &cfg.yaw_deg {
+        push(Deviation {
+            lateral_m: 0.0,
+            yaw_deg: y,
+        });
+    }
+    v
+}
+
+/// Runs the evaluation and writes `<out>/{config.json, eval.json, eval.md, timing.json, *.png, strips/}`.
+pub fn eval_render(ctx: &Context, cfg: &EvalConfig, out: &Path) -> Result<Results> {
+    check(cfg)?;
+    let t_start = std::time::Instant::now();
+    let pkg = crate::render::package::resolve_model(cfg.model.as_deref())?;
+    let model_name = pkg.source.clone();
+    let dtype: DType = cfg.dtype.parse()?;
+    let (other_dtype, other_name) = match dtype {
+        DType::F32 => (DType::F16, "f16"),
+        _ => (DType::F32, "f32"),
+    };
+    let default_w = pkg.meta.ref_guidance;
+    let blur = pkg.control_cfg.prev_blur_sigma;
+    let mk = |dt: DType, pkg| {
+        B2drEngine::new(
+            ctx,
+            pkg,
+            dt,
+            cfg.cameras.clone(),
+            true,
+            cfg.steps,
+            None,
+            cfg.seed,
+        )
+    };
+    let main = mk(dtype, pkg.clone())?;
+    let other = if cfg.drift_frames > 0 {
+        Some(mk(other_dtype, pkg)?)
+    } else {
+        None
+    };
+    let size = main.size();
+    let n = cfg.cameras.len();
+    let mut rs = Renderers {
+        main: &main,
+        other: other.as_ref(),
+        planned: BTreeMap::new(),
+    };
+    let mut sources: Vec<Source> = vec![];
+    for s in &cfg.scenarios {
+        sources.extend(resolve(s)?);
+    }
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    std::fs::write(out.join("config.json"), serde_json::to_string_pretty(cfg)?)?;
+    let devs = deviations(cfg);
+    let single = single_settings(default_w, &cfg.guidance);
+    let deviated = deviated_settings(default_w);
+    let drift = drift_settings(default_w, blur, other_name);
+    let per_scenario = cfg.frames.len() * (single.len() + (devs.len() - 1) * deviated.len());
+    let drift_total = cfg.drift_frames * drift.len() * cfg.drift_scenarios.min(sources.len());
+    let bar = indicatif::ProgressBar::new((per_scenario * sources.len() + drift_total) as u64);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "eval-render {bar:25} {pos}/{len} renders {msg} [{elapsed_precise} / eta {eta}]",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    let mut truths: Vec<(Vec<u8>, Vec<u8>)> = vec![];
+    let mut kept: Vec<Kept> = vec![];
+    let mut drift_kept: Vec<Kept> = vec![];
+    let mut nonfinite: BTreeMap<String, usize> = BTreeMap::new();
+    let mut skipped = vec![];
+    let mut strips = report::Strips::default();
+    // the strips show the first case evaluated (first scenario, first frame that has a previous frame)
+    let mut strip_case: Option<(usize, usize)> = None;
+    for (si, src) in sources.iter().enumerate() {
+        let sc = crate::world::load(src)?;
+        ensure!(
+            sc.source.starts_with("builtin:"),
+            "eval-render needs synthetic scenarios (builtin:...): the ground truth is the world's renderer; {} \
+             is {}",
+            sc.name,
+            sc.source
+        );
+        let store = ImageStore::new(&sc, None);
+        let cams: Vec<Camera> = rig_cameras(&sc, &cfg.cameras)?;
+        let map = map_layer(&sc.map);
+        let nf = sc.rig.frames.len();
+        bar.set_message(sc.name.clone());
+        for &fi in &cfg.frames {
+            if fi == 0 || fi >= nf {
+                skipped.push(format!(
+                    "{}: frame {fi} (the log has frames 0..{nf}; a case needs a frame before it)",
+                    sc.name
+                ));
+                bar.inc((single.len() + (devs.len() - 1) * deviated.len()) as u64);
+                continue;
+            }
+            let step = scene::frame_step(&sc, fi);
+            let pstep = scene::frame_step(&sc, fi - 1);
+            if si == 0 && strip_case.is_none() {
+                strip_case = Some((si, fi));
+            }
+            for (di, d) in devs.iter().enumerate() {
+                let settings = if d.is_none() { &single } else { &deviated };
+                let poses = scene::pose_at(&sc, fi, d)
+                    .and_then(|e| Ok((e, scene::pose_at(&sc, fi - 1, d)?)));
+                let (e2g, pe2g) = match poses {
+                    Ok(p) => p,
+                    Err(e) => {
+                        skipped.push(format!("{} frame {fi} {}: {e:#}", sc.name, d.label()));
+                        bar.inc(settings.len() as u64);
+                        continue;
+                    }
+                };
+                let gt = scene::truth(&store, &cams, &e2g, step, size)?;
+                let pgt = scene::truth(&store, &cams, &pe2g, pstep, size)?;
+                let masks = scene::masks(&sc, &map, &cams, &e2g, step, size)?;
+                let refs = scene::refs(&store, &main.package.control_cfg, &cams, &e2g, size)?;
+                let prev = scene::planar_all(&pgt.rgb, size);
+                let x = CaseInputs {
+                    masks: &masks,
+                    prev: Some(&prev),
+                    refs: Some(&refs),
+                    noise_id: 1_000_000 + (fi as u64) * 64 + di as u64,
+                };
+                let t0 = truths.len();
+                for k in 0..n {
+                    truths.push((gt.rgb[k].clone(), gt.class[k].clone()));
+                }
+                let copy = scene::copy_nearest(&store, &cams, &e2g, size)?;
+                let mut row: Vec<(String, Vec<Vec<u8>>)> = vec![];
+                for s in settings.iter().chain(std::iter::once(&copy_setting())) {
+                    let imgs = if s.copy {
+                        copy.clone()
+                    } else {
+                        let v = render(&mut rs, s, &x, false, cfg.seed, size, n)?;
+                        bar.inc(1);
+                        v
+                    };
+                    for (k, img) in imgs.iter().enumerate() {
+                        kept.push(Kept {
+                            score: report::score(
+                                &sc.name,
+                                &cams[k].name,
+                                fi,
+                                step,
+                                *d,
+                                &s.name,
+                                img,
+                                &gt.rgb[k],
+                                size,
+                            )?,
+                            rgb: img.clone(),
+                            truth: t0 + k,
+                        });
+                    }
+                    row.push((s.name.clone(), imgs));
+                }
+                if strip_case == Some((si, fi)) {
+                    strips.single.push((d.label(), gt.rgb.clone(), row));
+                }
+            }
+        }
+        if si < cfg.drift_scenarios && cfg.drift_frames > 0 {
+            ensure!(
+                cfg.drift_frames < nf,
+                "--drift-frames {}: {} has {nf} recorded frames (frame 0 starts the drift)",
+                cfg.drift_frames,
+                sc.name
+            );
+            let rec0: Vec<Vec<u8>> = cams
+                .iter()
+                .map(|c| {
+                    let img = sc.rig.frames[0]
+                        .images
+                        .iter()
+                        .find(|i| i.camera == c.name)
+                        .with_context(|| format!("{}: frame 0 has no {}", sc.name, c.name))?;
+                    crate::eval::sensors::recorded_pixels(&store, img, size)
+                })
+                .collect::<Result<_>>()?;
+            let prev0 = scene::planar_all(&rec0, size);
+            for s in &drift {
+                let mut bad = 0usize;
+                for fi in 1..=cfg.drift_frames {
+                    let step = scene::frame_step(&sc, fi);
+                    let e2g = sc.rig.frames[fi].ego2global;
+                    let gt = scene::truth(&store, &cams, &e2g, step, size)?;
+                    let masks = scene::masks(&sc, &map, &cams, &e2g, step, size)?;
+                    let refs = scene::refs(&store, &main.package.control_cfg, &cams, &e2g, size)?;
+                    let x = CaseInputs {
+                        masks: &masks,
+                        prev: Some(&prev0),
+                        refs: Some(&refs),
+                        noise_id: fi as u64,
+                    };
+                    let fr_bad = {
+                        let imgs = render(&mut rs, s, &x, fi > 1, cfg.seed, size, n)?;
+                        let raw = rs.get(s)?.image()?;
+                        let t0 = truths.len();
+                        for (k, img) in imgs.iter().enumerate() {
+                            truths.push((gt.rgb[k].clone(), gt.class[k].clone()));
+                            drift_kept.push(Kept {
+                                score: report::score(
+                                    &sc.name,
+                                    &cams[k].name,
+                                    fi,
+                                    step,
+                                    Deviation::NONE,
+                                    &s.name,
+                                    img,
+                                    &gt.rgb[k],
+                                    size,
+                                )?,
+                                rgb: img.clone(),
+                                truth: t0 + k,
+                            });
+                        }
+                        if si == 0 && s.name == "b2dr" {
+                            strips.drift.push((fi, gt.rgb.clone(), imgs));
+                        }
+                        raw.iter().filter(|v| !v.is_finite()).count()
+                    };
+                    bad += fr_bad;
+                    bar.inc(1);
+                }
+                *nonfinite.entry(s.name.clone()).or_default() += bad;
+            }
+        }
+    }
+    bar.finish_and_clear();
+    // The layout classifier, fitted on every ground-truth image of this evaluation, then applied to all.
+    let pairs: Vec<(&[u8], &[u8])> = truths.iter().map(|(r, c)| (&r[..], &c[..])).collect();
+    let clf = PaletteClassifier::fit(&pairs)?;
+    let mut ceiling = IouCounts::default();
+    for (r, c) in &truths {
+        ceiling.add(&clf.classify(r), c);
+    }
+    let classes = report::scored_classes(&ceiling);
+    let finish = |v: Vec<Kept>| -> Vec<Score> {
+        v.into_iter()
+            .map(|k| {
+                let mut s = k.score;
+                s.iou.add(&clf.classify(&k.rgb), &truths[k.truth].1);
+                s.vehicle_iou = s.iou.iou(report::VEHICLE);
+                s.mean_iou = s.iou.mean_iou(&classes);
+                s
+            })
+            .collect()
+    };
+    let res = Results {
+        config: cfg.clone(),
+        model: model_name,
+        render_size: [size.0, size.1],
+        single: finish(kept),
+        drift: finish(drift_kept),
+        drift_nonfinite: nonfinite,
+        classifier_ceiling: report::class_table(&ceiling, &classes),
+        skipped,
+    };
+    report::write(out, &res, &classes, &strips, size)?;
+    let timing = serde_json::json!({
+        "wall_s": t_start.elapsed().as_secs_f64(),
+        "device": ctx.info().name.clone(),
+        "renders": per_scenario * sources.len() + drift_total,
+    });
+    std::fs::write(
+        out.join("timing.json"),
+        serde_json::to_string_pretty(&timing)?,
+    )?;
+    Ok(res)
+}
