@@ -416,13 +416,27 @@ def train(args):
     source = open_source(args.data, cfg["render_size"])
     if list(source.render_size) != list(cfg["render_size"]):
         raise SystemExit(f"data render size {source.render_size} != config {cfg['render_size']}")
+    init = getattr(args, "init_from", None) if not ck else None
     vae_path = ck["vae_path"] if ck and not args.vae else args.vae
+    if not vae_path and init:
+        vae_path = os.path.join(init, "vae")
     if not vae_path:
         raise SystemExit("--vae VAE_DIR (the trained VAE: vae_train's RUN/vae) is required")
     vae = load_vae(vae_path).to(device)
     unet, controlnet = build_diffusion_models(cfg, seed=args.seed)
     cameras = ck["cameras"] if ck else list(source.cameras)
     context = ck["context"] if ck else make_context(cfg, cameras, seed=args.seed)
+    if init:
+        # continue training from an exported package (e.g. the committed models/b2dr-nano, f16 weights widened
+        # to f32): its UNet, ControlNet, per-camera context and (unless --vae) VAE; a fresh optimizer and schedule
+        from .package import load_package
+
+        pkg = load_package(init)
+        unet.load_state_dict(pkg.unet.state_dict())
+        controlnet.load_state_dict(pkg.controlnet.state_dict())
+        if list(pkg.meta["cameras"]) != cameras:
+            raise SystemExit(f"--init-from {init}: cameras {pkg.meta['cameras']} != the data's {cameras}")
+        context = pkg.context.clone()
     unet.to(device).train()
     controlnet.to(device).train()
     params = list(unet.parameters()) + list(controlnet.parameters())
@@ -606,6 +620,8 @@ def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m b2dr_ref.train")
     add_common(p)
     p.add_argument("--vae", default=None, help="the trained VAE folder (vae_train's RUN/vae)")
+    p.add_argument("--init-from", default=None,
+                   help="start a new run from an exported model package (weights, context, VAE unless --vae)")
     p.add_argument("--ema", type=float, default=0.0, help="EMA decay (0 = off); export uses the EMA when kept")
     p.add_argument("--p-noprev", type=float, default=0.1, help="probability of 'no previous frame' (z = 0, n = 999)")
     p.add_argument("--cache", type=int, default=100000, help="samples whose latents + PE are kept in memory")

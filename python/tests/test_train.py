@@ -159,3 +159,24 @@ def test_nano_config_is_engine_shaped():
     with torch.no_grad():
         z = vae.encode(torch.zeros(1, 3, 112, 200)).latent_dist.mean
     assert tuple(z.shape) == (1, 4, 14, 25)
+
+
+def test_init_from_package_starts_from_its_weights(vae_run, tmp_path):
+    from b2dr_ref.package import load_package
+
+    run = str(tmp_path / "run")
+    diffusion(os.path.join(vae_run[0], "vae"), run, "--steps", "2")
+    model = str(tmp_path / "model")
+    T.main(["export", "--run", run, "--out", model, "--dtype", "f16"])
+    # lr 0: one step leaves the weights where --init-from put them (the package's, f16 widened to f32)
+    cont = str(tmp_path / "cont")
+    T.main(["--data", "synthetic:4", "--out", cont, "--steps", "1", "--batch", "2", "--lr", "0",
+            "--init-from", model] + COMMON)
+    pkg = load_package(model)
+    ck = torch.load(os.path.join(cont, T.CKPT), weights_only=False)
+    assert ck["vae_path"] == os.path.abspath(os.path.join(model, "vae"))
+    for k, v in pkg.controlnet.state_dict().items():
+        torch.testing.assert_close(ck["controlnet"][k], v, rtol=0, atol=0)
+    for k, v in pkg.unet.state_dict().items():
+        torch.testing.assert_close(ck["unet"][k], v, rtol=0, atol=0)
+    torch.testing.assert_close(ck["context"], pkg.context, rtol=0, atol=0)

@@ -88,18 +88,10 @@ pub fn run(device: Option<String>, a: RunArgs) -> Result<()> {
     };
     if any_model {
         // the model's render size is the run's
-        let pkg_size = match &cfg.model {
-            Some(d) => {
-                b2dr::render::package::ModelPackage::load(d)?
-                    .meta
-                    .render_size
-            }
-            None => {
-                b2dr::render::package::ModelPackage::builtin("b2dr-tiny")?
-                    .meta
-                    .render_size
-            }
-        };
+        // (a folder, builtin:NAME, or the default built-in model, exactly as the run resolves it)
+        let pkg_size = b2dr::render::package::resolve_model(cfg.model.as_deref())?
+            .meta
+            .render_size;
         cfg.size = (pkg_size[0], pkg_size[1]);
     }
     if modes.len() > 1 {
