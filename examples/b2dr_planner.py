@@ -181,6 +181,8 @@ def serve(plan, images="paths", size=None, on_start=None, on_end=None):
         inline = _read_exact(inp, msg.get("inline_bytes", 0)) if msg.get("inline_bytes") else b""
         r = plan(Request(msg, inline))
         reply = r if isinstance(r, dict) else {"poses": r}
+        # echo the request's step: b2dr then knows the reply answers this request (not an earlier one)
+        reply.setdefault("step", msg.get("step"))
         out.write(json.dumps(reply) + "\n")
         out.flush()
 

@@ -442,6 +442,15 @@ impl Planner for ExternalPlanner {
             msg["inline_bytes"] = json!(inline.len());
         }
         let reply = self.request(&msg, &inline, true)?.context("no reply")?;
+        // A reply may echo the request's step; when it does it must be this request's. Without it a second
+        // reply to an earlier request that arrives late would be taken for this one's.
+        if let Some(s) = reply.get("step").filter(|s| !s.is_null()) {
+            ensure!(
+                s.as_u64() == Some(input.step as u64),
+                "planner replied for step {s} to the request of step {} (two replies to one request?)",
+                input.step
+            );
+        }
         let local = parse_reply(&reply)?;
         trajectory_from_ego_frame(e, &local, PLAN_POSES)
     }
