@@ -231,6 +231,37 @@ fn render(
         .collect())
 }
 
+/// Scores one setting's images of a case (scenario, frame, step, deviation, setting) against the truths
+/// `truth` (whose class images sit at `truths[t0 + k]`) and keeps them for the layout score.
+fn keep(
+    out: &mut Vec<Kept>,
+    (scenario, frame, step, dev, setting): (&str, usize, usize, Deviation, &str),
+    cams: &[Camera],
+    imgs: &[Vec<u8>],
+    truth: &[Vec<u8>],
+    t0: usize,
+    size: (usize, usize),
+) -> Result<()> {
+    for (k, img) in imgs.iter().enumerate() {
+        out.push(Kept {
+            score: report::score(
+                scenario,
+                &cams[k].name,
+                frame,
+                step,
+                dev,
+                setting,
+                img,
+                &truth[k],
+                size,
+            )?,
+            rgb: img.clone(),
+            truth: t0 + k,
+        });
+    }
+    Ok(())
+}
+
 /// The whole evaluation's results (eval.json).
 #[derive(Debug, Serialize)]
 pub struct Results {
@@ -482,23 +513,8 @@ pub fn eval_render(ctx: &Context, cfg: &EvalConfig, out: &Path) -> Result<Result
                         bar.inc(1);
                         v
                     };
-                    for (k, img) in imgs.iter().enumerate() {
-                        kept.push(Kept {
-                            score: report::score(
-                                &sc.name,
-                                &cams[k].name,
-                                fi,
-                                step,
-                                *d,
-                                &s.name,
-                                img,
-                                &gt.rgb[k],
-                                size,
-                            )?,
-                            rgb: img.clone(),
-                            truth: t0 + k,
-                        });
-                    }
+                    let id = (sc.name.as_str(), fi, step, *d, s.name.as_str());
+                    keep(&mut kept, id, &cams, &imgs, &gt.rgb, t0, size)?;
                     row.push((s.name.clone(), imgs));
                 }
                 if strip_case == Some((si, fi)) {
@@ -543,24 +559,11 @@ pub fn eval_render(ctx: &Context, cfg: &EvalConfig, out: &Path) -> Result<Result
                         let imgs = render(&mut rs, s, &x, fi > 1, cfg.seed, size, n)?;
                         let raw = rs.get(s)?.image()?;
                         let t0 = truths.len();
-                        for (k, img) in imgs.iter().enumerate() {
+                        for k in 0..n {
                             truths.push((gt.rgb[k].clone(), gt.class[k].clone()));
-                            drift_kept.push(Kept {
-                                score: report::score(
-                                    &sc.name,
-                                    &cams[k].name,
-                                    fi,
-                                    step,
-                                    Deviation::NONE,
-                                    &s.name,
-                                    img,
-                                    &gt.rgb[k],
-                                    size,
-                                )?,
-                                rgb: img.clone(),
-                                truth: t0 + k,
-                            });
                         }
+                        let id = (sc.name.as_str(), fi, step, Deviation::NONE, s.name.as_str());
+                        keep(&mut drift_kept, id, &cams, &imgs, &gt.rgb, t0, size)?;
                         if si == 0 && s.name == "b2dr" {
                             strips.drift.push((fi, gt.rgb.clone(), imgs));
                         }
