@@ -10,6 +10,7 @@ use b2dr::nn::run::read_component;
 use b2dr::nn::unet::UNet;
 use b2dr::nn::vae::VaeDecoder;
 use b2dr::nn::weights::{self, Weights};
+use b2dr::render::inputs;
 use b2dr::sampling::{ddim, unipc, NoiseSchedule};
 use b2dr::tensor::DType;
 use b2dr::vk::{Context, ContextOptions};
@@ -208,8 +209,11 @@ pub fn run(device: Option<String>, a: SampleArgs) -> Result<()> {
     bar.finish_and_clear();
     let run_s = t1.elapsed().as_secs_f64();
     std::fs::create_dir_all(&a.out).with_context(|| format!("creating {}", a.out.display()))?;
-    write_png(&a.out.join("sample.png"), &out.image, ih, iw)?;
-    write_exr(&a.out.join("sample.exr"), &out.image, ih, iw)?;
+    let png = a.out.join("sample.png");
+    inputs::to_rgb(&out.image, (ih, iw))
+        .save(&png)
+        .with_context(|| format!("writing {}", png.display()))?;
+    inputs::write_exr(&a.out.join("sample.exr"), &out.image, (ih, iw))?;
     let report = serde_json::json!({
         "device": ctx.info().name, "steps": a.steps, "sampler": a.sampler, "guidance": a.guidance, "seed": a.seed,
         "size": [ih, iw], "dtype": dt.name(), "plan_ms": plan_ms, "run_s": run_s,
@@ -254,28 +258,4 @@ fn read_image(path: &Path, h: usize, w: usize, channels: usize) -> Result<Vec<f3
         }
     }
     Ok(v)
-}
-
-fn write_png(path: &Path, chw: &[f32], h: usize, w: usize) -> Result<()> {
-    let img = image::RgbImage::from_fn(w as u32, h as u32, |x, y| {
-        let g = |c: usize| {
-            (chw[(c * h + y as usize) * w + x as usize] * 255.0)
-                .round()
-                .clamp(0.0, 255.0) as u8
-        };
-        image::Rgb([g(0), g(1), g(2)])
-    });
-    img.save(path)
-        .with_context(|| format!("writing {}", path.display()))
-}
-
-fn write_exr(path: &Path, chw: &[f32], h: usize, w: usize) -> Result<()> {
-    exr::prelude::write_rgb_file(path, w, h, |x, y| {
-        (
-            chw[y * w + x],
-            chw[(h + y) * w + x],
-            chw[(2 * h + y) * w + x],
-        )
-    })
-    .with_context(|| format!("writing {}", path.display()))
 }

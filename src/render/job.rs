@@ -1,6 +1,6 @@
 //! `b2dr render`: one frame of a keyframe (the shared keyframe JSON format) rendered by a model package, with
 //! the frame's projected layout, a previous frame and two references; writes per-camera PNG/EXR and a report.
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 use anyhow::{bail, ensure, Context as _, Result};
 use serde_json::json;
@@ -53,17 +53,6 @@ pub fn sampler_plan(name: &str, steps: usize) -> Result<SamplerPlan> {
         "ddim" => ddim::plan(&s, &Default::default(), steps),
         other => bail!("--sampler {other:?}: expected unipc or ddim"),
     }
-}
-
-fn write_exr(path: &Path, chw: &[f32], h: usize, w: usize) -> Result<()> {
-    exr::prelude::write_rgb_file(path, w, h, |x, y| {
-        (
-            chw[y * w + x],
-            chw[(h + y) * w + x],
-            chw[(2 * h + y) * w + x],
-        )
-    })
-    .with_context(|| format!("writing {}", path.display()))
 }
 
 /// Renders the job's frame; returns the report written to `out/render.json`.
@@ -242,7 +231,7 @@ pub fn run(ctx: &Context, j: &RenderJob) -> Result<serde_json::Value> {
         inputs::to_rgb(chw, size)
             .save(&p)
             .with_context(|| format!("writing {}", p.display()))?;
-        write_exr(&j.out.join(format!("{stem}.exr")), chw, ih, iw)?;
+        inputs::write_exr(&j.out.join(format!("{stem}.exr")), chw, size)?;
     }
     let report = json!({
         "device": ctx.info().name, "model": pkg.source, "frame": j.frame.display().to_string(),
