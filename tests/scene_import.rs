@@ -167,6 +167,16 @@ fn unreadable_files_and_bad_specs_are_errors() {
         resolve("builtin:town:7:200").unwrap(),
         vec![Source::Builtin(BuiltinSpec::town(7, Some(200)))]
     );
+    // comma lists resolve in order; a bad member fails the list; an empty list is an error
+    assert_eq!(
+        resolve("builtin:town:7:200, builtin:town:8").unwrap(),
+        vec![
+            Source::Builtin(BuiltinSpec::town(7, Some(200))),
+            Source::Builtin(BuiltinSpec::town(8, None))
+        ]
+    );
+    assert!(resolve("builtin:town:7,builtin:city").is_err());
+    assert!(resolve(",").is_err());
     std::fs::remove_dir_all(&dir).ok();
 }
 

@@ -67,3 +67,71 @@ pub fn run(a: ExportArgs) -> Result<()> {
     );
     Ok(())
 }
+
+#[derive(clap::Args, Debug)]
+pub struct ExportPlannerArgs {
+    /// Synthetic scenario(s), repeatable: builtin:LAYOUT[:seed[:n_vehicles[:palette]]] (comma lists allowed).
+    #[arg(long, required = true, num_args = 1..)]
+    pub scenario: Vec<String>,
+    /// Output directory (index.json + one safetensors file per scenario).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// Image size HEIGHTxWIDTH (the renderer's size the planner will see in closed loop).
+    #[arg(long, default_value = "112x200")]
+    pub size: String,
+    /// Cameras (comma-separated; default CAM_FRONT).
+    #[arg(long, value_delimiter = ',')]
+    pub cameras: Vec<String>,
+    /// Ego displacements LATERAL_M,YAW_DEG separated by ';'; each planner step is exported once per entry.
+    #[arg(
+        long,
+        default_value = "0,0;1,0;-1,0;0,6;0,-6",
+        allow_hyphen_values = true
+    )]
+    pub offsets: String,
+    /// Planner period in log steps (5 = 2 Hz).
+    #[arg(long, default_value_t = 5)]
+    pub every: usize,
+    #[arg(long)]
+    pub quiet: bool,
+}
+
+pub fn run_planner(a: ExportPlannerArgs) -> Result<()> {
+    use b2dr::eval::planner_data::{export, PlannerDataOptions};
+    let size = parse_size(&a.size).map_err(|e| e.context("--size"))?;
+    let offsets = a
+        .offsets
+        .split(';')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(|s| {
+            let v: Vec<f64> = s
+                .split(',')
+                .map(|x| x.trim().parse::<f64>())
+                .collect::<Result<_, _>>()
+                .map_err(|e| anyhow::anyhow!("--offsets {s:?}: {e}"))?;
+            anyhow::ensure!(
+                v.len() == 2 && v.iter().all(|x| x.is_finite()),
+                "--offsets {s:?}: expected LATERAL_M,YAW_DEG"
+            );
+            Ok((v[0], v[1].to_radians()))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let s = export(&PlannerDataOptions {
+        scenarios: a.scenario,
+        out: a.out.clone(),
+        size,
+        cameras: a.cameras,
+        offsets,
+        every: a.every,
+        progress: !a.quiet,
+    })?;
+    println!(
+        "{} samples in {} files ({} skipped: off the map) -> {}",
+        s.samples,
+        s.files,
+        s.skipped_off_map,
+        a.out.join("index.json").display()
+    );
+    Ok(())
+}

@@ -56,6 +56,9 @@ pub enum Command {
     World(world::WorldArgs),
     /// Export training samples (images, references, masks, matrices) as safetensors shards + index.json.
     ExportTraining(export::ExportArgs),
+    /// Export imitation data for an image-reading planner: ground-truth cameras at the expert's planner steps
+    /// (and displaced), speed, command, and the expert's next 8 poses.
+    ExportPlanner(export::ExportPlannerArgs),
 }
 
 #[derive(Subcommand, Debug)]
@@ -121,5 +124,6 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Sim(a) => sim::run(a),
         Command::World(a) => world::run(a),
         Command::ExportTraining(a) => export::run(a),
+        Command::ExportPlanner(a) => export::run_planner(a),
     }
 }

@@ -7,7 +7,8 @@ use b2dr::vk::{Context, ContextOptions};
 
 #[derive(clap::Args, Debug)]
 pub struct RunArgs {
-    /// Scenario(s): builtin:LAYOUT[:SEED[:VEHICLES[:PALETTE]]], a ScenarioNet .json file, or a folder of them
+    /// Scenario(s): builtin:LAYOUT[:SEED[:VEHICLES[:PALETTE]]], a ScenarioNet .json file, a folder of them, or a
+    /// comma-separated list of those
     #[arg(long, default_value = "builtin:town")]
     pub scenario: String,
     /// b2dr (generative renderer), b2dr-noref-noprev (masks only), log-replay, groundtruth (synthetic

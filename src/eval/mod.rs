@@ -4,5 +4,6 @@
 //! simulator itself never touches the GPU.
 pub mod compare;
 pub mod fidelity;
+pub mod planner_data;
 pub mod run;
 pub mod sensors;

@@ -34,8 +34,19 @@ impl Source {
     }
 }
 
-/// Parses a `--scenario` argument into the scenarios it names.
+/// Parses a `--scenario` argument into the scenarios it names: `builtin:...`, a .json file, a folder of them,
+/// or a comma-separated list of those (resolved in order; an existing path containing a comma is a path).
 pub fn resolve(spec: &str) -> Result<Vec<Source>> {
+    if spec.contains(',') && !std::path::Path::new(spec).exists() {
+        let mut all = vec![];
+        for part in spec.split(',').map(str::trim).filter(|s| !s.is_empty()) {
+            all.extend(resolve(part)?);
+        }
+        if all.is_empty() {
+            bail!("scenario list {spec:?} names no scenario");
+        }
+        return Ok(all);
+    }
     if let Some(rest) = spec.strip_prefix("builtin:") {
         return Ok(vec![Source::Builtin(BuiltinSpec::parse(rest, spec)?)]);
     }
