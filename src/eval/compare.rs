@@ -5,6 +5,9 @@
 //!   <out>/<renderer>/...        each mode's own run (eval::run layout)
 //!   <out>/comparison.md, .json  CLS and per-metric means per renderer
 //!   <out>/side_by_side_<scenario>_<step>.png   one row per renderer
+//!   <out>/diverged/<scenario>_<step>.png        where the renderer changed the outcome (scores differ): each
+//!                                               renderer's mosaic (the cameras the planner saw + the BEV) at
+//!                                               four planner steps, one row per renderer in table order
 use std::path::Path;
 
 use anyhow::{Context as _, Result};
@@ -81,14 +84,36 @@ pub fn compare(
         .and_then(|(_, s)| s["cls_kind"].as_str())
         .unwrap_or("CLS")
         .to_string();
-    let md = format!(
-        "# Closed-loop comparison\n\nPlanner `{}`, agents `{:?}` ({kind}), scenarios `{}`, {} steps.\n\n{table}",
-        base.planner, base.agents, base.scenario, base.steps
+    let diverged = diverged(&rows, out)?;
+    let mut md = format!(
+        "# Closed-loop comparison\n\nPlanner `{}`, agents `{:?}` ({kind}), scenarios `{}` ({} scenarios), {} steps.\n\n{table}",
+        base.planner,
+        base.agents,
+        base.scenario,
+        rows.first()
+            .and_then(|(_, s)| s["scenarios"].as_array().map(|v| v.len()))
+            .unwrap_or(0),
+        base.steps
     );
+    if !diverged.is_empty() {
+        md.push_str(&format!(
+            "\nScenarios where the renderer changed the score (per renderer, in table order; mosaics in `diverged/`):\n\n| scenario | {} |\n|---|{}\n",
+            rows.iter().map(|(m, _)| m.name()).collect::<Vec<_>>().join(" | "),
+            "---|".repeat(rows.len())
+        ));
+        for (name, scores) in &diverged {
+            let cells: Vec<String> = scores.iter().map(|v| format!("{v:.3}")).collect();
+            md.push_str(&format!("| {name} | {} |\n", cells.join(" | ")));
+        }
+    }
     std::fs::write(out.join("comparison.md"), &md)
         .with_context(|| format!("writing {}", out.join("comparison.md").display()))?;
-    let summary =
-        json!({"planner": base.planner, "scenario": base.scenario, "cls_kind": kind, "rows": js});
+    let div: Vec<Value> = diverged
+        .iter()
+        .map(|(n, v)| json!({"scenario": n, "scores": v}))
+        .collect();
+    let summary = json!({"planner": base.planner, "scenario": base.scenario, "cls_kind": kind, "rows": js,
+        "diverged": div});
     std::fs::write(
         out.join("comparison.json"),
         serde_json::to_string_pretty(&summary)?,
@@ -96,6 +121,86 @@ pub fn compare(
     side_by_side(base, modes, out)?;
     println!("{md}");
     Ok(summary)
+}
+
+/// The scenarios whose score differs between modes (name, score per mode), and for each the modes' mosaics
+/// stacked at four planner steps spread over the run.
+fn diverged(rows: &[(RendererMode, Value)], out: &Path) -> Result<Vec<(String, Vec<f64>)>> {
+    let per_mode: Vec<Vec<(String, f64)>> = rows
+        .iter()
+        .map(|(_, s)| {
+            s["scenarios"]
+                .as_array()
+                .map(|v| {
+                    v.iter()
+                        .map(|x| {
+                            (
+                                x["scenario"].as_str().unwrap_or("").to_string(),
+                                x["score"].as_f64().unwrap_or(0.0),
+                            )
+                        })
+                        .collect()
+                })
+                .unwrap_or_default()
+        })
+        .collect();
+    let Some(first) = per_mode.first() else {
+        return Ok(vec![]);
+    };
+    let mut found = vec![];
+    for (name, _) in first {
+        let scores: Vec<f64> = per_mode
+            .iter()
+            .map(|m| m.iter().find(|(n, _)| n == name).map_or(0.0, |x| x.1))
+            .collect();
+        if scores.iter().all(|&v| (v - scores[0]).abs() < 1e-9) {
+            continue;
+        }
+        let steps = rows[0].1["scenarios"]
+            .as_array()
+            .and_then(|v| v.iter().find(|x| x["scenario"] == name.as_str()))
+            .and_then(|x| x["steps"].as_u64())
+            .unwrap_or(150) as usize;
+        let dir = out.join("diverged");
+        std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+        for q in 0..4 {
+            // planner steps (multiples of 5) at 0, 1/4, 1/2, 3/4 of the run
+            let step = steps * q / 4 / 5 * 5;
+            let imgs: Vec<image::RgbImage> = rows
+                .iter()
+                .filter_map(|(m, _)| {
+                    let p = out
+                        .join(m.name())
+                        .join(name)
+                        .join("mosaic")
+                        .join(format!("{step:04}.png"));
+                    image::open(p).ok().map(|i| i.to_rgb8())
+                })
+                .collect();
+            if imgs.is_empty() {
+                continue;
+            }
+            let p = dir.join(format!("{name}_{step:04}.png"));
+            stack(&imgs)
+                .save(&p)
+                .with_context(|| format!("writing {}", p.display()))?;
+        }
+        found.push((name.clone(), scores));
+    }
+    Ok(found)
+}
+
+/// Images stacked vertically (left-aligned, black where narrower).
+fn stack(rows: &[image::RgbImage]) -> image::RgbImage {
+    let w = rows.iter().map(|r| r.width()).max().unwrap_or(1);
+    let h: u32 = rows.iter().map(|r| r.height()).sum();
+    let mut canvas = image::RgbImage::new(w, h.max(1));
+    let mut y = 0;
+    for r in rows {
+        image::imageops::replace(&mut canvas, r, 0, y as i64);
+        y += r.height();
+    }
+    canvas
 }
 
 /// The front camera (or the first camera) of every mode at up to four planner steps, one row per mode.
@@ -129,18 +234,51 @@ fn side_by_side(base: &RunConfig, modes: &[RendererMode], out: &Path) -> Result<
         if rows.is_empty() {
             continue;
         }
-        let w = rows.iter().map(|r| r.width()).max().unwrap_or(1);
-        let h: u32 = rows.iter().map(|r| r.height()).sum();
-        let mut canvas = image::RgbImage::new(w, h);
-        let mut y = 0;
-        for r in &rows {
-            image::imageops::replace(&mut canvas, r, 0, y as i64);
-            y += r.height();
-        }
         let p = out.join(format!("side_by_side_{scen}_{step:04}.png"));
-        canvas
+        stack(&rows)
             .save(&p)
             .with_context(|| format!("writing {}", p.display()))?;
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn diverged_lists_only_scenarios_whose_score_differs_and_stacks_their_mosaics() {
+        let out = std::env::temp_dir().join(format!("b2dr-compare-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&out);
+        let modes = [RendererMode::Groundtruth, RendererMode::LogReplay];
+        for (k, m) in modes.iter().enumerate() {
+            for sc in ["same", "differs"] {
+                let d = out.join(m.name()).join(sc).join("mosaic");
+                std::fs::create_dir_all(&d).unwrap();
+                for step in [0, 5, 10, 15] {
+                    image::RgbImage::from_pixel(4 + k as u32, 3, image::Rgb([k as u8 * 200, 0, 0]))
+                        .save(d.join(format!("{step:04}.png")))
+                        .unwrap();
+                }
+            }
+        }
+        let summary = |differs: f64| {
+            json!({"scenarios": [
+                {"scenario": "same", "score": 0.5, "steps": 20},
+                {"scenario": "differs", "score": differs, "steps": 20},
+            ]})
+        };
+        let rows = vec![(modes[0], summary(1.0)), (modes[1], summary(0.0))];
+        let d = diverged(&rows, &out).unwrap();
+        assert_eq!(d, vec![("differs".to_string(), vec![1.0, 0.0])]);
+        let img = image::open(out.join("diverged/differs_0005.png"))
+            .unwrap()
+            .to_rgb8();
+        // one row per mode, in order, as wide as the widest
+        assert_eq!((img.width(), img.height()), (5, 6));
+        assert_eq!(img.get_pixel(0, 0)[0], 0);
+        assert_eq!(img.get_pixel(0, 5)[0], 200);
+        assert!(!out.join("diverged/same_0000.png").exists());
+        std::fs::remove_dir_all(&out).unwrap();
+    }
 }
