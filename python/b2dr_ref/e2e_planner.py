@@ -19,7 +19,6 @@ import csv
 import importlib.util
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path

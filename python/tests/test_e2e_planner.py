@@ -8,7 +8,6 @@ import sys
 
 import numpy as np
 import pytest
-import torch
 from safetensors.numpy import save_file
 
 from b2dr_ref import e2e_planner as P

@@ -166,41 +166,39 @@ fn diverged(rows: &[(RendererMode, Value)], out: &Path) -> Result<Vec<(String, V
         for q in 0..4 {
             // planner steps (multiples of 5) at 0, 1/4, 1/2, 3/4 of the run
             let step = steps * q / 4 / 5 * 5;
-            let imgs: Vec<image::RgbImage> = rows
-                .iter()
-                .filter_map(|(m, _)| {
-                    let p = out
-                        .join(m.name())
-                        .join(name)
-                        .join("mosaic")
-                        .join(format!("{step:04}.png"));
-                    image::open(p).ok().map(|i| i.to_rgb8())
-                })
-                .collect();
-            if imgs.is_empty() {
-                continue;
-            }
-            let p = dir.join(format!("{name}_{step:04}.png"));
-            stack(&imgs)
-                .save(&p)
-                .with_context(|| format!("writing {}", p.display()))?;
+            let mosaics = rows.iter().map(|(m, _)| {
+                out.join(m.name())
+                    .join(name)
+                    .join("mosaic")
+                    .join(format!("{step:04}.png"))
+            });
+            save_stack(mosaics, &dir.join(format!("{name}_{step:04}.png")))?;
         }
         found.push((name.clone(), scores));
     }
     Ok(found)
 }
 
-/// Images stacked vertically (left-aligned, black where narrower).
-fn stack(rows: &[image::RgbImage]) -> image::RgbImage {
+/// The images at `paths` that exist, stacked vertically (left-aligned, black where narrower) into `to`;
+/// nothing is written when none exists.
+fn save_stack(paths: impl Iterator<Item = std::path::PathBuf>, to: &Path) -> Result<()> {
+    let rows: Vec<image::RgbImage> = paths
+        .filter_map(|p| image::open(p).ok().map(|i| i.to_rgb8()))
+        .collect();
+    if rows.is_empty() {
+        return Ok(());
+    }
     let w = rows.iter().map(|r| r.width()).max().unwrap_or(1);
     let h: u32 = rows.iter().map(|r| r.height()).sum();
-    let mut canvas = image::RgbImage::new(w, h.max(1));
+    let mut canvas = image::RgbImage::new(w, h);
     let mut y = 0;
-    for r in rows {
+    for r in &rows {
         image::imageops::replace(&mut canvas, r, 0, y as i64);
         y += r.height();
     }
     canvas
+        .save(to)
+        .with_context(|| format!("writing {}", to.display()))
 }
 
 /// The front camera (or the first camera) of every mode at up to four planner steps, one row per mode.
@@ -220,24 +218,16 @@ fn side_by_side(base: &RunConfig, modes: &[RendererMode], out: &Path) -> Result<
         .cloned()
         .unwrap_or_else(|| "CAM_FRONT".into());
     for step in [0usize, 20, 40, 60] {
-        let mut rows: Vec<image::RgbImage> = vec![];
-        for m in modes {
-            let p = out
-                .join(m.name())
+        let frames = modes.iter().map(|m| {
+            out.join(m.name())
                 .join(&scen)
                 .join("frames")
-                .join(format!("{step:04}_{}.png", folder_name(&cam)));
-            if let Ok(img) = image::open(&p) {
-                rows.push(img.to_rgb8());
-            }
-        }
-        if rows.is_empty() {
-            continue;
-        }
-        let p = out.join(format!("side_by_side_{scen}_{step:04}.png"));
-        stack(&rows)
-            .save(&p)
-            .with_context(|| format!("writing {}", p.display()))?;
+                .join(format!("{step:04}_{}.png", folder_name(&cam)))
+        });
+        save_stack(
+            frames,
+            &out.join(format!("side_by_side_{scen}_{step:04}.png")),
+        )?;
     }
     Ok(())
 }
