@@ -308,6 +308,22 @@ def load_vae(path: str):
     return AutoencoderKL.from_pretrained(path, torch_dtype=torch.float32).eval().requires_grad_(False)
 
 
+def pack_masks(masks: np.ndarray) -> torch.Tensor:
+    """(C <= 16, H, W) {0,1} -> (H, W) int16 bit planes (the cache keeps 2 bytes per pixel, not C)."""
+    m = np.asarray(masks)
+    if m.shape[0] > 16:
+        raise ValueError(f"pack_masks: {m.shape[0]} channels (at most 16)")
+    bits = (m.astype(np.uint16) & 1) << np.arange(m.shape[0], dtype=np.uint16)[:, None, None]
+    return torch.from_numpy(bits.sum(0, dtype=np.uint16).view(np.int16).copy())
+
+
+def unpack_masks(packed: torch.Tensor, channels: int = len(MASK_CHANNELS)) -> torch.Tensor:
+    """pack_masks' inverse: (H, W) int16 -> (channels, H, W) uint8."""
+    p = packed.to(torch.int32) & 0xFFFF
+    bits = torch.arange(channels, dtype=torch.int32)[:, None, None]
+    return ((p[None] >> bits) & 1).to(torch.uint8)
+
+
 class Batcher:
     """Turns sample indices into model inputs; caches the frozen-VAE latents and the PE per sample index (they are
     deterministic), up to ``cache`` samples."""
@@ -346,7 +362,7 @@ class Batcher:
             zr = self._encode(np.concatenate([s.refs for s in ss]), False).reshape(len(ss), 2, 4, *x0.shape[-2:])
             for n, (i, s) in enumerate(zip(todo, ss)):
                 pc, pr = sample_pe(s, self.pe_cfg, self.sizes, self.render_hw)
-                local[i] = (x0[n], zp[n], zr[n], torch.from_numpy(np.ascontiguousarray(s.masks)).to(torch.uint8),
+                local[i] = (x0[n], zp[n], zr[n], pack_masks(s.masks),
                             self.cam_index[s.camera], [torch.from_numpy(a) for a in pc],
                             [torch.from_numpy(a) for a in pr])
                 if len(self.cache) < self.cache_max:
@@ -359,15 +375,38 @@ class Batcher:
         dev = self.device
         return dict(x0=torch.stack([it[0] for it in items]).to(dev), z_prev=torch.stack([it[1] for it in items]).to(dev),
                     ref_latents=torch.stack([it[2] for it in items]).to(dev),
-                    masks=torch.stack([it[3] for it in items]).float().to(dev),
+                    masks=torch.stack([unpack_masks(it[3]) for it in items]).float().to(dev),
                     cams=torch.tensor([it[4] for it in items], dtype=torch.int64),
                     pe_cur=[torch.stack([it[5][j] for it in items]).to(dev) for j in range(nl)],
                     pe_ref=[torch.stack([it[6][j] for it in items]).to(dev) for j in range(nl)])
 
 
+LOSS_WEIGHTS = ("eps", "v", "min-snr")
+
+
+def loss_weight(kind: str, abar_t: torch.Tensor, max_weight: float = 0.0, gamma: float = 5.0) -> torch.Tensor:
+    """Per-sample weight of the epsilon MSE at noise levels with alpha-bar ``abar_t`` (SNR = abar / (1 - abar)):
+    - ``eps``: 1 (the plain epsilon loss);
+    - ``v``: 1 + 1 / SNR, which makes the epsilon-parameterised loss equal to the v-prediction loss
+      ||v - v_hat||^2 (v_hat from the predicted epsilon): the x_0 error at high noise levels is no longer weighted
+      by SNR ~ 0.005, so the model learns the global layout that the first sampling steps decide;
+    - ``min-snr``: min(SNR, gamma) / SNR (Min-SNR-gamma, Hang et al. 2023): down-weights the lowest noise levels.
+    ``max_weight`` > 0 caps the weight."""
+    snr = abar_t / (1 - abar_t)
+    if kind == "eps":
+        w = torch.ones_like(snr)
+    elif kind == "v":
+        w = 1 + 1 / snr
+    elif kind == "min-snr":
+        w = torch.clamp(snr, max=gamma) / snr
+    else:
+        raise ValueError(f"loss weight {kind!r} (one of {', '.join(LOSS_WEIGHTS)})")
+    return torch.clamp(w, max=max_weight) if max_weight > 0 else w
+
+
 def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: torch.Tensor, p_noprev: float = 0.1,
-                   ref_dropout: Optional[float] = None):
-    """One batch's epsilon loss (all random draws from ``gen``, on the CPU, then moved to the device)."""
+                   ref_dropout: Optional[float] = None, weighting: str = "eps", max_weight: float = 0.0):
+    """One batch's (weighted) epsilon loss (all random draws from ``gen``, on the CPU, then moved to the device)."""
     cfg = controlnet.config
     dev = b["x0"].device
     B = b["x0"].shape[0]
@@ -396,7 +435,10 @@ def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: tor
     down, mid = controlnet(x_t, t.to(dev), ctx, b["masks"], z, n.to(dev), refs=refs,
                            ref_mask=ref_mask.to(dev) if refs is not None else None)
     pred = unet(x_t, t.to(dev), ctx, down_block_additional_residuals=down, mid_block_additional_residual=mid).sample
-    return F.mse_loss(pred.float(), eps.float())
+    if weighting == "eps":
+        return F.mse_loss(pred.float(), eps.float())
+    per = ((pred.float() - eps.float()) ** 2).mean(dim=(1, 2, 3))
+    return (loss_weight(weighting, at.reshape(B), max_weight) * per).mean()
 
 
 def run_config(args) -> Dict:
@@ -473,7 +515,8 @@ def train(args):
             idx = list(range(args.batch)) if args.fixed_batch else \
                 torch.randint(0, len(source), (args.batch,), generator=gen).tolist()
             b = batcher.batch(idx)
-            loss = diffusion_loss(unet, controlnet, context, b, gen, abar, p_noprev=args.p_noprev)
+            loss = diffusion_loss(unet, controlnet, context, b, gen, abar, p_noprev=args.p_noprev,
+                                  weighting=args.loss_weight, max_weight=args.max_weight)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             gn = torch.nn.utils.clip_grad_norm_(params, args.clip)
@@ -625,6 +668,10 @@ def main(argv=None):
     p.add_argument("--ema", type=float, default=0.0, help="EMA decay (0 = off); export uses the EMA when kept")
     p.add_argument("--p-noprev", type=float, default=0.1, help="probability of 'no previous frame' (z = 0, n = 999)")
     p.add_argument("--cache", type=int, default=100000, help="samples whose latents + PE are kept in memory")
+    p.add_argument("--loss-weight", default="eps", choices=LOSS_WEIGHTS,
+                   help="per-noise-level weight of the epsilon MSE: eps (1), v (1 + 1/SNR: the v-prediction loss), "
+                        "min-snr (Min-SNR-5)")
+    p.add_argument("--max-weight", type=float, default=0.0, help="cap of the loss weight (0 = none)")
     return train(p.parse_args(argv))
 
 

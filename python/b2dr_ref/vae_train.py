@@ -8,7 +8,7 @@ Loss per step (LDM's autoencoder without the perceptual / GAN terms): the sums o
 per image, averaged over the batch, divided by 3 H W so the figure reads as a per-pixel L1:
 ``(sum |x - D(z)| + kl_weight * KL(q(z|x) || N(0, 1))) / (3 H W)``, z sampled from q, kl_weight 1e-6.
 At the end (and at every checkpoint) VAE_RUN/vae/ is written (diffusers folder) with ``scaling_factor`` =
-1 / std of the latent means over up to 256 training images (SD's 0.18215 was found this way); the diffusion stage
+1 / std of the latent means over up to 256 training images spread over the data (SD's 0.18215 was found this way); the diffusion stage
 reads that folder with ``--vae VAE_RUN/vae``.
 """
 
@@ -68,24 +68,98 @@ def vae_loss(vae, x, gen: torch.Generator, kl_weight: float):
     return (l1 + kl_weight * kl) / per_pixel, (l1 / per_pixel).detach(), kl.detach()
 
 
+def spread(source, n: int):
+    """Up to n sample indices evenly spread over the source (the export is ordered by scenario: the first n would
+    all come from one or two scenarios and palettes)."""
+    m = len(source)
+    return sorted(set(np.linspace(0, m - 1, min(n, m)).round().astype(int).tolist()))
+
+
 @torch.no_grad()
 def measure_scaling(vae, source, device, n: int = 256, batch: int = 16) -> float:
     zs = []
-    idx = list(range(min(n, len(source))))
+    idx = spread(source, n)
     for i in range(0, len(idx), batch):
         zs.append(vae.encode(images(source, idx[i:i + batch], device)).latent_dist.mean.float().cpu())
     std = torch.cat(zs).std().item()
     return 1.0 / max(std, 1e-6)
 
 
-def save_vae(vae, source, out: str, device):
+@torch.no_grad()
+def latent_channel_stats(vae, source, device, n: int = 256, batch: int = 16):
+    """Per-channel mean and std of the posterior means (no scaling) over up to n images spread over the source: (C,), (C,) float64."""
+    zs = []
+    idx = spread(source, n)
+    for i in range(0, len(idx), batch):
+        zs.append(vae.encode(images(source, idx[i:i + batch], device)).latent_dist.mean.double().cpu())
+    z = torch.cat(zs).transpose(0, 1).reshape(vae.config.latent_channels, -1)
+    return z.mean(1), z.std(1)
+
+
+@torch.no_grad()
+def centre_latents(vae, source, device, n: int = 256):
+    """Re-parameterise the VAE so that its latent means are zero-mean, unit-std per channel on the data, without
+    changing what it computes: the encoder's quant_conv (1x1) maps to (mean - mu) / sigma (its log-variance half
+    shifted by -2 log sigma), the decoder's post_quant_conv (1x1) takes sigma z + mu. Same architecture and
+    tensor names, so the engine loads it unchanged; decode(encode(x)) is the same function.
+
+    Why: a latent channel with a large mean (b2dr-nano's VAE had channel means up to 2.5 latent stds) leaks
+    into x_T through sqrt(abar_999) = 0.069 during training, where the model learns to read the offset from
+    the noise; sampling starts from zero-mean noise, so the model's samples lacked the offsets (washed-out
+    blobs, docs/training.md). Returns (mu, sigma) that were folded in."""
+    if not (vae.config.use_quant_conv and vae.config.use_post_quant_conv):
+        raise ValueError("centre_latents needs quant_conv and post_quant_conv (use_quant_conv / use_post_quant_conv)")
+    mu, sigma = latent_channel_stats(vae, source, device, n)
+    c = vae.config.latent_channels
+    q, pq = vae.quant_conv, vae.post_quant_conv
+    m64, s64 = mu.to(torch.float64), sigma.clamp_min(1e-6).to(torch.float64)
+    w = q.weight.double()
+    b = q.bias.double()
+    w[:c] /= s64[:, None, None, None]
+    b[:c] = (b[:c] - m64) / s64
+    b[c:] -= 2 * torch.log(s64)
+    q.weight.copy_(w.to(q.weight.dtype))
+    q.bias.copy_(b.to(q.bias.dtype))
+    w = pq.weight.double()
+    pq.bias.copy_((pq.bias.double() + (w[:, :, 0, 0] * m64[None]).sum(1)).to(pq.bias.dtype))
+    pq.weight.copy_((w * s64[None, :, None, None]).to(pq.weight.dtype))
+    return mu, sigma
+
+
+def save_vae(vae, source, out: str, device, centre: bool = True):
     was = vae.training
     vae.eval()
+    if centre:
+        # a copy is centred and saved; the training weights stay as they are (resume is unaffected)
+        import copy
+
+        vae = copy.deepcopy(vae)
+        centre_latents(vae, source, device)
     sf = measure_scaling(vae, source, device)
     vae.register_to_config(scaling_factor=float(sf))
     vae.save_pretrained(os.path.join(out, "vae"), safe_serialization=True)
     vae.train(was)
     return sf
+
+
+def centre_command(argv):
+    """python -m b2dr_ref.vae_train centre --vae IN_DIR --data DATA --out OUT_DIR: centre an existing VAE folder."""
+    from .train import load_vae
+
+    p = argparse.ArgumentParser(prog="python -m b2dr_ref.vae_train centre")
+    p.add_argument("--vae", required=True, help="a diffusers AutoencoderKL folder (e.g. MODEL/vae)")
+    p.add_argument("--data", required=True, help="the exported dataset (256 targets spread over it are measured)")
+    p.add_argument("--out", required=True, help="the centred VAE folder to write")
+    a = p.parse_args(argv)
+    vae = load_vae(a.vae)
+    source = open_source(a.data, None)
+    mu, sigma = centre_latents(vae, source, "cpu")
+    sf = measure_scaling(vae, source, "cpu")
+    vae.register_to_config(scaling_factor=float(sf))
+    vae.save_pretrained(a.out, safe_serialization=True)
+    print(f"centred {a.vae} -> {a.out}: channel means {[round(float(v), 3) for v in mu]}, stds "
+          f"{[round(float(v), 3) for v in sigma]} folded in; scaling_factor {sf:.5f}")
+    return mu, sigma, sf
 
 
 def train_vae(args):
@@ -148,13 +222,16 @@ def train_vae(args):
 
 
 def main(argv=None):
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv and argv[0] == "centre":
+        return centre_command(argv[1:])
     p = argparse.ArgumentParser(prog="python -m b2dr_ref.vae_train")
     add_common(p)
     p.set_defaults(lr=2e-4, warmup=200, ckpt_every=500)
     p.add_argument("--kl-weight", type=float, default=1e-6)
     p.add_argument("--crop", type=parse_crop, default=None,
                    help="train on random HxW crops (multiples of 8), e.g. 56x104: ~4x cheaper steps")
-    return train_vae(p.parse_args(sys.argv[1:] if argv is None else argv))
+    return train_vae(p.parse_args(argv))
 
 
 if __name__ == "__main__":

@@ -35,7 +35,69 @@ def test_vae_stage_overfits(vae_run):
     with open(os.path.join(out, "vae", "config.json")) as f:
         cfg = json.load(f)
     assert len(cfg["block_out_channels"]) == 4 and cfg["latent_channels"] == 4
-    assert cfg["scaling_factor"] > 0 and cfg["scaling_factor"] != 1.0   # measured
+    assert cfg["scaling_factor"] > 0
+    # the saved VAE is centred (vae_train.centre_latents): its latent means are zero-mean, unit-std per channel on
+    # the measured images, and the scaling factor (measured after centring) is then about 1
+    from b2dr_ref.train import load_vae
+
+    vae = load_vae(os.path.join(out, "vae"))
+    src = T.open_source("synthetic:4", nano.get_config("test")["render_size"])
+    mu, sd = V.latent_channel_stats(vae, src, "cpu")
+    assert mu.abs().max() < 1e-4 and (sd - 1).abs().max() < 1e-4, (mu, sd)
+    assert abs(cfg["scaling_factor"] - 1.0) < 1e-2    # pooled vs per-channel std estimators differ by O(1/n)
+
+
+def test_centre_latents_keeps_the_function():
+    """Folding the channel statistics into quant_conv / post_quant_conv changes the latent space, not the function:
+    decode(mean(x)) is unchanged, the latent means become (mean - mu) / sigma, the posterior std std / sigma."""
+    vae = V.build_vae(nano.get_config("test"), seed=3).eval()
+    # a VAE whose latents have large channel offsets, as the trained one had
+    with torch.no_grad():
+        vae.quant_conv.bias[:4] += torch.tensor([2.5, -1.0, 4.0, 0.5])
+    src = T.open_source("synthetic:5", nano.get_config("test")["render_size"])
+    x = V.images(src, [0, 1, 2, 3, 4], "cpu")
+    with torch.no_grad():
+        before = vae.encode(x).latent_dist
+        rec_before = vae.decode(before.mean).sample
+        mu, sigma = V.centre_latents(vae, src, "cpu")
+        after = vae.encode(x).latent_dist
+        rec_after = vae.decode(after.mean).sample
+    assert abs(float(mu[2]) - float(before.mean[:, 2].mean())) < 1e-4 and float(mu[2]) > 3.0
+    torch.testing.assert_close(after.mean, (before.mean - mu.float()[None, :, None, None])
+                               / sigma.float()[None, :, None, None], rtol=1e-4, atol=1e-4)
+    torch.testing.assert_close(after.std, before.std / sigma.float()[None, :, None, None], rtol=1e-4, atol=1e-6)
+    torch.testing.assert_close(rec_after, rec_before, rtol=1e-4, atol=1e-4)
+    m = after.mean.transpose(0, 1).reshape(4, -1)
+    assert m.mean(1).abs().max() < 1e-4 and (m.std(1) - 1).abs().max() < 1e-4
+
+
+def test_v_loss_weight_is_the_v_prediction_loss():
+    """eps MSE x (1 + 1/SNR) == ||v - v_hat||^2 with v_hat from the predicted epsilon (train.loss_weight 'v')."""
+    g = torch.Generator().manual_seed(0)
+    abar = T.make_noise_scheduler().alphas_cumprod.to(torch.float64)
+    t = torch.tensor([0, 10, 300, 700, 999])
+    a = abar[t].reshape(-1, 1, 1, 1)
+    x0, eps = torch.randn((5, 4, 3, 3), generator=g, dtype=torch.float64), torch.randn((5, 4, 3, 3), generator=g,
+                                                                                      dtype=torch.float64)
+    eps_hat = eps + 0.1 * torch.randn((5, 4, 3, 3), generator=g, dtype=torch.float64)
+    x_t = a.sqrt() * x0 + (1 - a).sqrt() * eps
+    x0_hat = (x_t - (1 - a).sqrt() * eps_hat) / a.sqrt()
+    v, v_hat = a.sqrt() * eps - (1 - a).sqrt() * x0, a.sqrt() * eps_hat - (1 - a).sqrt() * x0_hat
+    w = T.loss_weight("v", abar[t])
+    torch.testing.assert_close(w * ((eps - eps_hat) ** 2).mean((1, 2, 3)), ((v - v_hat) ** 2).mean((1, 2, 3)))
+    assert torch.equal(T.loss_weight("eps", abar[t]), torch.ones(5, dtype=torch.float64))
+    assert float(T.loss_weight("v", abar[t], max_weight=50.0).max()) == 50.0
+    ms = T.loss_weight("min-snr", abar[t])
+    assert float(ms[0]) < 0.1 and float(ms[-1]) == 1.0
+    with pytest.raises(ValueError):
+        T.loss_weight("x0", abar[t])
+
+
+def test_mask_packing_round_trips():
+    m = (np.random.default_rng(0).random((15, 7, 9)) < 0.4).astype(np.uint8)
+    p = T.pack_masks(m)
+    assert p.dtype == torch.int16 and tuple(p.shape) == (7, 9)
+    assert np.array_equal(T.unpack_masks(p).numpy(), m)
 
 
 def diffusion(vae_dir, out, *extra):
