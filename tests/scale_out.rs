@@ -286,6 +286,14 @@ fn merge_refuses_other_configurations_and_incomplete_shard_sets() {
     expect_err(&[&a0, &a0], &["twice"]);
     expect_err(&[&a0, &root.join("nowhere")], &["config.json"]);
     expect_err(&[&a0, &a1, &a1], &["twice"]);
+    // shard 0's results under shard 1's name: its scenario would count twice
+    let fake1 = root.join("fake1");
+    std::fs::create_dir_all(&fake1).unwrap();
+    let mut c = read(&a0.join("config.json"));
+    c["shard"]["index"] = 1.into();
+    std::fs::write(fake1.join("config.json"), c.to_string()).unwrap();
+    std::fs::copy(a0.join("metrics.json"), fake1.join("metrics.json")).unwrap();
+    expect_err(&[&a0, &fake1], &["cross-0", "more than one shard"]);
     ok(merge_cli(&[a1.clone(), a0.clone()], &root.join("m")));
     expect_err(&[&a0, &a1, &a0], &["twice"]);
     // --out must be a new folder, not a shard

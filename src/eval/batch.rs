@@ -209,7 +209,7 @@ pub fn for_each_scenario(
 /// `timing_ms` (per-stage totals of the scenarios' `timing_ms`, plus `wall`: the scenarios' `wall_ms`) and
 /// `scenarios`. Scenarios are put in folder-name order first, so the sums do not depend on how they were run.
 pub fn summarize(header: Map<String, Value>, mut results: Vec<Value>) -> Value {
-    results.sort_by_cached_key(|v| folder_name(v["scenario"].as_str().unwrap_or("")));
+    results.sort_by_cached_key(order_key);
     let n = results.len();
     let mean = |f: &dyn Fn(&Value) -> f64| -> f64 {
         if n == 0 {
@@ -252,6 +252,15 @@ pub fn summarize(header: Map<String, Value>, mut results: Vec<Value>) -> Value {
     );
     s.insert("scenarios".into(), Value::Array(results));
     Value::Object(s)
+}
+
+/// Where a scenario's entry goes in a summary: its folder name, then its source (two scenario files may carry
+/// one scenario name).
+fn order_key(v: &Value) -> (String, String) {
+    (
+        folder_name(v["scenario"].as_str().unwrap_or("")),
+        v["source"].to_string(),
+    )
 }
 
 /// Writes `<out>/metrics.json`.
@@ -385,13 +394,10 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Value> {
         "merge: shard(s) {} missing (every shard of --shard K/N must be given)",
         missing.join(", ")
     );
-    let mut names: Vec<&str> = results
-        .iter()
-        .map(|v| v["scenario"].as_str().unwrap_or(""))
-        .collect();
-    names.sort_unstable();
-    if let Some(w) = names.windows(2).find(|w| w[0] == w[1]) {
-        bail!("merge: scenario {} is in more than one shard", w[0]);
+    let mut keys: Vec<(String, String)> = results.iter().map(order_key).collect();
+    keys.sort_unstable();
+    if let Some(w) = keys.windows(2).find(|w| w[0] == w[1]) {
+        bail!("merge: scenario {} is in more than one shard", w[0].0);
     }
     let mut header = header.unwrap_or_default();
     // one device for all shards: the single run's field; several: the list
