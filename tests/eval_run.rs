@@ -35,6 +35,7 @@ fn cfg(renderer: RendererMode, agents: AgentMode, controller: &str, steps: usize
         seed: 0,
         dtype: "f32".into(),
         gif: false,
+        shard: None,
     }
 }
 

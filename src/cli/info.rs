@@ -11,6 +11,20 @@ pub fn run(device: Option<String>) -> Result<()> {
             "  [{}] {} ({}, Vulkan {})",
             d.index, d.name, d.kind, d.api_version
         );
+        let pci =
+            d.id.pci
+                .map(|[dom, bus, dev, f]| format!(", PCI {dom:04x}:{bus:02x}:{dev:02x}.{f:x}"))
+                .unwrap_or_default();
+        println!("      uuid {}{pci}", d.id.uuid_string());
+    }
+    for v in [
+        "CUDA_VISIBLE_DEVICES",
+        "NVIDIA_VISIBLE_DEVICES",
+        "B2DR_DEVICE",
+    ] {
+        if let Ok(x) = std::env::var(v) {
+            println!("{v}={x}");
+        }
     }
     let ctx = Context::new(&ContextOptions {
         device,
@@ -20,6 +34,8 @@ pub fn run(device: Option<String>) -> Result<()> {
     let i = ctx.info();
     let yes = |b: bool| if b { "yes" } else { "no" };
     println!("chosen: [{}] {} ({})", i.index, i.name, i.kind);
+    println!("  uuid:                       {}", i.id.uuid_string());
+    println!("  chosen by:                  {}", i.selected_by);
     println!("  f16 storage + arithmetic:   {}", yes(i.f16));
     println!(
         "  subgroups (size {}):         {}",

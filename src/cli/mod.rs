@@ -6,6 +6,7 @@ mod eval_render;
 mod export;
 mod forward;
 mod info;
+mod merge;
 mod project;
 mod render;
 mod run;
@@ -52,6 +53,9 @@ pub enum Command {
     EvalRender(eval_render::EvalRenderArgs),
     /// Closed-loop simulation of a planner over scenarios, with the nuPlan closed-loop score.
     Sim(sim::SimArgs),
+    /// Combine the output folders of `--shard K/N` runs (`sim` or `run`, one configuration) into one
+    /// metrics.json: CLS, per-metric means, per-stage timing totals, every scenario.
+    Merge(merge::MergeArgs),
     /// Ground truth of a scenario state: camera images, mosaic + BEV, overlays of the projected masks.
     World(world::WorldArgs),
     /// Export training samples (images, references, masks, matrices) as safetensors shards + index.json.
@@ -122,6 +126,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Run(a) => run::run(cli.device, a),
         Command::EvalRender(a) => eval_render::run(cli.device, a),
         Command::Sim(a) => sim::run(a),
+        Command::Merge(a) => merge::run(a),
         Command::World(a) => world::run(a),
         Command::ExportTraining(a) => export::run(a),
         Command::ExportPlanner(a) => export::run_planner(a),

@@ -50,6 +50,10 @@ pub struct RunArgs {
     /// Skip scenarios already done in --out (refused when --out holds another configuration)
     #[arg(long)]
     pub resume: bool,
+    /// Run shard K of N (0 <= K < N): every N-th scenario of the name-ordered list, starting at the K-th;
+    /// `b2dr merge` combines the shards' folders (with several renderers: per renderer folder)
+    #[arg(long)]
+    pub shard: Option<b2dr::eval::batch::Shard>,
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -78,6 +82,7 @@ pub fn run(device: Option<String>, a: RunArgs) -> Result<()> {
         seed: a.seed,
         dtype: a.dtype,
         gif: !a.no_gif,
+        shard: a.shard,
     };
     let ctx = if any_model {
         Some(Context::new(&ContextOptions {
@@ -102,8 +107,9 @@ pub fn run(device: Option<String>, a: RunArgs) -> Result<()> {
     }
     let s = run::run(ctx.as_ref(), &cfg, &a.out, a.resume)?;
     eprintln!(
-        "{} scenario(s), {} {:.4} (renderer {}) -> {}",
+        "{} scenario(s){}, {} {:.4} (renderer {}) -> {}",
         s["scenarios"].as_array().map(|v| v.len()).unwrap_or(0),
+        a.shard.map(|s| format!(" (shard {s})")).unwrap_or_default(),
         s["cls_kind"].as_str().unwrap_or("CLS"),
         s["cls"].as_f64().unwrap_or(0.0),
         renderer.name(),

@@ -6,8 +6,15 @@
 //!   <out>/<scenario>/metrics.json   the scenario's score, every metric, the failure reason (written last:
 //!                                   its presence marks the scenario done for --resume)
 //!   <out>/<scenario>/bev_<step>.png frames every --bev-every steps
-//!   <out>/metrics.json              all scenarios and the aggregate CLS
+//!   <out>/config.json               the flags that decide the results (not --bev-every); a `--resume`
+//!                                   with others is refused
+//!   <out>/metrics.json              all scenarios, the aggregate (CLS), per-metric means, timing totals
+//!                                   (written at the end: a folder without it is unfinished)
+//!
+//! Scenarios run in folder-name order; `--shard K/N` runs every N-th of them, and `b2dr merge` combines shard
+//! folders (`b2dr::eval::batch`, shared with `b2dr run`).
 use anyhow::{bail, Context, Result};
+use b2dr::eval::batch::{self, write_atomic, Shard};
 use b2dr::metrics::ScoreParams;
 use b2dr::scene::import::{resolve, Source};
 use b2dr::sim::{self, AgentMode, SimConfig};
@@ -36,9 +43,14 @@ pub struct SimArgs {
     /// Output directory.
     #[arg(long)]
     pub out: PathBuf,
-    /// Skip scenarios whose metrics.json already exists in --out.
+    /// Skip scenarios whose metrics.json already exists in --out (refused when --out holds another
+    /// configuration).
     #[arg(long)]
     pub resume: bool,
+    /// Run shard K of N (0 <= K < N): every N-th scenario of the name-ordered list, starting at the K-th;
+    /// `b2dr merge` combines the shards' folders.
+    #[arg(long)]
+    pub shard: Option<Shard>,
     /// Steps per scenario (10 Hz; capped by the log length).
     #[arg(long, default_value_t = 150)]
     pub steps: usize,
@@ -48,14 +60,6 @@ pub struct SimArgs {
     /// Write a bird's-eye-view PNG every this many steps (0: none).
     #[arg(long, default_value_t = 25)]
     pub bev_every: usize,
-}
-
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, path)
-        .with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))?;
-    Ok(())
 }
 
 /// Runs one scenario and writes its folder; returns its metrics.json value.
@@ -114,15 +118,21 @@ pub fn run(args: SimArgs) -> Result<()> {
     }
     // Validate the planner spec before doing any work.
     sim::planner_from_spec(&args.planner, Duration::from_secs_f64(args.planner_timeout))?;
-    let sources = resolve(&args.scenario)?;
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating {}", args.out.display()))?;
+    let sources = batch::select(resolve(&args.scenario)?, args.shard)?;
     let cfg = SimConfig {
         agents,
         controller: args.controller.parse()?,
         steps: args.steps,
         ..SimConfig::default()
     };
+    let mut config = json!({
+        "command": "sim", "scenario": args.scenario, "planner": args.planner, "agents": agents,
+        "controller": args.controller, "steps": args.steps, "planner_timeout_s": args.planner_timeout,
+    });
+    if let (Some(s), Some(o)) = (args.shard, config.as_object_mut()) {
+        o.insert("shard".into(), serde_json::to_value(s)?);
+    }
+    batch::prepare_out(&args.out, &config, args.resume)?;
     let bar = (sources.len() > 1).then(|| {
         let b = indicatif::ProgressBar::new(sources.len() as u64);
         b.set_style(
@@ -133,75 +143,42 @@ pub fn run(args: SimArgs) -> Result<()> {
         );
         b
     });
-    let mut results = Vec::new();
-    for src in &sources {
-        let name = src.name();
-        let dir = args.out.join(&name);
-        let done = dir.join("metrics.json");
-        if let Some(b) = &bar {
-            b.set_message(name.clone());
-        }
-        let v = if args.resume && done.is_file() {
-            let text = std::fs::read_to_string(&done)
-                .with_context(|| format!("reading {}", done.display()))?;
-            serde_json::from_str(&text).with_context(|| {
-                format!("{}: not valid JSON (delete it to rerun)", done.display())
-            })?
-        } else {
-            match run_one(src, &args, &cfg, &dir) {
-                Ok(v) => v,
-                Err(e) => {
-                    // A scenario that cannot be loaded or written is reported, and the run goes on.
-                    let v = json!({ "scenario": name, "failure": format!("{e:#}"), "score": 0.0 });
-                    std::fs::create_dir_all(&dir).ok();
-                    write_atomic(&done, serde_json::to_string_pretty(&v)?.as_bytes())?;
-                    v
-                }
+    let results = batch::for_each_scenario(
+        &args.out,
+        &sources,
+        args.resume,
+        |_, src, dir| {
+            if let Some(b) = &bar {
+                b.set_message(src.name());
             }
-        };
-        if bar.is_none() {
-            eprintln!(
-                "{}: score {:.4}{}",
-                name,
-                v["score"].as_f64().unwrap_or(0.0),
-                v["failure"]
-                    .as_str()
-                    .map(|f| format!(" (failed: {f})"))
-                    .unwrap_or_default()
-            );
-        }
-        results.push(v);
-        if let Some(b) = &bar {
-            b.inc(1);
-        }
-    }
+            run_one(src, &args, &cfg, dir)
+        },
+        |name, v| match &bar {
+            Some(b) => b.inc(1),
+            None => eprintln!("{}", batch::score_line(name, v)),
+        },
+    )?;
     if let Some(b) = bar {
         b.finish_and_clear();
     }
-    let scores: Vec<f64> = results
-        .iter()
-        .map(|v| v["score"].as_f64().unwrap_or(0.0))
-        .collect();
-    let cls = if scores.is_empty() {
-        0.0
-    } else {
-        scores.iter().sum::<f64>() / scores.len() as f64
-    };
-    let summary = json!({
+    let header = json!({
         "planner": args.planner,
         "agents": agents,
-        "cls_kind": match agents { AgentMode::Idm => "R-CLS", AgentMode::Replay => "CLS-NR", AgentMode::None => "CLS (no agents)" },
-        "cls": cls,
-        "scenarios": results,
+        "cls_kind": agents.cls_kind(),
     });
-    write_atomic(
-        &args.out.join("metrics.json"),
-        serde_json::to_string_pretty(&summary)?.as_bytes(),
-    )?;
+    let summary = batch::summarize(header.as_object().cloned().unwrap_or_default(), results);
+    batch::write_summary(&args.out, &summary)?;
     eprintln!(
-        "{} scenario(s), CLS {:.4} -> {}",
-        scores.len(),
-        cls,
+        "{} scenario(s){}, {} {:.4} -> {}",
+        summary["scenarios"]
+            .as_array()
+            .map(|v| v.len())
+            .unwrap_or(0),
+        args.shard
+            .map(|s| format!(" (shard {s})"))
+            .unwrap_or_default(),
+        agents.cls_kind(),
+        summary["cls"].as_f64().unwrap_or(0.0),
         args.out.join("metrics.json").display()
     );
     Ok(())

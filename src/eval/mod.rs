@@ -2,6 +2,7 @@
 //! generative renderer (`render`), the synthetic world's exact renderer (`world`) or log replay, behind the
 //! simulator's [`crate::sim::sensors::Sensors`] trait. This layer sits above sim, world and render; the
 //! simulator itself never touches the GPU.
+pub mod batch;
 pub mod compare;
 pub mod fidelity;
 pub mod planner_data;

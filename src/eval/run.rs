@@ -8,7 +8,11 @@
 //!   <out>/<scenario>/run.gif             the mosaics, animated (2 Hz)
 //!   <out>/<scenario>/metrics.json        score, every metric, failure, per-stage timing, device memory
 //!                                        (written last: its presence marks the scenario done for --resume)
-//!   <out>/metrics.json                   all scenarios, the aggregate (R-CLS / CLS-NR) and timing totals
+//!   <out>/metrics.json                   all scenarios, the aggregate (R-CLS / CLS-NR), per-metric means and
+//!                                        timing totals (written at the end: a folder without it is unfinished)
+//!
+//! Scenarios run in folder-name order; `RunConfig::shard` runs every N-th of them (`--shard K/N`), and
+//! `b2dr merge` combines shard folders (`super::batch`, shared with `b2dr sim`).
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -16,6 +20,8 @@ use std::time::{Duration, Instant};
 use anyhow::{bail, ensure, Context as _, Result};
 use serde_json::{json, Value};
 
+pub use super::batch::folder_name;
+use super::batch::{self, write_atomic, Shard};
 use super::sensors::{rig_cameras, B2dr, B2drEngine, GroundTruth, LogReplay};
 use crate::metrics::ScoreParams;
 use crate::scene::import::{resolve, Source};
@@ -89,6 +95,9 @@ pub struct RunConfig {
     pub dtype: String,
     /// Write the animated GIF.
     pub gif: bool,
+    /// `--shard K/N`: every N-th scenario of the name-ordered list (None: all; not written to config.json).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub shard: Option<Shard>,
 }
 
 /// Stage totals over frames.
@@ -105,18 +114,6 @@ impl Totals {
     fn json(&self) -> Value {
         Value::Object(self.0.iter().map(|(k, v)| (k.clone(), json!(v))).collect())
     }
-}
-
-fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
-    let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, path)
-        .with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))
-}
-
-/// A folder name from a scenario name (no separators or dots that could leave `--out`).
-pub fn folder_name(name: &str) -> String {
-    crate::scene::safe_name(name)
 }
 
 fn planner(cfg: &RunConfig, dir: &Path) -> Result<Box<dyn Planner>> {
@@ -320,21 +317,8 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
         "--size {h}x{w}: each side in 8..=4096"
     );
     planner(cfg, out)?;
-    let sources = resolve(&cfg.scenario)?;
-    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
-    let cpath = out.join("config.json");
-    let cjson = serde_json::to_value(cfg)?;
-    if resume && cpath.is_file() {
-        let old: Value = serde_json::from_str(&std::fs::read_to_string(&cpath)?)
-            .with_context(|| format!("{}: invalid", cpath.display()))?;
-        ensure!(
-            old == cjson,
-            "--resume: {} was written by another configuration (delete the folder or use the same flags):\n  \
-             before: {old}\n  now:    {cjson}",
-            cpath.display()
-        );
-    }
-    write_atomic(&cpath, serde_json::to_string_pretty(&cjson)?.as_bytes())?;
+    let sources = batch::select(resolve(&cfg.scenario)?, cfg.shard)?;
+    batch::prepare_out(out, &serde_json::to_value(cfg)?, resume)?;
     let mut engine = if cfg.renderer.uses_model() {
         let ctx = ctx.context("the b2dr renderer needs a Vulkan device")?;
         let pkg = crate::render::package::resolve_model(cfg.model.as_deref())?;
@@ -364,65 +348,26 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
         )
         .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
-    let mut results = vec![];
-    let mut totals = Totals::default();
-    for (i, src) in sources.iter().enumerate() {
-        bar.set_prefix(format!("scenario {}/{}", i + 1, sources.len()));
-        let name = src.name();
-        let dir = out.join(folder_name(&name));
-        let done = dir.join("metrics.json");
-        let v = if resume && done.is_file() {
-            serde_json::from_str(&std::fs::read_to_string(&done)?).with_context(|| {
-                format!("{}: not valid JSON (delete it to rerun)", done.display())
-            })?
-        } else {
-            match run_one(src, cfg, engine.as_mut(), &dir, &bar) {
-                Ok(v) => v,
-                Err(e) => {
-                    let v = json!({"scenario": name, "failure": format!("{e:#}"), "score": 0.0});
-                    std::fs::create_dir_all(&dir).ok();
-                    write_atomic(&done, serde_json::to_string_pretty(&v)?.as_bytes())?;
-                    v
-                }
-            }
-        };
-        if let Some(t) = v["timing_ms"].as_object() {
-            for (k, x) in t {
-                totals.add(k, x.as_f64().unwrap_or(0.0));
-            }
-        }
-        bar.println(format!(
-            "{name}: score {:.4}{}",
-            v["score"].as_f64().unwrap_or(0.0),
-            v["failure"]
-                .as_str()
-                .map(|f| format!(" (failed: {f})"))
-                .unwrap_or_default()
-        ));
-        results.push(v);
-    }
+    let n = sources.len();
+    let results = batch::for_each_scenario(
+        out,
+        &sources,
+        resume,
+        |i, src, dir| {
+            bar.set_prefix(format!("scenario {}/{n}", i + 1));
+            run_one(src, cfg, engine.as_mut(), dir, &bar)
+        },
+        |name, v| bar.println(batch::score_line(name, v)),
+    )?;
     bar.finish_and_clear();
-    let scores: Vec<f64> = results
-        .iter()
-        .map(|v| v["score"].as_f64().unwrap_or(0.0))
-        .collect();
-    let cls = if scores.is_empty() {
-        0.0
-    } else {
-        scores.iter().sum::<f64>() / scores.len() as f64
-    };
-    let summary = json!({
+    let header = json!({
         "renderer": cfg.renderer, "planner": cfg.planner, "agents": cfg.agents,
-        "cls_kind": match cfg.agents { AgentMode::Idm => "R-CLS", AgentMode::Replay => "CLS-NR", AgentMode::None => "CLS (no agents)" },
-        "cls": cls, "timing_ms": totals.json(),
+        "cls_kind": cfg.agents.cls_kind(),
         "device": ctx.map(|c| c.info().name.clone()),
         "device_bytes": engine.as_ref().map(|e| e.device_bytes()),
         "model": engine.as_ref().map(|e| e.package.source.clone()),
-        "scenarios": results,
     });
-    write_atomic(
-        &out.join("metrics.json"),
-        serde_json::to_string_pretty(&summary)?.as_bytes(),
-    )?;
+    let summary = batch::summarize(header.as_object().cloned().unwrap_or_default(), results);
+    batch::write_summary(out, &summary)?;
     Ok(summary)
 }

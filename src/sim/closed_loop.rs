@@ -23,6 +23,17 @@ pub enum AgentMode {
     None,
 }
 
+impl AgentMode {
+    /// The name of the aggregate score under this mode: R-CLS (reactive), CLS-NR (replay), or plain CLS.
+    pub fn cls_kind(self) -> &'static str {
+        match self {
+            AgentMode::Idm => "R-CLS",
+            AgentMode::Replay => "CLS-NR",
+            AgentMode::None => "CLS (no agents)",
+        }
+    }
+}
+
 impl std::str::FromStr for AgentMode {
     type Err = anyhow::Error;
     fn from_str(s: &str) -> anyhow::Result<Self> {

@@ -17,7 +17,7 @@ use anyhow::{Context as _, Result};
 use ash::vk;
 
 pub use command::{Recorder, Recording, Timing};
-pub use device::DeviceInfo;
+pub use device::{scheduler_pin, DeviceId, DeviceInfo, Pin, NVIDIA_VENDOR_ID};
 pub use image::{IMAGE_ROW_BYTES, IMAGE_ROW_TEXELS};
 pub use instance::{validation_errors, validation_requested};
 pub use memory::{Buffer, TEXEL_MIN_BYTES};
@@ -108,7 +108,7 @@ impl Context {
             .device
             .clone()
             .or_else(|| std::env::var("B2DR_DEVICE").ok());
-        let (pd, mut info) = device::choose(&parts.instance, &devices, sel.as_deref())?;
+        let (pd, mut info) = device::choose(&devices, sel.as_deref())?;
         info.linear_images &= opts.texel_views.unwrap_or_else(texel_views_env);
         let family = device::compute_queue_family(&parts.instance, pd)?;
         let dev = device::create_device(&parts.instance, pd, &info, family)?;

@@ -1,0 +1,424 @@
+//! Scenario batches, shared by `b2dr sim` and `b2dr run` (spec loop.md section 3): the scenario list in name
+//! order and its shards (`--shard K/N`), the output folder's `config.json` and the `--resume` check, the loop
+//! over scenarios (one folder per scenario, its `metrics.json` written last marks it done), the summary (CLS,
+//! per-metric means, per-stage timing totals), and `b2dr merge` of shard folders into one summary.
+//!
+//! The summary of a merge equals the summary of the single run over the same scenarios in everything that is
+//! deterministic (the CLS, the per-metric means and each scenario's entry, bit for bit); only timings differ,
+//! as they do between two single runs. Both order the scenarios by folder name and sum in that order.
+use std::path::{Path, PathBuf};
+
+use anyhow::{bail, ensure, Context as _, Result};
+use serde_json::{json, Map, Value};
+
+use crate::scene::import::Source;
+
+/// The nuPlan metrics whose means over scenarios the summary carries (plus `score`, the CLS).
+pub const METRICS: [&str; 8] = [
+    "no_ego_at_fault_collisions",
+    "drivable_area_compliance",
+    "driving_direction_compliance",
+    "ego_is_making_progress",
+    "time_to_collision_within_bound",
+    "speed_limit_compliance",
+    "ego_progress_along_expert_route",
+    "ego_is_comfortable",
+];
+
+/// `--shard K/N`: this process runs every N-th scenario of the name-ordered list, starting at the K-th
+/// (0-based: K in 0..N, as SLURM_ARRAY_TASK_ID of `--array=0-(N-1)` and JOB_COMPLETION_INDEX count).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub struct Shard {
+    pub index: usize,
+    pub count: usize,
+}
+
+impl std::str::FromStr for Shard {
+    type Err = anyhow::Error;
+    fn from_str(s: &str) -> Result<Self> {
+        let Some((k, n)) = s.split_once('/') else {
+            bail!("--shard {s:?}: expected K/N (shard K of N, 0 <= K < N), e.g. 0/3");
+        };
+        let num = |x: &str, what: &str| -> Result<usize> {
+            x.trim().parse::<usize>().map_err(|_| {
+                anyhow::anyhow!("--shard {s:?}: {what} {x:?} is not a non-negative integer")
+            })
+        };
+        let (index, count) = (num(k, "K")?, num(n, "N")?);
+        ensure!(count >= 1, "--shard {s:?}: N must be at least 1");
+        ensure!(
+            index < count,
+            "--shard {s:?}: K must be in 0..{count} (0-based: the shards of {count} are 0/{count} .. {}/{count})",
+            count - 1
+        );
+        Ok(Self { index, count })
+    }
+}
+
+impl std::fmt::Display for Shard {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}/{}", self.index, self.count)
+    }
+}
+
+impl Shard {
+    /// Deals an ordered list round-robin: this shard's items are those at positions index, index + count, ...
+    pub fn deal<T>(&self, items: Vec<T>) -> Vec<T> {
+        items
+            .into_iter()
+            .enumerate()
+            .filter(|(i, _)| i % self.count == self.index)
+            .map(|(_, t)| t)
+            .collect()
+    }
+}
+
+/// A folder name from a scenario name (no separators or dots that could leave `--out`).
+pub fn folder_name(name: &str) -> String {
+    crate::scene::safe_name(name)
+}
+
+/// The scenarios in folder-name order (two scenarios with one folder are refused), then `shard`'s part.
+pub fn select(mut sources: Vec<Source>, shard: Option<Shard>) -> Result<Vec<Source>> {
+    sources.sort_by_cached_key(|s| folder_name(&s.name()));
+    for w in sources.windows(2) {
+        let (a, b) = (folder_name(&w[0].name()), folder_name(&w[1].name()));
+        ensure!(
+            a != b,
+            "--scenario: {} and {} both write the folder {a:?} (a scenario listed twice?)",
+            w[0].name(),
+            w[1].name()
+        );
+    }
+    Ok(match shard {
+        Some(s) => s.deal(sources),
+        None => sources,
+    })
+}
+
+/// Writes a file through a temporary one and a rename (a reader never sees half a file).
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, bytes).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path)
+        .with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))
+}
+
+fn read_json(path: &Path) -> Result<Value> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    serde_json::from_str(&text).with_context(|| format!("{}: not valid JSON", path.display()))
+}
+
+/// The top-level fields where two configurations differ, as "field: a vs b; ..." (None: equal).
+fn config_difference(a: &Value, b: &Value, ignore: &[&str]) -> Option<String> {
+    let empty = Map::new();
+    let (ma, mb) = (
+        a.as_object().unwrap_or(&empty),
+        b.as_object().unwrap_or(&empty),
+    );
+    let mut keys: Vec<&String> = ma.keys().chain(mb.keys()).collect();
+    keys.sort();
+    keys.dedup();
+    let diffs: Vec<String> = keys
+        .into_iter()
+        .filter(|k| !ignore.contains(&k.as_str()))
+        .filter_map(|k| {
+            let (x, y) = (
+                ma.get(k).unwrap_or(&Value::Null),
+                mb.get(k).unwrap_or(&Value::Null),
+            );
+            (x != y).then(|| format!("{k}: {x} vs {y}"))
+        })
+        .collect();
+    (!diffs.is_empty()).then(|| diffs.join("; "))
+}
+
+/// Prepares `out` for a batch: with `resume`, a `config.json` there of another configuration is refused
+/// (naming the first differing field); then the configuration is written and the previous summary removed (a
+/// folder without `metrics.json` is an unfinished run, which `merge` refuses).
+pub fn prepare_out(out: &Path, config: &Value, resume: bool) -> Result<()> {
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let cpath = out.join("config.json");
+    if resume && cpath.is_file() {
+        let old = read_json(&cpath)?;
+        if let Some(d) = config_difference(&old, config, &[]) {
+            bail!(
+                "--resume: {} was written by another configuration ({d}); delete the folder or use the same flags:\n  \
+                 before: {old}\n  now:    {config}",
+                cpath.display()
+            );
+        }
+    }
+    write_atomic(&cpath, serde_json::to_string_pretty(config)?.as_bytes())?;
+    let summary = out.join("metrics.json");
+    if summary.is_file() {
+        std::fs::remove_file(&summary)
+            .with_context(|| format!("removing the old {}", summary.display()))?;
+    }
+    Ok(())
+}
+
+/// One line per finished scenario: "name: score 0.9123" and the failure, if any.
+pub fn score_line(name: &str, v: &Value) -> String {
+    format!(
+        "{name}: score {:.4}{}",
+        v["score"].as_f64().unwrap_or(0.0),
+        v["failure"]
+            .as_str()
+            .map(|f| format!(" (failed: {f})"))
+            .unwrap_or_default()
+    )
+}
+
+/// Runs `run_one(position, source, folder)` for each scenario into `out/<folder>/`; with `resume`, a scenario
+/// whose `metrics.json` exists is read back instead. A scenario that fails to load or write is recorded as a
+/// failure (score 0) and the batch goes on. `report` sees each scenario's value once it is done.
+pub fn for_each_scenario(
+    out: &Path,
+    sources: &[Source],
+    resume: bool,
+    mut run_one: impl FnMut(usize, &Source, &Path) -> Result<Value>,
+    mut report: impl FnMut(&str, &Value),
+) -> Result<Vec<Value>> {
+    let mut results = Vec::with_capacity(sources.len());
+    for (i, src) in sources.iter().enumerate() {
+        let name = src.name();
+        let dir = out.join(folder_name(&name));
+        let done = dir.join("metrics.json");
+        let v = if resume && done.is_file() {
+            read_json(&done).context("delete it to rerun the scenario")?
+        } else {
+            match run_one(i, src, &dir) {
+                Ok(v) => v,
+                Err(e) => {
+                    let v = json!({ "scenario": name, "failure": format!("{e:#}"), "score": 0.0 });
+                    std::fs::create_dir_all(&dir).ok();
+                    write_atomic(&done, serde_json::to_string_pretty(&v)?.as_bytes())?;
+                    v
+                }
+            }
+        };
+        report(&name, &v);
+        results.push(v);
+    }
+    Ok(results)
+}
+
+/// The summary of scenario results: `header`'s fields, then `cls` (the mean score), `metric_means`,
+/// `timing_ms` (per-stage totals of the scenarios' `timing_ms`, plus `wall`: the scenarios' `wall_ms`) and
+/// `scenarios`. Scenarios are put in folder-name order first, so the sums do not depend on how they were run.
+pub fn summarize(header: Map<String, Value>, mut results: Vec<Value>) -> Value {
+    results.sort_by_cached_key(order_key);
+    let n = results.len();
+    let mean = |f: &dyn Fn(&Value) -> f64| -> f64 {
+        if n == 0 {
+            0.0
+        } else {
+            results.iter().map(f).sum::<f64>() / n as f64
+        }
+    };
+    let cls = mean(&|v| v["score"].as_f64().unwrap_or(0.0));
+    let mut means = Map::new();
+    for k in METRICS {
+        means.insert(
+            k.to_string(),
+            json!(mean(&|v| v["metrics"][k].as_f64().unwrap_or(0.0))),
+        );
+    }
+    let mut timing: Vec<(String, f64)> = vec![];
+    let mut add = |k: &str, x: f64| match timing.iter_mut().find(|(n, _)| n == k) {
+        Some(e) => e.1 += x,
+        None => timing.push((k.to_string(), x)),
+    };
+    for v in &results {
+        if let Some(t) = v["timing_ms"].as_object() {
+            for (k, x) in t {
+                add(k, x.as_f64().unwrap_or(0.0));
+            }
+        }
+        if let Some(w) = v["wall_ms"].as_f64() {
+            add("wall", w);
+        }
+    }
+    let failures = results.iter().filter(|v| !v["failure"].is_null()).count();
+    let mut s = header;
+    s.insert("cls".into(), json!(cls));
+    s.insert("metric_means".into(), Value::Object(means));
+    s.insert("failures".into(), json!(failures));
+    s.insert(
+        "timing_ms".into(),
+        Value::Object(timing.into_iter().map(|(k, v)| (k, json!(v))).collect()),
+    );
+    s.insert("scenarios".into(), Value::Array(results));
+    Value::Object(s)
+}
+
+/// Where a scenario's entry goes in a summary: its folder name, then its source (two scenario files may carry
+/// one scenario name).
+fn order_key(v: &Value) -> (String, String) {
+    (
+        folder_name(v["scenario"].as_str().unwrap_or("")),
+        v["source"].to_string(),
+    )
+}
+
+/// Writes `<out>/metrics.json`.
+pub fn write_summary(out: &Path, summary: &Value) -> Result<()> {
+    write_atomic(
+        &out.join("metrics.json"),
+        serde_json::to_string_pretty(summary)?.as_bytes(),
+    )
+}
+
+/// The fields of a batch summary that are not per-scenario results (everything but those `summarize` adds).
+fn header_of(summary: &Value) -> Map<String, Value> {
+    let mut h = summary.as_object().cloned().unwrap_or_default();
+    for k in ["cls", "metric_means", "failures", "timing_ms", "scenarios"] {
+        h.remove(k);
+    }
+    h
+}
+
+/// `b2dr merge DIR... --out OUT`: the shard folders of one configuration (each with its `config.json` and
+/// `metrics.json`, i.e. finished) into one summary in `OUT/metrics.json` (and `OUT/config.json`: the shards'
+/// configuration without the shard). Refused, naming the cause: folders of different configurations (the
+/// first differing field), an unfinished shard, shards of different counts, a shard given twice or missing,
+/// a scenario in two shards. Per-scenario folders stay where they are; the summary lists the shard folders.
+pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Value> {
+    ensure!(!dirs.is_empty(), "merge: no shard folder given");
+    let canon = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+    ensure!(
+        !dirs.iter().any(|d| canon(d) == canon(out)),
+        "merge: --out {} is one of the shard folders; give a new folder",
+        out.display()
+    );
+    let mut first: Option<(PathBuf, Value)> = None;
+    let mut seen: Vec<Option<PathBuf>> = vec![];
+    let mut results: Vec<Value> = vec![];
+    let mut header: Option<Map<String, Value>> = None;
+    let mut shards = vec![];
+    let mut devices: Vec<Value> = vec![];
+    for d in dirs {
+        let cpath = d.join("config.json");
+        ensure!(
+            cpath.is_file(),
+            "merge: {} has no config.json (not an output folder of `b2dr sim` or `b2dr run`)",
+            d.display()
+        );
+        let cfg = read_json(&cpath)?;
+        let spath = d.join("metrics.json");
+        ensure!(
+            spath.is_file(),
+            "merge: {} is unfinished (no metrics.json); rerun its shard with the same flags and --resume",
+            d.display()
+        );
+        let summary = read_json(&spath)?;
+        let shard: Shard = match cfg.get("shard") {
+            None | Some(Value::Null) => Shard { index: 0, count: 1 },
+            Some(s) => serde_json::from_value(s.clone())
+                .with_context(|| format!("merge: {}: invalid \"shard\"", cpath.display()))?,
+        };
+        match &first {
+            None => first = Some((d.clone(), cfg.clone())),
+            Some((d0, c0)) => {
+                if let Some(diff) = config_difference(c0, &cfg, &["shard"]) {
+                    bail!(
+                        "merge: {} and {} are runs of different configurations ({diff}); only shards of one \
+                         configuration merge",
+                        d0.display(),
+                        d.display()
+                    );
+                }
+            }
+        }
+        if seen.is_empty() {
+            seen = vec![None; shard.count];
+        }
+        ensure!(
+            seen.len() == shard.count,
+            "merge: {} is shard {shard} but {} was cut into {} shards",
+            d.display(),
+            first
+                .as_ref()
+                .map(|f| f.0.display().to_string())
+                .unwrap_or_default(),
+            seen.len()
+        );
+        if let Some(prev) = &seen[shard.index] {
+            bail!(
+                "merge: shard {shard} is given twice ({} and {})",
+                prev.display(),
+                d.display()
+            );
+        }
+        seen[shard.index] = Some(d.clone());
+        let h = header_of(&summary);
+        let mut h_cmp = h.clone();
+        if let Some(dev) = h_cmp.remove("device") {
+            if !devices.contains(&dev) {
+                devices.push(dev);
+            }
+        }
+        h_cmp.remove("device_bytes");
+        match &header {
+            None => header = Some(h_cmp),
+            Some(h0) => {
+                if let Some(diff) =
+                    config_difference(&Value::Object(h0.clone()), &Value::Object(h_cmp), &[])
+                {
+                    bail!(
+                        "merge: {}'s metrics.json differs from the other shards' ({diff})",
+                        d.display()
+                    );
+                }
+            }
+        }
+        let sc = summary["scenarios"]
+            .as_array()
+            .with_context(|| format!("merge: {}: no \"scenarios\" list", spath.display()))?;
+        shards.push(
+            json!({"folder": d, "shard": shard.to_string(), "scenarios": sc.len(),
+            "device": h.get("device"), "device_bytes": h.get("device_bytes")}),
+        );
+        results.extend(sc.iter().cloned());
+    }
+    let missing: Vec<String> = seen
+        .iter()
+        .enumerate()
+        .filter(|(_, s)| s.is_none())
+        .map(|(i, _)| format!("{i}/{}", seen.len()))
+        .collect();
+    ensure!(
+        missing.is_empty(),
+        "merge: shard(s) {} missing (every shard of --shard K/N must be given)",
+        missing.join(", ")
+    );
+    let mut keys: Vec<(String, String)> = results.iter().map(order_key).collect();
+    keys.sort_unstable();
+    if let Some(w) = keys.windows(2).find(|w| w[0] == w[1]) {
+        bail!("merge: scenario {} is in more than one shard", w[0].0);
+    }
+    let mut header = header.unwrap_or_default();
+    // one device for all shards: the single run's field; several: the list
+    if let Some(dev) = match devices.len() {
+        0 => None,
+        1 => devices.pop(),
+        _ => Some(Value::Array(devices)),
+    } {
+        header.insert("device".into(), dev);
+    }
+    header.insert("merged_from".into(), Value::Array(shards));
+    let summary = summarize(header, results);
+    let (_, mut cfg) = first.context("merge: no shard")?;
+    if let Some(o) = cfg.as_object_mut() {
+        o.remove("shard");
+    }
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    write_atomic(
+        &out.join("config.json"),
+        serde_json::to_string_pretty(&cfg)?.as_bytes(),
+    )?;
+    write_summary(out, &summary)?;
+    Ok(summary)
+}
