@@ -17,17 +17,19 @@ from .controlnet import B2DRControlNetModel, References
 SD15_SCHEDULE = dict(num_train_timesteps=1000, beta_start=0.00085, beta_end=0.012, beta_schedule="scaled_linear")
 
 
-def make_scheduler(kind: str = "unipc"):
+def make_scheduler(kind: str = "unipc", prediction_type: str = "epsilon"):
     """The sampler of the plain pipeline: UniPC (bh2, order 2, predict x0, lower order final, final sigma zero,
-    linspace) or DDIM (SD1.5: leading, steps_offset 1, no clipping, set_alpha_to_one False)."""
+    linspace) or DDIM (SD1.5: leading, steps_offset 1, no clipping, set_alpha_to_one False); the model predicts
+    epsilon or v (b2dr.json prediction_type)."""
     from diffusers import DDIMScheduler, UniPCMultistepScheduler
 
     if kind == "unipc":
         return UniPCMultistepScheduler(**SD15_SCHEDULE, solver_order=2, solver_type="bh2", lower_order_final=True,
-                                       final_sigmas_type="zero", timestep_spacing="linspace")
+                                       final_sigmas_type="zero", timestep_spacing="linspace",
+                                       prediction_type=prediction_type)
     if kind == "ddim":
         return DDIMScheduler(**SD15_SCHEDULE, set_alpha_to_one=False, steps_offset=1, clip_sample=False,
-                             timestep_spacing="leading")
+                             timestep_spacing="leading", prediction_type=prediction_type)
     raise ValueError(f"unknown sampler {kind!r} (unipc or ddim)")
 
 
@@ -150,7 +152,7 @@ def render_frame(unet, controlnet: B2DRControlNetModel, vae, x_T: torch.Tensor, 
                  ref_images: Optional[torch.Tensor] = None, pe_cur: Optional[Sequence[torch.Tensor]] = None,
                  pe_ref: Optional[Sequence[torch.Tensor]] = None, steps: int = 20, ref_guidance: float = 2.0,
                  sampler: str = "unipc", noise_level: Optional[int] = None,
-                 conditioning_scale: float = 1.0) -> FrameResult:
+                 conditioning_scale: float = 1.0, prediction_type: str = "epsilon") -> FrameResult:
     """A full frame of N cameras.
 
     x_T (N, 4, h, w); context (77, D) or (N, 77, D); masks (N, 15, H, W); prev (N, 3, H, W) in [0, 1]; eps_prev
@@ -171,7 +173,7 @@ def render_frame(unet, controlnet: B2DRControlNetModel, vae, x_T: torch.Tensor, 
         refs = controlnet.prepare_references(ref_latents, pe_cur, pe_ref)  # once per frame
     guided = refs is not None and ref_guidance != 1.0
 
-    sched = make_scheduler(sampler)
+    sched = make_scheduler(sampler, prediction_type)
     sched.set_timesteps(steps)
     res = FrameResult(image=None, latent=None, timesteps=[int(t) for t in sched.timesteps], prev=chain,
                       ref_latents=ref_latents, refs=refs)

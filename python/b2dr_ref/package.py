@@ -18,6 +18,8 @@ from .controlnet import CLASS_NAME, CONFIG_NAME, B2DRControlNetModel
 FORMAT = "b2dr-model"
 VERSION = 1
 META_KEYS = {"format", "version", "render_size", "cameras", "sampler", "steps", "ref_guidance", "dtype"}
+OPTIONAL_META_KEYS = {"prediction_type"}      # absent = "epsilon" (packages written before it existed)
+PREDICTION_TYPES = ("epsilon", "v_prediction")
 DTYPES = {"f32": torch.float32, "f16": torch.float16}
 
 
@@ -35,17 +37,17 @@ class B2DRPackage:
 
 
 def make_meta(render_size: Sequence[int], cameras: Sequence[str], sampler: str = "unipc", steps: int = 20,
-              ref_guidance: float = 2.0, dtype: str = "f32") -> Dict[str, Any]:
+              ref_guidance: float = 2.0, dtype: str = "f32", prediction_type: str = "epsilon") -> Dict[str, Any]:
     meta = {"format": FORMAT, "version": VERSION, "render_size": [int(render_size[0]), int(render_size[1])],
             "cameras": list(cameras), "sampler": sampler, "steps": int(steps), "ref_guidance": float(ref_guidance),
-            "dtype": dtype}
+            "dtype": dtype, "prediction_type": prediction_type}
     check_meta(meta, "b2dr.json")
     return meta
 
 
 def check_meta(meta: Dict[str, Any], where: str):
     for k in meta:
-        if k not in META_KEYS:
+        if k not in META_KEYS | OPTIONAL_META_KEYS:
             raise PackageError(f"{where}: unknown key `{k}`")
     for k in META_KEYS:
         if k not in meta:
@@ -62,6 +64,8 @@ def check_meta(meta: Dict[str, Any], where: str):
         raise PackageError(f"{where}: sampler {meta['sampler']!r} (unipc or ddim)")
     if int(meta["steps"]) < 1:
         raise PackageError(f"{where}: steps must be >= 1")
+    if meta.get("prediction_type", "epsilon") not in PREDICTION_TYPES:
+        raise PackageError(f"{where}: prediction_type {meta['prediction_type']!r} ({' or '.join(PREDICTION_TYPES)})")
     if meta["dtype"] not in DTYPES:
         raise PackageError(f"{where}: dtype {meta['dtype']!r} (f32 or f16)")
 

@@ -404,9 +404,15 @@ def loss_weight(kind: str, abar_t: torch.Tensor, max_weight: float = 0.0, gamma:
     return torch.clamp(w, max=max_weight) if max_weight > 0 else w
 
 
+PREDICTIONS = ("epsilon", "v_prediction")
+
+
 def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: torch.Tensor, p_noprev: float = 0.1,
-                   ref_dropout: Optional[float] = None, weighting: str = "eps", max_weight: float = 0.0):
-    """One batch's (weighted) epsilon loss (all random draws from ``gen``, on the CPU, then moved to the device)."""
+                   ref_dropout: Optional[float] = None, weighting: str = "eps", max_weight: float = 0.0,
+                   prediction: str = "epsilon"):
+    """One batch's (weighted) MSE of the model's prediction (all random draws from ``gen``, on the CPU, then moved to
+    the device). ``prediction``: the model predicts epsilon, or v = sqrt(abar) eps - sqrt(1 - abar) x_0
+    (diffusers' v_prediction; the sampler then reads x_0 = sqrt(abar) x_t - sqrt(1 - abar) v)."""
     cfg = controlnet.config
     dev = b["x0"].device
     B = b["x0"].shape[0]
@@ -435,9 +441,15 @@ def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: tor
     down, mid = controlnet(x_t, t.to(dev), ctx, b["masks"], z, n.to(dev), refs=refs,
                            ref_mask=ref_mask.to(dev) if refs is not None else None)
     pred = unet(x_t, t.to(dev), ctx, down_block_additional_residuals=down, mid_block_additional_residual=mid).sample
+    if prediction == "v_prediction":
+        target = at.sqrt() * eps - (1 - at).sqrt() * b["x0"]
+    elif prediction == "epsilon":
+        target = eps
+    else:
+        raise ValueError(f"prediction {prediction!r} (one of {', '.join(PREDICTIONS)})")
     if weighting == "eps":
-        return F.mse_loss(pred.float(), eps.float())
-    per = ((pred.float() - eps.float()) ** 2).mean(dim=(1, 2, 3))
+        return F.mse_loss(pred.float(), target.float())
+    per = ((pred.float() - target.float()) ** 2).mean(dim=(1, 2, 3))
     return (loss_weight(weighting, at.reshape(B), max_weight) * per).mean()
 
 
@@ -503,7 +515,13 @@ def train(args):
         steps = min(steps, step + args.stop_after)
     abar = make_noise_scheduler().alphas_cumprod.to(torch.float32)
     batcher = Batcher(source, vae, controlnet, device, cache=args.cache)
-    run_meta = dict(cfg=cfg, cameras=cameras, vae_path=os.path.abspath(vae_path), total_steps=total,
+    prediction = ck.get("prediction", "epsilon") if ck else args.prediction
+    if ck and prediction != args.prediction:
+        raise SystemExit(f"--resume: the run predicts {prediction}, not --prediction {args.prediction}")
+    if prediction == "v_prediction" and args.loss_weight == "v":
+        raise SystemExit("--loss-weight v with --prediction v_prediction would weight the v loss twice "
+                         "(the v MSE already is the epsilon MSE x (1 + 1/SNR)): use --loss-weight eps")
+    run_meta = dict(cfg=cfg, cameras=cameras, vae_path=os.path.abspath(vae_path), total_steps=total, prediction=prediction,
                     args={k: v for k, v in vars(args).items() if k != "func"})
     with open(os.path.join(args.out, "run.json"), "w") as f:
         json.dump(run_meta, f, indent=2)
@@ -516,7 +534,7 @@ def train(args):
                 torch.randint(0, len(source), (args.batch,), generator=gen).tolist()
             b = batcher.batch(idx)
             loss = diffusion_loss(unet, controlnet, context, b, gen, abar, p_noprev=args.p_noprev,
-                                  weighting=args.loss_weight, max_weight=args.max_weight)
+                                  weighting=args.loss_weight, max_weight=args.max_weight, prediction=prediction)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             gn = torch.nn.utils.clip_grad_norm_(params, args.clip)
@@ -561,7 +579,8 @@ def export(args):
         unet.load_state_dict(ck["unet"])
         controlnet.load_state_dict(ck["controlnet"])
     vae = load_vae(args.vae or ck["vae_path"])
-    meta = make_meta(cfg["render_size"], ck["cameras"], sampler="unipc", steps=20, ref_guidance=2.0, dtype=args.dtype)
+    meta = make_meta(cfg["render_size"], ck["cameras"], sampler="unipc", steps=20, ref_guidance=2.0, dtype=args.dtype,
+                     prediction_type=ck.get("prediction", "epsilon"))
     save_package(args.out, unet.eval(), controlnet.eval(), vae, ck["context"], meta)
     size = sum(os.path.getsize(os.path.join(r, f)) for r, _, fs in os.walk(args.out) for f in fs)
     print(f"exported step {ck['step']}{' (EMA)' if use_ema else ''} to {args.out}: {size / 1e6:.1f} MB")
@@ -669,9 +688,12 @@ def main(argv=None):
     p.add_argument("--p-noprev", type=float, default=0.1, help="probability of 'no previous frame' (z = 0, n = 999)")
     p.add_argument("--cache", type=int, default=100000, help="samples whose latents + PE are kept in memory")
     p.add_argument("--loss-weight", default="eps", choices=LOSS_WEIGHTS,
-                   help="per-noise-level weight of the epsilon MSE: eps (1), v (1 + 1/SNR: the v-prediction loss), "
+                   help="per-noise-level weight of the MSE: eps (1), v (1 + 1/SNR: with --prediction epsilon, the "
+                        "v-prediction loss), "
                         "min-snr (Min-SNR-5)")
     p.add_argument("--max-weight", type=float, default=0.0, help="cap of the loss weight (0 = none)")
+    p.add_argument("--prediction", default="epsilon", choices=PREDICTIONS,
+                   help="what the UNet predicts: epsilon, or v (exported as b2dr.json prediction_type)")
     return train(p.parse_args(argv))
 
 

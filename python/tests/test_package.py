@@ -51,6 +51,15 @@ def test_package_rejects_bad_meta(tmp_path, models):
         load_package(str(tmp_path))
     with pytest.raises(PackageError, match="cond"):
         save_package(str(tmp_path), models["unet"], models["controlnet"], models["vae"], torch.randn(2, 77, 32), meta)
+    del d["guidance"]
+    d["prediction_type"] = "sample"
+    p.write_text(json.dumps(d))
+    with pytest.raises(PackageError, match="prediction_type 'sample'"):
+        load_package(str(tmp_path))
+    # absent (packages written before the key existed) = epsilon
+    del d["prediction_type"]
+    p.write_text(json.dumps(d))
+    assert load_package(str(tmp_path)).meta.get("prediction_type", "epsilon") == "epsilon"
 
 
 def test_plain_controlnet_package_loads(tmp_path, models):

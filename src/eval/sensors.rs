@@ -359,7 +359,11 @@ impl B2drEngine {
                 prev_blur_sigma,
             },
             &self.package.context_for(&self.cameras)?,
-            sampler_plan(&self.package.meta.sampler, self.steps)?,
+            sampler_plan(
+                &self.package.meta.sampler,
+                self.steps,
+                self.package.meta.prediction(),
+            )?,
         )
     }
 

@@ -62,7 +62,7 @@ pub fn run(
             prev_blur_sigma: None,
         },
         &pkg.context_for(&names)?,
-        sampler_plan(&pkg.meta.sampler, steps)?,
+        sampler_plan(&pkg.meta.sampler, steps, pkg.meta.prediction())?,
     )?;
     let plan_ms = t0.elapsed().as_secs_f64() * 1e3;
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);

@@ -10,7 +10,7 @@ use super::inputs;
 use super::package::DeviceModel;
 use crate::projection::keyframe::drivable_area_from_geojson;
 use crate::projection::{KeyFrame, MapLayer, ProjectionConfig};
-use crate::sampling::{ddim, unipc, NoiseSchedule, SamplerPlan};
+use crate::sampling::{ddim, unipc, NoiseSchedule, PredictionType, SamplerPlan};
 use crate::tensor::DType;
 use crate::vk::Context;
 
@@ -41,16 +41,30 @@ pub struct RenderJob {
     pub out: PathBuf,
 }
 
-/// The sampler plan named in a package or on the command line.
-pub fn sampler_plan(name: &str, steps: usize) -> Result<SamplerPlan> {
+/// The sampler plan named in a package or on the command line, for a model that predicts `prediction`.
+pub fn sampler_plan(name: &str, steps: usize, prediction: PredictionType) -> Result<SamplerPlan> {
     ensure!(
         (1..=1000).contains(&steps),
         "--steps {steps} must be in 1..=1000"
     );
     let s = NoiseSchedule::sd15();
     match name {
-        "unipc" => unipc::plan(&s, &Default::default(), steps),
-        "ddim" => ddim::plan(&s, &Default::default(), steps),
+        "unipc" => unipc::plan(
+            &s,
+            &unipc::UniPcConfig {
+                prediction_type: prediction,
+                ..Default::default()
+            },
+            steps,
+        ),
+        "ddim" => ddim::plan(
+            &s,
+            &ddim::DdimConfig {
+                prediction_type: prediction,
+                ..Default::default()
+            },
+            steps,
+        ),
         other => bail!("--sampler {other:?}: expected unipc or ddim"),
     }
 }
@@ -188,7 +202,7 @@ pub fn run(ctx: &Context, j: &RenderJob) -> Result<serde_json::Value> {
     let steps = j.steps.unwrap_or(pkg.meta.steps);
     let sampler = j.sampler.clone().unwrap_or(pkg.meta.sampler.clone());
     let w = j.ref_guidance.unwrap_or(pkg.meta.ref_guidance);
-    let plan = sampler_plan(&sampler, steps)?;
+    let plan = sampler_plan(&sampler, steps, pkg.meta.prediction())?;
     let dm = DeviceModel::upload(ctx, &pkg, j.dtype)?;
     let context = pkg.context_for(&names)?;
     let load_s = t0.elapsed().as_secs_f64();

@@ -14,6 +14,7 @@ use crate::nn::run::read_component;
 use crate::nn::unet::UNet;
 use crate::nn::vae::{VaeDecoder, VaeEncoder};
 use crate::nn::weights::{expected_unet, expected_vae, FileDType, HostTensor, Weights};
+use crate::sampling::PredictionType;
 use crate::tensor::DType;
 use crate::vk::Context;
 
@@ -31,6 +32,10 @@ pub struct PackageMeta {
     pub ref_guidance: f64,
     /// Storage dtype of the weights (f32 or f16).
     pub dtype: String,
+    /// What the UNet predicts: "epsilon" or "v_prediction" (diffusers' `prediction_type`); absent in packages
+    /// written before it existed, which predict epsilon.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub prediction_type: Option<String>,
 }
 
 impl PackageMeta {
@@ -72,7 +77,23 @@ impl PackageMeta {
             "{where_}: dtype {:?} (f32 or f16)",
             self.dtype
         );
+        ensure!(
+            matches!(
+                self.prediction_type.as_deref(),
+                None | Some("epsilon") | Some("v_prediction")
+            ),
+            "{where_}: prediction_type {:?} (epsilon or v_prediction)",
+            self.prediction_type.as_deref().unwrap_or_default()
+        );
         Ok(())
+    }
+
+    /// The sampler's reading of the model output (`check` has accepted the value).
+    pub fn prediction(&self) -> PredictionType {
+        match self.prediction_type.as_deref() {
+            Some("v_prediction") => PredictionType::VPrediction,
+            _ => PredictionType::Epsilon,
+        }
     }
 }
 
@@ -334,6 +355,7 @@ impl ModelPackage {
                 steps: 20,
                 ref_guidance: 2.0,
                 dtype: "f32".into(),
+                prediction_type: None,
             },
             unet: Weights::random(&expected_unet(&unet_cfg), 1),
             control: Weights::random(&expected_b2dr(&control_cfg), 4),
@@ -441,5 +463,48 @@ impl DeviceModel {
             scaling_factor: self.scaling_factor,
             dtype: self.dtype,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::render::job::sampler_plan;
+
+    fn meta(extra: &str) -> Result<PackageMeta> {
+        let text = format!(
+            r#"{{"format": "b2dr-model", "version": 1, "render_size": [112, 200], "cameras": ["CAM_FRONT"],
+                "sampler": "unipc", "steps": 20, "ref_guidance": 2.0, "dtype": "f16"{extra}}}"#
+        );
+        let m: PackageMeta = serde_json::from_str(&text)?;
+        m.check("b2dr.json")?;
+        Ok(m)
+    }
+
+    #[test]
+    fn prediction_type_reaches_the_sampler() {
+        // absent (packages written before the key) and "epsilon" predict epsilon
+        assert_eq!(meta("").unwrap().prediction(), PredictionType::Epsilon);
+        let eps = meta(r#", "prediction_type": "epsilon""#).unwrap();
+        assert_eq!(eps.prediction(), PredictionType::Epsilon);
+        let v = meta(r#", "prediction_type": "v_prediction""#).unwrap();
+        assert_eq!(v.prediction(), PredictionType::VPrediction);
+        let err = meta(r#", "prediction_type": "sample""#)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("prediction_type \"sample\""), "{err}");
+        // the plans differ exactly where the model output becomes x0
+        for s in ["unipc", "ddim"] {
+            let pe = sampler_plan(s, 4, eps.prediction()).unwrap();
+            let pv = sampler_plan(s, 4, v.prediction()).unwrap();
+            assert_eq!(pe.steps.len(), pv.steps.len());
+            assert_ne!(format!("{:?}", pe.steps), format!("{:?}", pv.steps), "{s}");
+        }
+        // a meta written with the key round-trips; one without it is written without it
+        let text = serde_json::to_string(&v).unwrap();
+        assert!(text.contains("\"prediction_type\":\"v_prediction\""));
+        assert!(!serde_json::to_string(&eps.clone())
+            .unwrap()
+            .contains("null"));
     }
 }
