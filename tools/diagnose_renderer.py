@@ -31,7 +31,7 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "python"))
 
 from b2dr_ref.frame import decode_image, render_frame  # noqa: E402
-from b2dr_ref.train import CKPT, Batcher, DatasetSource, build_diffusion_models, load_vae, make_noise_scheduler  # noqa: E402
+from b2dr_ref.train import CKPT, Batcher, DatasetSource, checkpoint_models, load_vae, make_noise_scheduler  # noqa: E402
 
 
 def load(path: str, raw: bool):
@@ -41,14 +41,7 @@ def load(path: str, raw: bool):
         p = load_package(path)
         return p.unet, p.controlnet, p.vae, p.context, p.meta
     ck = torch.load(os.path.join(path, CKPT), map_location="cpu", weights_only=False)
-    unet, cn = build_diffusion_models(ck["cfg"])
-    if ck.get("ema") is not None and not raw:
-        sh = ck["ema"]
-        unet.load_state_dict({k[2:]: v for k, v in sh.items() if k.startswith("0.")})
-        cn.load_state_dict({k[2:]: v for k, v in sh.items() if k.startswith("1.")})
-    else:
-        unet.load_state_dict(ck["unet"])
-        cn.load_state_dict(ck["controlnet"])
+    unet, cn, _ = checkpoint_models(ck, ema=not raw)
     meta = dict(sampler="unipc", steps=20, ref_guidance=2.0, prediction_type=ck.get("prediction", "epsilon"))
     return unet, cn, load_vae(ck["vae_path"]), ck["context"], meta
 

@@ -564,13 +564,11 @@ def train(args):
 # ---------------------------------------------------------------------------------------------------------------
 
 
-def export(args):
-    from .package import make_meta, save_package
-
-    ck = torch.load(os.path.join(args.run, CKPT), map_location="cpu", weights_only=False)
-    cfg = ck["cfg"]
-    unet, controlnet = build_diffusion_models(cfg)
-    use_ema = ck.get("ema") is not None and not args.no_ema
+def checkpoint_models(ck, ema: bool = True):
+    """The UNet and ControlNet of a loaded checkpoint: its EMA weights when it kept an EMA and ``ema``, else the raw
+    weights. Returns (unet, controlnet, used_ema)."""
+    unet, controlnet = build_diffusion_models(ck["cfg"])
+    use_ema = ema and ck.get("ema") is not None
     if use_ema:
         sh = ck["ema"]
         unet.load_state_dict({k[2:]: v for k, v in sh.items() if k.startswith("0.")})
@@ -578,6 +576,15 @@ def export(args):
     else:
         unet.load_state_dict(ck["unet"])
         controlnet.load_state_dict(ck["controlnet"])
+    return unet, controlnet, use_ema
+
+
+def export(args):
+    from .package import make_meta, save_package
+
+    ck = torch.load(os.path.join(args.run, CKPT), map_location="cpu", weights_only=False)
+    cfg = ck["cfg"]
+    unet, controlnet, use_ema = checkpoint_models(ck, ema=not args.no_ema)
     vae = load_vae(args.vae or ck["vae_path"])
     meta = make_meta(cfg["render_size"], ck["cameras"], sampler="unipc", steps=20, ref_guidance=2.0, dtype=args.dtype,
                      prediction_type=ck.get("prediction", "epsilon"))
