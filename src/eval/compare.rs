@@ -13,20 +13,9 @@ use std::path::Path;
 use anyhow::{Context as _, Result};
 use serde_json::{json, Value};
 
+use super::batch::METRICS;
 use super::run::{folder_name, run, RendererMode, RunConfig};
 use crate::vk::Context;
-
-const METRICS: [&str; 9] = [
-    "no_ego_at_fault_collisions",
-    "drivable_area_compliance",
-    "driving_direction_compliance",
-    "ego_is_making_progress",
-    "time_to_collision_within_bound",
-    "speed_limit_compliance",
-    "ego_progress_along_expert_route",
-    "ego_is_comfortable",
-    "score",
-];
 
 /// Runs `base` under every mode of `modes` into `out/<mode>` and writes the comparison.
 pub fn compare(
@@ -45,11 +34,11 @@ pub fn compare(
         rows.push((m, s));
     }
     let mut table = String::from("| renderer | CLS |");
-    for m in &METRICS[..8] {
+    for m in &METRICS {
         table.push_str(&format!(" {m} |"));
     }
     table.push_str(" failures |\n|---|---|");
-    table.push_str(&"---|".repeat(METRICS.len()));
+    table.push_str(&"---|".repeat(METRICS.len() + 1)); // the metrics and "failures"
     table.push('\n');
     let mut js = vec![];
     for (m, s) in &rows {
@@ -68,7 +57,7 @@ pub fn compare(
             s["cls"].as_f64().unwrap_or(0.0)
         ));
         let mut per = serde_json::Map::new();
-        for k in &METRICS[..8] {
+        for k in &METRICS {
             let v = mean(k);
             table.push_str(&format!(" {v:.3} |"));
             per.insert(k.to_string(), json!(v));
