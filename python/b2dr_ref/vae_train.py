@@ -2,7 +2,7 @@
 trained on the dataset's target images with an L1 reconstruction loss + a small KL term (LDM style).
 
     python -m b2dr_ref.vae_train --data DIR --out VAE_RUN [--config nano] [--steps N] [--batch B] [--device cpu|cuda]
-                                 [--crop HxW] [--resume]
+                                 [--crop HxW] [--init-from VAE_DIR] [--object-weight W] [--resume]
 
 Loss per step (LDM's autoencoder without the perceptual / GAN terms): the sums over pixels and latent elements
 per image, averaged over the batch, divided by 3 H W so the figure reads as a per-pixel L1:
@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from . import nano
-from .train import CKPT, CsvLog, add_common, lr_lambda, open_source, save_checkpoint, set_threads
+from .train import CKPT, OBJECT_CHANNELS, CsvLog, add_common, lr_lambda, open_source, save_checkpoint, set_threads
 
 
 def build_vae(cfg, seed: int = 0):
@@ -38,6 +38,12 @@ def images(source, idx, device) -> torch.Tensor:
     return torch.from_numpy(x).float().div(255.0).mul(2.0).sub(1.0).to(device)
 
 
+def object_masks(source, idx, device) -> torch.Tensor:
+    """(B, 1, H, W) float {0,1}: pixels covered by any object class (vehicles, pedestrians, two-wheelers)."""
+    m = np.stack([source[i].masks[OBJECT_CHANNELS].max(0) for i in idx])
+    return torch.from_numpy(m).float()[:, None].to(device)
+
+
 def parse_crop(text: str):
     h, w = (int(v) for v in text.lower().split("x"))
     if h % 8 or w % 8 or h <= 0 or w <= 0:
@@ -45,27 +51,33 @@ def parse_crop(text: str):
     return h, w
 
 
-def random_crop(x: torch.Tensor, hw, gen: torch.Generator) -> torch.Tensor:
+def random_crop(x: torch.Tensor, hw, gen: torch.Generator, *more: torch.Tensor):
     """One random HxW window (offsets on the 8-pixel grid) of the whole batch; the VAE is convolutional, so
-    training on crops is LDM's usual speed-up."""
+    training on crops is LDM's usual speed-up. Tensors in ``more`` (same H, W) get the same window and are
+    returned after x as a tuple."""
     h, w = hw
     H, W = x.shape[-2:]
     if h > H or w > W:
         raise ValueError(f"crop {h}x{w} larger than the images {H}x{W}")
     y0 = 8 * int(torch.randint(0, (H - h) // 8 + 1, (1,), generator=gen))
     x0 = 8 * int(torch.randint(0, (W - w) // 8 + 1, (1,), generator=gen))
-    return x[..., y0:y0 + h, x0:x0 + w]
+    crops = tuple(t[..., y0:y0 + h, x0:x0 + w] for t in (x,) + more)
+    return crops if more else crops[0]
 
 
-def vae_loss(vae, x, gen: torch.Generator, kl_weight: float):
+def vae_loss(vae, x, gen: torch.Generator, kl_weight: float, weight: torch.Tensor = None):
+    """(loss, plain per-pixel L1, KL). ``weight`` (B, 1, H, W) >= 1 scales the L1 per pixel (--object-weight);
+    the loss is still divided by 3 H W, the logged L1 is the unweighted one."""
     post = vae.encode(x).latent_dist
     eps = torch.randn(post.mean.shape, generator=gen).to(x.device)
     z = post.mean + post.std * eps
     rec = vae.decode(z).sample
     per_pixel = float(np.prod(x.shape[1:]))
-    l1 = (rec - x).abs().flatten(1).sum(1).mean()
+    err = (rec - x).abs()
+    l1 = err.flatten(1).sum(1).mean()
+    wl1 = l1 if weight is None else (err * weight).flatten(1).sum(1).mean()
     kl = post.kl().mean()
-    return (l1 + kl_weight * kl) / per_pixel, (l1 / per_pixel).detach(), kl.detach()
+    return (wl1 + kl_weight * kl) / per_pixel, (l1 / per_pixel).detach(), kl.detach()
 
 
 def spread(source, n: int):
@@ -173,6 +185,17 @@ def train_vae(args):
     nano.check_config(cfg)
     source = open_source(args.data, cfg["render_size"])
     vae = build_vae(cfg, args.seed).to(device).train()
+    if args.init_from and not ck:
+        # continue from an existing VAE folder (e.g. a committed package's vae/, centred or not: it is re-centred
+        # whenever it is saved); the architecture must be the config's
+        from .train import load_vae
+
+        init = load_vae(args.init_from)
+        if dict(init.config)["block_out_channels"] != list(cfg["vae"]["block_out_channels"]) or \
+                init.config.latent_channels != cfg["vae"]["latent_channels"]:
+            raise SystemExit(f"--init-from {args.init_from}: its architecture differs from config {cfg['name']!r}")
+        vae.load_state_dict(init.state_dict())
+        print(f"vae: initialised from {args.init_from}", flush=True)
     opt = torch.optim.AdamW(vae.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     total = ck["total_steps"] if ck else args.steps
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_lambda(args.warmup, total))
@@ -196,9 +219,10 @@ def train_vae(args):
             idx = list(range(args.batch)) if args.fixed_batch else \
                 torch.randint(0, len(source), (args.batch,), generator=gen).tolist()
             x = images(source, idx, device)
+            w = 1.0 + args.object_weight * object_masks(source, idx, device) if args.object_weight > 0 else None
             if args.crop:
-                x = random_crop(x, args.crop, gen)
-            loss, l1, kl = vae_loss(vae, x, gen, args.kl_weight)
+                x, w = random_crop(x, args.crop, gen, w) if w is not None else (random_crop(x, args.crop, gen), None)
+            loss, l1, kl = vae_loss(vae, x, gen, args.kl_weight, w)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(vae.parameters(), args.clip)
@@ -231,6 +255,10 @@ def main(argv=None):
     p.add_argument("--kl-weight", type=float, default=1e-6)
     p.add_argument("--crop", type=parse_crop, default=None,
                    help="train on random HxW crops (multiples of 8), e.g. 56x104: ~4x cheaper steps")
+    p.add_argument("--init-from", default=None, help="start from this VAE folder (e.g. models/b2dr-nano/vae)")
+    p.add_argument("--object-weight", type=float, default=0.0,
+                   help="extra L1 weight on pixels of objects (vehicles, pedestrians, two-wheelers; the export's "
+                        "masks): the loss weight there is 1 + this (0 = plain L1)")
     return train_vae(p.parse_args(argv))
 
 

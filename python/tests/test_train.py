@@ -139,9 +139,21 @@ def test_v_prediction_target_and_export(vae_run, tmp_path):
     g.set_state(gen_state)
     le = T.diffusion_loss(Zero(), NoCn(), torch.zeros(1, 77, 8), b, g, abar, p_noprev=0.0, ref_dropout=1.0)
     torch.testing.assert_close(le, (eps ** 2).mean())
+    # --object-weight: the latent cells over an object weigh 1 + w (latent 7 x 13 <- image 56 x 104)
+    masks = torch.zeros(3, 15, 56, 104)
+    masks[1, 0, 8:16, 16:24] = 1                       # one car filling latent cell (1, 2) of sample 1
+    b["masks"] = masks
+    g.set_state(gen_state)
+    lo = T.diffusion_loss(Zero(), NoCn(), torch.zeros(1, 77, 8), b, g, abar, p_noprev=0.0, ref_dropout=1.0,
+                          prediction="v_prediction", object_weight=3.0)
+    w = torch.ones(3, 1, 7, 13)
+    w[1, 0, 1, 2] = 4.0
+    torch.testing.assert_close(lo, (w * v ** 2).mean())
+    b["masks"] = None
 
     run = str(tmp_path / "run")
-    losses = diffusion(os.path.join(vae_run[0], "vae"), run, "--steps", "3", "--prediction", "v_prediction")
+    losses = diffusion(os.path.join(vae_run[0], "vae"), run, "--steps", "3", "--prediction", "v_prediction",
+                       "--object-weight", "2")
     assert all(np.isfinite(losses))
     T.main(["export", "--run", run, "--out", str(tmp_path / "model")])
     with open(tmp_path / "model" / "b2dr.json") as f:
@@ -290,3 +302,37 @@ def test_init_from_package_starts_from_its_weights(vae_run, tmp_path):
     for k, v in pkg.unet.state_dict().items():
         torch.testing.assert_close(ck["unet"][k], v, rtol=0, atol=0)
     torch.testing.assert_close(ck["context"], pkg.context, rtol=0, atol=0)
+
+
+def test_object_loss_weight_marks_the_object_cells():
+    """train.object_loss_weight: 1 + w on the latent cells whose 8x8 image cell holds any object-class pixel
+    (channels car .. bicycle), 1 elsewhere (road, lanes and the other map channels never count)."""
+    m = torch.zeros((2, 15, 16, 24))
+    m[0, 0, 9, 17] = 1          # one car pixel -> latent cell (1, 2)
+    m[1, 5, 0:3, 0:2] = 1       # pedestrian -> cell (0, 0)
+    m[:, 10] = 1                # drivable area everywhere: no weight
+    w = T.object_loss_weight(m, (2, 3), 4.0)
+    want = torch.ones((2, 1, 2, 3))
+    want[0, 0, 1, 2] = 5.0
+    want[1, 0, 0, 0] = 5.0
+    torch.testing.assert_close(w, want)
+
+
+def test_vae_object_weight_and_init_from(vae_run, tmp_path):
+    """--init-from starts from a VAE folder (the first loss equals the trained VAE's, not a fresh one's);
+    --object-weight weighs object pixels up (logged L1 stays the plain one); a wrong architecture is refused."""
+    out, losses = vae_run
+    args = ["--data", "synthetic:4", "--steps", "2", "--batch", "2", "--lr", "1e-9", "--warmup", "1", "--fixed-batch",
+            "--ckpt-every", "1000"] + COMMON
+    warm = V.main(args + ["--out", str(tmp_path / "a"), "--init-from", os.path.join(out, "vae")])
+    cold = V.main(args + ["--out", str(tmp_path / "b")])
+    assert warm[0] < 0.8 * cold[0], (warm, cold)
+    weighted = V.main(args + ["--out", str(tmp_path / "c"), "--init-from", os.path.join(out, "vae"),
+                              "--object-weight", "4"])
+    assert weighted[0] > warm[0]
+    with open(tmp_path / "c" / "log.csv") as f:
+        l1 = [float(r["l1"]) for r in csv.DictReader(f)]
+    assert abs(l1[0] - warm[0]) < 0.05 * warm[0]     # the logged L1 is unweighted (KL term ~1e-6)
+    with pytest.raises(SystemExit, match="architecture differs"):
+        V.main(["--data", "synthetic:4", "--steps", "1", "--batch", "2", "--out", str(tmp_path / "d"),
+                "--config", "nano", "--threads", "1", "--init-from", os.path.join(out, "vae")])

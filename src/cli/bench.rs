@@ -181,3 +181,64 @@ pub fn run_frame(device: Option<String>, a: FrameArgs) -> Result<()> {
     }
     Ok(())
 }
+
+#[derive(clap::Args, Debug)]
+pub struct TradeArgs {
+    /// Model package folder or builtin:NAME (default: the built-in b2dr-nano)
+    #[arg(long)]
+    pub model: Option<std::path::PathBuf>,
+    /// One synthetic scenario (its ground truth scores every point); held-out seeds (>= 100) by default
+    #[arg(long, default_value = "builtin:town:100")]
+    pub scenario: String,
+    /// Output folder (trade.json, trade.md, trade.png, trade_truth.png)
+    #[arg(long)]
+    pub out: std::path::PathBuf,
+    /// A reduced sweep that runs in minutes (1 camera, 1 frame, UniPC 4/10/20/50, an 8-frame rollout)
+    #[arg(long)]
+    pub quick: bool,
+    /// Recorded frames every point renders (comma separated; default 8,20, quick: 8)
+    #[arg(long, value_delimiter = ',')]
+    pub frames: Option<Vec<usize>>,
+    /// Cameras of the reference setting (the model's first N; default 6, quick: 1)
+    #[arg(long)]
+    pub cameras: Option<usize>,
+    /// Frames of the autoregressive rollout per precision (default 200, quick: 8; 0 = none)
+    #[arg(long)]
+    pub rollout_frames: Option<usize>,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Print trade.json to stdout instead of the table
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// `b2dr bench trade`.
+pub fn run_trade(device: Option<String>, a: TradeArgs) -> Result<()> {
+    use b2dr::eval::trade::{bench_trade, TradeConfig};
+    let ctx = Context::new(&ContextOptions {
+        device,
+        ..Default::default()
+    })?;
+    let mut cfg = TradeConfig::new(a.model, a.scenario, a.quick);
+    if let Some(f) = a.frames {
+        cfg.frames = f;
+    }
+    if let Some(c) = a.cameras {
+        cfg.cameras = c;
+    }
+    if let Some(r) = a.rollout_frames {
+        cfg.rollout_frames = r;
+    }
+    cfg.seed = a.seed;
+    let r = bench_trade(&ctx, &cfg, &a.out)?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&r)?);
+    } else {
+        print!("{}", b2dr::eval::trade::markdown(&r));
+        eprintln!(
+            "wrote {}/{{trade.json, trade.md, trade.png, trade_truth.png}}",
+            a.out.display()
+        );
+    }
+    Ok(())
+}

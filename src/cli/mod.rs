@@ -69,6 +69,9 @@ pub enum Command {
 pub enum BenchCmd {
     /// Time Bench2Drive-R frames by stage (encode, denoise, decode) of a model package (default: built-in).
     Frame(bench::FrameArgs),
+    /// The speed/accuracy trade: precision, sampler and steps, resolution, guidance and cameras swept on one
+    /// device, each point timed and scored against the reference setting and the ground truth.
+    Trade(bench::TradeArgs),
     /// Time model components (guided UNet + ControlNet step, VAE decode) of b2dr-tiny at 224 x 400.
     Model {
         #[arg(long)]
@@ -107,6 +110,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Info => info::run(cli.device),
         Command::Bench(BenchCmd::Frame(a)) => bench::run_frame(cli.device, a),
+        Command::Bench(BenchCmd::Trade(a)) => bench::run_trade(cli.device, a),
         Command::Bench(BenchCmd::Ops {
             json,
             filter,

@@ -8,3 +8,4 @@ pub mod fidelity;
 pub mod planner_data;
 pub mod run;
 pub mod sensors;
+pub mod trade;

@@ -19,6 +19,7 @@
 pub mod metrics;
 pub mod plot;
 mod report;
+pub use report::{scored_classes, VEHICLE};
 pub mod scene;
 
 use std::collections::BTreeMap;

@@ -8,7 +8,7 @@ use plotters::prelude::*;
 
 static FONT: Once = Once::new();
 
-fn register_font() {
+pub fn register_font() {
     FONT.call_once(|| {
         // The bytes are the vendored font file: parsing it cannot fail unless the file is replaced.
         let _ = plotters::style::register_font(
