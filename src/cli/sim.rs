@@ -27,7 +27,8 @@ use std::time::{Duration, Instant};
 #[derive(Args, Debug)]
 pub struct SimArgs {
     /// Scenario(s): builtin:LAYOUT[:seed[:n_vehicles[:palette]]] (LAYOUT: town, cross, tjunction, straight, curve,
-    /// multilane), a ScenarioNet .json file, a directory of them, or a comma-separated list of those.
+    /// multilane), a ScenarioNet .json file, a directory of them, nuscenes:DATAROOT[:VERSION]:SCENE (official
+    /// nuScenes tables, docs/nuscenes.md), or a comma-separated list of those.
     #[arg(long, default_value = "builtin:town")]
     pub scenario: String,
     /// Planner: expert, cv, idm or cmd:<command line> (see docs/planner_protocol.md).

@@ -175,10 +175,7 @@ fn run_one(
 ) -> Result<Value> {
     let t0 = Instant::now();
     let sc = crate::world::load(src)?;
-    let base = match src {
-        Source::File(p) => p.parent().map(Path::to_path_buf),
-        Source::Builtin(_) => None,
-    };
+    let base = src.image_dir();
     let store = ImageStore::new(&sc, base);
     let sim_cfg = SimConfig {
         agents: cfg.agents,

@@ -2,11 +2,14 @@
 //! - `builtin:LAYOUT[:seed[:n_vehicles[:palette]]]`: the built-in synthetic towns ([`builtin`] parses the spec;
 //!   `crate::world::load` generates them, since their logs are driven by the simulator's IDM agents);
 //! - a ScenarioNet JSON file ([`scenarionet`]);
-//! - a directory: every `*.json` file in it, sorted by name.
+//! - a directory: every `*.json` file in it, sorted by name;
+//! - `nuscenes:DATAROOT[:VERSION]:SCENE`: a scene of the official nuScenes tables ([`nuscenes`]).
 pub mod builtin;
+pub mod nuscenes;
 pub mod scenarionet;
 
 pub use builtin::{BuiltinSpec, DayPalette, Layout};
+pub use nuscenes::NuscenesSpec;
 
 use super::camera::{Camera, CameraImage, CameraRig, RecordedFrame};
 use super::geometry::Pose2;
@@ -19,6 +22,7 @@ use std::path::PathBuf;
 pub enum Source {
     Builtin(BuiltinSpec),
     File(PathBuf),
+    Nuscenes(NuscenesSpec),
 }
 
 impl Source {
@@ -30,6 +34,16 @@ impl Source {
                 .file_stem()
                 .map(|s| s.to_string_lossy().into_owned())
                 .unwrap_or_default(),
+            Source::Nuscenes(n) => n.scene.clone(),
+        }
+    }
+
+    /// The folder relative image paths of the scenario's recorded frames are resolved against (none for
+    /// generated images and for nuScenes, whose image paths already start with the DATAROOT).
+    pub fn image_dir(&self) -> Option<PathBuf> {
+        match self {
+            Source::Builtin(_) | Source::Nuscenes(_) => None,
+            Source::File(p) => p.parent().map(|d| d.to_path_buf()),
         }
     }
 }
@@ -50,6 +64,9 @@ pub fn resolve(spec: &str) -> Result<Vec<Source>> {
     if let Some(rest) = spec.strip_prefix("builtin:") {
         return Ok(vec![Source::Builtin(BuiltinSpec::parse(rest, spec)?)]);
     }
+    if let Some(rest) = spec.strip_prefix("nuscenes:") {
+        return Ok(vec![Source::Nuscenes(NuscenesSpec::parse(rest, spec)?)]);
+    }
     let p = PathBuf::from(spec);
     if p.is_dir() {
         let mut files: Vec<PathBuf> = std::fs::read_dir(&p)
@@ -66,7 +83,7 @@ pub fn resolve(spec: &str) -> Result<Vec<Source>> {
     if p.is_file() {
         return Ok(vec![Source::File(p)]);
     }
-    bail!("scenario {spec:?} is neither builtin:LAYOUT[:seed[:n[:palette]]], an existing .json file nor a directory")
+    bail!("scenario {spec:?} is neither builtin:LAYOUT[:seed[:n[:palette]]], nuscenes:DATAROOT[:VERSION]:SCENE, an existing .json file nor a directory")
 }
 
 /// Ego -> global 4x4 of a rear-axle pose (nuScenes' ego frame sits at the rear axle, z = 0).

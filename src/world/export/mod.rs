@@ -24,7 +24,7 @@ use plan::{candidate_frames, frame_step, plan_samples, SamplePlan, PREV_GAP_S};
 use serde_json::{json, Value};
 use shard::Shard;
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 /// Format name and version written into the index.
 pub const FORMAT: &str = "b2dr-training";
@@ -331,10 +331,7 @@ pub fn export_training(opt: &ExportOptions) -> Result<ExportSummary> {
     for (si, cams, frames, plan, generated) in plans {
         let (src, sc) = &scenarios[si];
         bar.set_message(sc.name.clone());
-        let base = match src {
-            Source::File(p) => p.parent().map(Path::to_path_buf),
-            Source::Builtin(_) => None,
-        };
+        let base = src.image_dir();
         let job = Job {
             sc,
             store: ImageStore::new(sc, base),

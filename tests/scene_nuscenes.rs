@@ -1,0 +1,490 @@
+//! The nuScenes importer (`--scenario nuscenes:DATAROOT[:VERSION]:SCENE`) on a nuScenes-mini-style folder written
+//! at test time from the shared scene-0061 data by `python/b2dr_ref/nuscenes_fixture.py` (plain Python): the
+//! keyframe projection oracle, the ScenarioNet log of the same scene, `b2dr sim`, malformed tables, import time.
+//! Skips with a printed reason when the shared data (or a Python interpreter) is absent.
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::sync::OnceLock;
+use std::time::Instant;
+
+use b2dr::projection::{Box3d, BoxClass, CameraProjector, KeyFrame};
+use b2dr::scene::geometry::angle_diff;
+use b2dr::scene::import::nuscenes::{self, NuscenesSpec};
+use b2dr::scene::import::{resolve, scenarionet, Source};
+use b2dr::scene::Scenario;
+
+fn shared() -> Option<PathBuf> {
+    let candidates = [
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../shared/data/nuscenes-mini"),
+        PathBuf::from("/work/shared/data/nuscenes-mini"),
+    ];
+    let found = candidates
+        .iter()
+        .find(|p| p.join("scenes/scene-0061.json").is_file())
+        .cloned();
+    if found.is_none() {
+        eprintln!("skipping: shared nuScenes data absent (../shared/data/nuscenes-mini)");
+    }
+    found
+}
+
+fn python() -> String {
+    if let Ok(p) = std::env::var("B2DR_PY") {
+        return p;
+    }
+    let venv = std::env::var("HOME")
+        .map(|h| PathBuf::from(h).join(".cache/b2dr-venv/bin/python"))
+        .unwrap_or_default();
+    if venv.is_file() {
+        venv.display().to_string()
+    } else {
+        "python3".into()
+    }
+}
+
+/// The fixture DATAROOT (written once per test process).
+fn dataroot() -> Option<&'static Path> {
+    static ROOT: OnceLock<Option<PathBuf>> = OnceLock::new();
+    ROOT.get_or_init(|| {
+        let shared = shared()?;
+        let out = std::env::temp_dir().join(format!("b2dr_nuscenes_{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&out);
+        let o = Command::new(python())
+            .current_dir(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("python"))
+            .args(["-m", "b2dr_ref.nuscenes_fixture", "--shared"])
+            .arg(&shared)
+            .arg("--out")
+            .arg(&out)
+            .output();
+        match o {
+            Ok(o) if o.status.success() => Some(out),
+            Ok(o) => {
+                eprintln!(
+                    "skipping: the fixture writer failed: {}",
+                    String::from_utf8_lossy(&o.stderr)
+                );
+                None
+            }
+            Err(e) => {
+                eprintln!("skipping: no Python to write the fixture ({e})");
+                None
+            }
+        }
+    })
+    .as_deref()
+}
+
+fn spec(root: &Path) -> NuscenesSpec {
+    NuscenesSpec {
+        dataroot: root.to_path_buf(),
+        version: "v1.0-mini".into(),
+        scene: "scene-0061".into(),
+    }
+}
+
+#[test]
+fn spec_syntax() {
+    let s = resolve("nuscenes:/data/sets/nuscenes:scene-0061").unwrap();
+    assert_eq!(
+        s,
+        vec![Source::Nuscenes(NuscenesSpec {
+            dataroot: "/data/sets/nuscenes".into(),
+            version: "v1.0-mini".into(),
+            scene: "scene-0061".into()
+        })]
+    );
+    assert_eq!(s[0].name(), "scene-0061");
+    let s = resolve("nuscenes:/d:v1.0-trainval:cc8c0bf57f984915a77078b10eb33198").unwrap();
+    let Source::Nuscenes(n) = &s[0] else { panic!() };
+    assert_eq!(
+        (n.dataroot.to_str(), n.version.as_str()),
+        (Some("/d"), "v1.0-trainval")
+    );
+    // A middle field that is not a version belongs to the DATAROOT.
+    let Source::Nuscenes(n) = &resolve("nuscenes:/a:b:scene-1").unwrap()[0] else {
+        panic!()
+    };
+    assert_eq!(
+        (n.dataroot.to_str(), n.version.as_str()),
+        (Some("/a:b"), "v1.0-mini")
+    );
+    // Two scenes as a list.
+    assert_eq!(
+        resolve("nuscenes:/d:scene-0061,nuscenes:/d:scene-0103")
+            .unwrap()
+            .len(),
+        2
+    );
+    for bad in ["nuscenes:", "nuscenes:/d", "nuscenes:/d:", "nuscenes::scene-1"] {
+        let e = format!("{:#}", resolve(bad).unwrap_err());
+        assert!(e.contains("nuscenes:DATAROOT[:VERSION]:SCENE"), "{bad}: {e}");
+    }
+}
+
+/// The oracle's boxes matched to the importer's annotations of the first keyframe; the importer's camera,
+/// calibration and per-camera ego pose project them within 3 px of `b2dr project`'s chain on frame.json.
+#[test]
+fn keyframe_projection_matches_the_oracle() {
+    let Some(root) = dataroot() else { return };
+    let shared = shared().unwrap();
+    let log = nuscenes::load_log(&spec(root)).unwrap();
+    let sc = &log.scenario;
+    let mut oracle = KeyFrame::load(&shared.join("keyframe-scene-0061/frame.json")).unwrap();
+    if oracle.z_looks_like_top() {
+        oracle.boxes_z_from_top();
+    }
+    let kf = &log.keyframes[0];
+    assert_eq!(kf.time_us, 0);
+    let frame0 = &sc.rig.frames[0];
+    assert_eq!(frame0.timestamp_us, 0);
+    assert_eq!(frame0.images.len(), 6);
+    // Boxes: nearest annotation centre.
+    let ours: Vec<Box3d> = kf
+        .annotations
+        .iter()
+        .map(|a| Box3d {
+            class: BoxClass::parse(&a.category).unwrap(),
+            center: a.center,
+            size: a.size_lwh,
+            yaw: a.yaw,
+        })
+        .collect();
+    let mut pairs = vec![];
+    let mut worst_match = 0f64;
+    for b in &oracle.boxes {
+        let (i, d) = ours
+            .iter()
+            .enumerate()
+            .map(|(i, o)| (i, o.center.truncate().distance(b.center.truncate())))
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+            .unwrap();
+        assert!(d < 0.15, "oracle box at {:?}: nearest annotation {d} m", b.center);
+        assert_eq!(ours[i].class, b.class);
+        worst_match = worst_match.max(d);
+        pairs.push((b, &ours[i]));
+    }
+    assert_eq!(pairs.len(), 68);
+    let (mut compared, mut worst) = (0, 0f64);
+    for (cam_o, img_o) in &oracle.cameras {
+        let cam = sc.rig.camera(&cam_o.name).unwrap();
+        let img = frame0.image(&cam_o.name).unwrap();
+        // Calibration and pose as stored (the fixture writes frame.json's matrices as quaternions).
+        assert!(cam.intrinsic.abs_diff_eq(cam_o.intrinsic, 1e-9));
+        assert!(cam.cam2ego.abs_diff_eq(cam_o.cam2ego, 1e-6), "{}", cam.name);
+        assert!(img.ego2global.abs_diff_eq(img_o.ego2global, 1e-6));
+        assert_eq!((cam.width, cam.height), (cam_o.width, cam_o.height));
+        let (mine, theirs) = (
+            CameraProjector::new(cam, &img.ego2global, cam.width, cam.height).unwrap(),
+            CameraProjector::new(cam_o, &img_o.ego2global, cam_o.width, cam_o.height).unwrap(),
+        );
+        for (b, o) in &pairs {
+            let pts_o = std::iter::once(b.center).chain(b.corners());
+            let pts = std::iter::once(o.center).chain(o.corners());
+            for (p_o, p) in pts_o.zip(pts) {
+                let (Some((want, d_o)), Some((got, d))) = (theirs.project(p_o), mine.project(p))
+                else {
+                    continue;
+                };
+                if d_o < 1.0 || d < 1.0 || !theirs.in_image(want) {
+                    continue;
+                }
+                let e = want.distance(got);
+                worst = worst.max(e);
+                assert!(e <= 3.0, "{} box at {:?}: {e:.2} px", cam.name, b.center);
+                compared += 1;
+            }
+        }
+    }
+    eprintln!(
+        "oracle: {compared} box centres/corners compared in 6 cameras, largest difference {worst:.2} px; \
+         nearest-centre match within {worst_match:.3} m"
+    );
+    assert!(compared > 200, "{compared}");
+}
+
+fn scenarionet_log() -> Option<Scenario> {
+    Some(scenarionet::load_file(&shared()?.join("scenes/scene-0061.json")).unwrap())
+}
+
+/// Tracks, ego and map against the ScenarioNet log of the same scene at the keyframe steps.
+#[test]
+fn tracks_equal_the_scenarionet_log_at_keyframes() {
+    let Some(root) = dataroot() else { return };
+    let sn = scenarionet_log().unwrap();
+    let sc = nuscenes::load(&spec(root)).unwrap();
+    assert_eq!(sc.name, "scene-0061");
+    assert_eq!(sc.len(), sn.len());
+    assert_eq!(sc.dt, 0.1);
+    let (mut n, mut worst_p, mut worst_h) = (0, 0f64, 0f64);
+    for k in (0..sn.len()).step_by(5) {
+        let (a, b) = (sc.ego[k].rear_axle, sn.ego[k].rear_axle);
+        worst_p = worst_p.max(a.pos().distance(b.pos()));
+        worst_h = worst_h.max(angle_diff(a.heading, b.heading).abs());
+        for t in &sn.tracks {
+            let ours = sc.tracks.iter().find(|x| x.id == t.id);
+            let want = t.states[k];
+            let got = ours.and_then(|x| x.states[k]);
+            assert_eq!(want.is_some(), got.is_some(), "track {} at step {k}", t.id);
+            let (Some(w), Some(g)) = (want, got) else { continue };
+            let o = ours.unwrap();
+            assert_eq!(o.class, t.class, "{}", t.id);
+            assert!((o.length - t.length).abs() < 1e-9 && (o.width - t.width).abs() < 1e-9);
+            worst_p = worst_p.max(w.pose.pos().distance(g.pose.pos()));
+            worst_h = worst_h.max(angle_diff(w.pose.heading, g.pose.heading).abs());
+            n += 1;
+        }
+    }
+    // No track the ScenarioNet log lacks (tracks never valid at a keyframe are not annotations).
+    for t in &sc.tracks {
+        assert!(sn.tracks.iter().any(|x| x.id == t.id), "{}", t.id);
+    }
+    eprintln!(
+        "{n} object states + ego at keyframes: largest difference {:.2e} m, {:.2e} deg",
+        worst_p,
+        worst_h.to_degrees()
+    );
+    assert!(n > 4000, "{n}");
+    assert!(worst_p < 0.01 && worst_h.to_degrees() < 0.1);
+    // Between keyframes: the devkit's interpolation against ScenarioNet's own (printed, not asserted).
+    let mut between = 0f64;
+    for k in 0..sn.len() {
+        for t in &sn.tracks {
+            if let (Some(w), Some(g)) = (
+                t.states[k],
+                sc.tracks
+                    .iter()
+                    .find(|x| x.id == t.id)
+                    .and_then(|x| x.states[k]),
+            ) {
+                between = between.max(w.pose.pos().distance(g.pose.pos()));
+            }
+        }
+    }
+    eprintln!("all steps: largest position difference to ScenarioNet {between:.3} m");
+    // Map: the expansion's lanes are ScenarioNet's lanes, with their links.
+    assert!(sc.map.lanes.len() > 300, "{}", sc.map.lanes.len());
+    for l in &sc.map.lanes {
+        let i = sn.map.lane_index(&l.id).unwrap();
+        let s = &sn.map.lanes[i];
+        assert_eq!(l.kind, s.kind, "{}", l.id);
+        assert!(l.centre.first().distance(s.centre.first()) < 1e-6);
+        assert!(l.centre.last().distance(s.centre.last()) < 1e-6);
+    }
+    let links: usize = sc.map.lanes.iter().map(|l| l.successors.len()).sum();
+    assert!(links > 100, "{links}");
+    assert!(!sc.map.drivable.is_empty());
+    let c = sc.ego_params.center_of(&sc.ego[0].rear_axle);
+    assert!(sc.map.in_drivable_area(c.pos()));
+    assert!(!sc.route.lane_ids.is_empty());
+    // Rig: six cameras, one frame per sample, every image on disk with its own pose.
+    assert_eq!(sc.rig.cameras.len(), 6);
+    assert_eq!(sc.rig.frames.len(), 39);
+    for (j, f) in sc.rig.frames.iter().enumerate() {
+        assert_eq!(f.timestamp_us, j as i64 * 500_000);
+        assert_eq!(f.images.len(), 6);
+        for im in &f.images {
+            assert!(Path::new(&im.path).is_file(), "{}", im.path);
+            assert!((im.timestamp_us - f.timestamp_us).abs() < 50_000);
+        }
+    }
+}
+
+fn b2dr() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_b2dr"))
+}
+
+#[test]
+fn sim_runs_on_a_nuscenes_scene() {
+    let Some(root) = dataroot() else { return };
+    let out = std::env::temp_dir().join(format!("b2dr_nuscenes_sim_{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let scenario = format!("nuscenes:{}:v1.0-mini:scene-0061", root.display());
+    for planner in ["expert", "cv"] {
+        let o = b2dr()
+            .args(["sim", "--scenario", &scenario, "--planner", planner])
+            .args(["--agents", "idm", "--steps", "20", "--bev-every", "0", "--out"])
+            .arg(out.join(planner))
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let dir = out.join(planner).join("scene-0061");
+        let trace = std::fs::read_to_string(dir.join("trace.jsonl")).unwrap();
+        assert_eq!(trace.lines().count(), 21);
+        let m: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(dir.join("metrics.json")).unwrap())
+                .unwrap();
+        assert!(m["failure"].is_null(), "{m}");
+        let score = m["score"].as_f64().unwrap();
+        eprintln!("b2dr sim --planner {planner} on nuScenes scene-0061 (20 steps): score {score:.3}");
+        assert!((0.0..=1.0).contains(&score));
+        if planner == "expert" {
+            assert!(score > 0.5, "expert score {score}");
+        }
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}
+
+/// Copies the tables into `<root>/<version>`, applies `edit` to table `name`, returns the load error.
+fn broken(root: &Path, version: &str, edit: impl FnOnce(&Path)) -> String {
+    let dst = root.join(version);
+    let _ = std::fs::remove_dir_all(&dst);
+    std::fs::create_dir_all(&dst).unwrap();
+    for e in std::fs::read_dir(root.join("v1.0-mini")).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, dst.join(p.file_name().unwrap())).unwrap();
+    }
+    edit(&dst);
+    let s = NuscenesSpec {
+        version: version.into(),
+        ..spec(root)
+    };
+    let e = format!("{:#}", nuscenes::load(&s).expect_err("a broken table must fail"));
+    let _ = std::fs::remove_dir_all(&dst);
+    e
+}
+
+fn edit_row(dir: &Path, table: &str, row: usize, f: impl FnOnce(&mut serde_json::Value)) {
+    let p = dir.join(format!("{table}.json"));
+    let mut v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+    f(&mut v[row]);
+    std::fs::write(&p, serde_json::to_string(&v).unwrap()).unwrap();
+}
+
+#[test]
+fn malformed_tables_give_clear_errors() {
+    let Some(root) = dataroot() else { return };
+    let cases: Vec<(&str, Box<dyn FnOnce(&Path)>, Vec<&str>)> = vec![
+        (
+            "missing table",
+            Box::new(|d: &Path| std::fs::remove_file(d.join("ego_pose.json")).unwrap()),
+            vec!["table `ego_pose`", "ego_pose.json"],
+        ),
+        (
+            "wrong column type",
+            Box::new(|d: &Path| {
+                edit_row(d, "sample_data", 3, |r| r["timestamp"] = "soon".into())
+            }),
+            vec!["table `sample_data`", "row 3", "column `timestamp`", "invalid type"],
+        ),
+        (
+            "wrong array length",
+            Box::new(|d: &Path| {
+                edit_row(d, "sample_annotation", 10, |r| {
+                    r["size"] = serde_json::json!([1.0, 2.0])
+                })
+            }),
+            vec!["table `sample_annotation`", "row 10", "column `size`"],
+        ),
+        (
+            "dangling ego pose",
+            Box::new(|d: &Path| {
+                edit_row(d, "sample_data", 5, |r| {
+                    r["ego_pose_token"] = "0123456789abcdef0123456789abcdef".into()
+                })
+            }),
+            vec!["table `sample_data`", "row 5", "column `ego_pose_token`", "dangling", "`ego_pose`"],
+        ),
+        (
+            "dangling category",
+            Box::new(|d: &Path| {
+                edit_row(d, "instance", 0, |r| r["category_token"] = "nope".into())
+            }),
+            vec!["table `instance`", "row 0", "column `category_token`", "dangling"],
+        ),
+        (
+            "missing column",
+            Box::new(|d: &Path| {
+                edit_row(d, "calibrated_sensor", 0, |r| {
+                    r.as_object_mut().unwrap().remove("rotation");
+                })
+            }),
+            vec!["table `calibrated_sensor`", "row 0", "column `rotation` is missing"],
+        ),
+        (
+            "not a rotation",
+            Box::new(|d: &Path| {
+                edit_row(d, "ego_pose", 2, |r| r["rotation"] = serde_json::json!([0, 0, 0, 0]))
+            }),
+            vec!["table `ego_pose`", "row 2", "column `rotation`", "not a rotation"],
+        ),
+        (
+            "table not an array",
+            Box::new(|d: &Path| std::fs::write(d.join("sample.json"), "{}").unwrap()),
+            vec!["table `sample`", "expected a JSON array"],
+        ),
+        (
+            "invalid JSON",
+            Box::new(|d: &Path| std::fs::write(d.join("log.json"), "[{").unwrap()),
+            vec!["table `log`", "not valid JSON"],
+        ),
+        (
+            "duplicate token",
+            Box::new(|d: &Path| {
+                let p = d.join("sensor.json");
+                let mut v: Vec<serde_json::Value> =
+                    serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+                v.push(v[0].clone());
+                std::fs::write(&p, serde_json::to_string(&v).unwrap()).unwrap();
+            }),
+            vec!["table `sensor`", "duplicate token"],
+        ),
+    ];
+    for (k, (what, edit, want)) in cases.into_iter().enumerate() {
+        let e = broken(root, &format!("v9-bad{k}"), edit);
+        for w in want {
+            assert!(e.contains(w), "{what}: {w:?} not in: {e}");
+        }
+        eprintln!("{what}: {e}");
+    }
+    // Unknown scene: the error lists the scenes.
+    let e = nuscenes::load(&NuscenesSpec {
+        scene: "scene-9999".into(),
+        ..spec(root)
+    })
+    .unwrap_err();
+    let e = format!("{e:#}");
+    assert!(e.contains("scene-9999") && e.contains("scene-0061"), "{e}");
+    // No version folder / no map expansion.
+    let e = format!(
+        "{:#}",
+        nuscenes::load(&NuscenesSpec {
+            version: "v1.0-nope".into(),
+            ..spec(root)
+        })
+        .unwrap_err()
+    );
+    assert!(e.contains("v1.0-nope") && e.contains("not a directory"), "{e}");
+    let bare = std::env::temp_dir().join(format!("b2dr_nuscenes_nomap_{}", std::process::id()));
+    std::fs::create_dir_all(bare.join("v1.0-mini")).unwrap();
+    for e in std::fs::read_dir(root.join("v1.0-mini")).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, bare.join("v1.0-mini").join(p.file_name().unwrap())).unwrap();
+    }
+    let e = format!("{:#}", nuscenes::load(&spec(&bare)).unwrap_err());
+    assert!(
+        e.contains("maps/expansion/singapore-onenorth.json") && e.contains("map expansion"),
+        "{e}"
+    );
+    let _ = std::fs::remove_dir_all(&bare);
+}
+
+/// Import time of scene-0061 (printed; a benchmark, not an assertion on time).
+#[test]
+fn import_speed() {
+    let Some(root) = dataroot() else { return };
+    let mut times = vec![];
+    for _ in 0..3 {
+        let t = Instant::now();
+        let log = nuscenes::load_log(&spec(root)).unwrap();
+        times.push(t.elapsed().as_secs_f64());
+        assert_eq!(log.keyframes.len(), 39);
+    }
+    times.sort_by(f64::total_cmp);
+    eprintln!(
+        "nuScenes import of scene-0061 (39 samples, 4664 annotations, 615 sample_data, map expansion): \
+         median {:.3} s, fastest {:.3} s ({} build)",
+        times[1],
+        times[0],
+        if cfg!(debug_assertions) { "debug" } else { "release" }
+    );
+}
