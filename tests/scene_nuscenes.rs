@@ -9,6 +9,7 @@ use std::time::Instant;
 
 use b2dr::projection::{Box3d, BoxClass, CameraProjector, KeyFrame};
 use b2dr::scene::geometry::angle_diff;
+use b2dr::scene::import::nuscenes::expansion::ArclinePath;
 use b2dr::scene::import::nuscenes::{self, NuscenesSpec};
 use b2dr::scene::import::{resolve, scenarionet, Source};
 use b2dr::scene::Scenario;
@@ -487,4 +488,37 @@ fn import_speed() {
         times[0],
         if cfg!(debug_assertions) { "debug" } else { "release" }
     );
+}
+
+fn path(shape: &str, radius: f64, lengths: [f64; 3]) -> ArclinePath {
+    ArclinePath {
+        start: [1.0, 2.0, 0.0],
+        shape: shape.into(),
+        radius,
+        lengths,
+    }
+}
+
+#[test]
+fn arcline_quarter_circle_and_straight() {
+    let r = 10.0;
+    let q = std::f64::consts::FRAC_PI_2 * r;
+    // A left quarter circle from (1, 2) heading +x ends at (1 + r, 2 + r) heading +y.
+    let p = path("LSL", r, [q, 0.0, 0.0]);
+    let pts = p.discretize(0.5).unwrap();
+    let end = pts.last().unwrap();
+    assert!((end[0] - 11.0).abs() < 1e-9 && (end[1] - 12.0).abs() < 1e-9, "{end:?}");
+    assert!((end[2] - std::f64::consts::FRAC_PI_2).abs() < 1e-9);
+    for w in pts.windows(2) {
+        let d = ((w[1][0] - w[0][0]).powi(2) + (w[1][1] - w[0][1]).powi(2)).sqrt();
+        assert!(d <= 0.5 + 1e-9);
+    }
+    // Right turn, then 5 m straight, then a left turn back: ends heading +x again, 2 r + 5 m ahead.
+    let p = path("RSL", r, [q, 5.0, q]);
+    let end = *p.discretize(1.0).unwrap().last().unwrap();
+    assert!((end[0] - (1.0 + 2.0 * r)).abs() < 1e-9, "{end:?}");
+    assert!((end[1] - (2.0 - 2.0 * r - 5.0)).abs() < 1e-9, "{end:?}");
+    assert!(end[2].abs() < 1e-9);
+    assert!(path("LXL", r, [1.0, 1.0, 1.0]).signs().is_err());
+    assert!(path("LR", r, [1.0, 1.0, 1.0]).signs().is_err());
 }

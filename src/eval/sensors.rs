@@ -11,7 +11,6 @@ use std::sync::Arc;
 use anyhow::{bail, ensure, Context as _, Result};
 use glam::{DMat4, DVec3};
 
-use crate::projection::retrieval::retrieve;
 use crate::projection::scene::{box_class, map_layer};
 use crate::projection::{Box3d, MapLayer, ProjectionConfig};
 use crate::render::frame::{FrameInputs, FrameRenderer, FrameShape, Prev, RefInputs};
@@ -248,7 +247,7 @@ pub fn references(
     let sc = store.world().scenario;
     let (mut ref_imgs, mut geoms) = (vec![], vec![]);
     for c in cameras {
-        let r = retrieve(&sc.rig.frames, &c.name, e2g);
+        let r = store.frame_index().retrieve(&sc.rig.frames, &c.name, e2g);
         let pick = |x: &Option<crate::projection::retrieval::Reference>| {
             x.as_ref().map(|r| &sc.rig.frames[r.frame].images[r.image])
         };

@@ -8,7 +8,7 @@
 //! - [`layout`]: per-class binary masks of one camera at render resolution (`(C, H, W)`, C = 10 box + 5 map
 //!   classes) and box wireframes for overlays.
 //! - [`retrieval`]: nearest recorded image ahead / behind along the ego heading, and hierarchical sampling of
-//!   training references.
+//!   training references; [`frame_index`]: the same nearest-ahead / nearest-behind queries on a 2-d tree.
 //! - [`pe`]: PETR frustum position encodings `(D*3, h, w)` in the current ego frame.
 //! - [`scene`]: a scenario's boxes at a log step (gravity centres) and its map as a [`MapLayer`].
 //! - [`keyframe`]: reader of the shared keyframe JSON (used by `b2dr project` and the tests).
@@ -16,6 +16,7 @@
 //! Conventions: ego x forward, y left, z up; camera x right, y down, z forward; image coordinates put the centre
 //! of pixel index `i` at `u = i`; resizing maps `u' = (u + 0.5) s - 0.5` (PyTorch `align_corners=False`).
 //! Each camera image is projected with its own ego pose at exposure time. See `docs/projection.md`.
+pub mod frame_index;
 pub mod geometry;
 pub mod keyframe;
 pub mod layout;
@@ -24,6 +25,7 @@ pub mod raster;
 pub mod retrieval;
 pub mod scene;
 
+pub use frame_index::FrameIndex;
 pub use geometry::{
     channel_name, Box3d, BoxClass, CameraProjector, MapClass, MapElement, MapGeometry, MapLayer,
     ProjectionConfig, NUM_MASK_CHANNELS,

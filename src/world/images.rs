@@ -11,7 +11,7 @@ use crate::scene::Scenario;
 use anyhow::{bail, ensure, Context, Result};
 use std::collections::{HashMap, VecDeque};
 use std::path::PathBuf;
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 
 /// An RGB image `(H, W, 3)` interleaved, u8.
 #[derive(Clone, Debug, PartialEq)]
@@ -31,6 +31,7 @@ pub struct ImageStore<'a> {
     base_dir: Option<PathBuf>,
     capacity: usize,
     cache: Mutex<Cache>,
+    index: OnceLock<crate::projection::FrameIndex>,
 }
 
 impl<'a> ImageStore<'a> {
@@ -45,7 +46,14 @@ impl<'a> ImageStore<'a> {
             base_dir,
             capacity: capacity.max(1),
             cache: Mutex::new((HashMap::new(), VecDeque::new())),
+            index: OnceLock::new(),
         }
+    }
+
+    /// The retrieval index over the scenario's recorded frames (built on first use).
+    pub fn frame_index(&self) -> &crate::projection::FrameIndex {
+        self.index
+            .get_or_init(|| crate::projection::FrameIndex::new(&self.world.scenario.rig.frames))
     }
 
     pub fn world(&self) -> &World<'a> {
