@@ -522,3 +522,56 @@ fn arcline_quarter_circle_and_straight() {
     assert!(path("LXL", r, [1.0, 1.0, 1.0]).signs().is_err());
     assert!(path("LR", r, [1.0, 1.0, 1.0]).signs().is_err());
 }
+
+/// `b2dr run --renderer log-replay` on the nuScenes scene: the planner sees the recorded JPEGs (the image nearest
+/// in time, read from DATAROOT), and reference retrieval over the real rig equals the linear scan.
+#[test]
+fn log_replay_and_retrieval_use_the_recorded_images() {
+    use b2dr::eval::run::{run, RendererMode, RunConfig};
+    use b2dr::projection::{retrieve, FrameIndex};
+    let Some(root) = dataroot() else { return };
+    let shared = shared().unwrap();
+    let sc = nuscenes::load(&spec(root)).unwrap();
+    let out = std::env::temp_dir().join(format!("b2dr_nuscenes_lr_{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let cfg = RunConfig {
+        scenario: format!("nuscenes:{}:v1.0-mini:scene-0061", root.display()),
+        renderer: RendererMode::LogReplay,
+        model: None,
+        planner: "expert".into(),
+        agents: b2dr::sim::AgentMode::Idm,
+        controller: "lqr".into(),
+        steps: 6,
+        planner_timeout_s: 30.0,
+        cameras: vec!["CAM_FRONT".into(), "CAM_BACK".into()],
+        size: (56, 104),
+        seed: 0,
+        dtype: "f32".into(),
+        gif: false,
+        shard: None,
+    };
+    run(None, &cfg, &out, false).unwrap();
+    for cam in ["CAM_FRONT", "CAM_BACK"] {
+        // Step 0 shows the first keyframe's real image, resized as the image store does.
+        let got = image::open(out.join(format!("scene-0061/frames/0000_{cam}.png")))
+            .unwrap()
+            .to_rgb8();
+        let jpg = image::open(shared.join(format!("keyframe-scene-0061/{cam}.jpg")))
+            .unwrap()
+            .to_rgb8();
+        let want = image::imageops::resize(&jpg, 104, 56, image::imageops::FilterType::Triangle);
+        assert_eq!(got.into_raw(), want.into_raw(), "{cam}");
+    }
+    let _ = std::fs::remove_dir_all(&out);
+    let idx = FrameIndex::new(&sc.rig.frames);
+    let mut found = 0;
+    for (k, e) in sc.ego.iter().enumerate() {
+        let e2g = b2dr::scene::import::ego2global(&e.rear_axle);
+        for c in &sc.rig.cameras {
+            let r = idx.retrieve(&sc.rig.frames, &c.name, &e2g);
+            assert_eq!(r, retrieve(&sc.rig.frames, &c.name, &e2g), "step {k} {}", c.name);
+            found += usize::from(r.front.is_some()) + usize::from(r.rear.is_some());
+        }
+    }
+    assert!(found > sc.len() * 6, "{found}");
+}
