@@ -43,36 +43,40 @@ fn python() -> String {
     }
 }
 
+/// Writes a fixture DATAROOT (`extra`: more arguments of the writer); None (with the reason printed) when the
+/// shared data or Python is absent.
+fn write_fixture(name: &str, extra: &[&str]) -> Option<PathBuf> {
+    let shared = shared()?;
+    let out = std::env::temp_dir().join(format!("b2dr_nuscenes_{name}_{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let o = Command::new(python())
+        .current_dir(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("python"))
+        .args(["-m", "b2dr_ref.nuscenes_fixture", "--shared"])
+        .arg(&shared)
+        .arg("--out")
+        .arg(&out)
+        .args(extra)
+        .output();
+    match o {
+        Ok(o) if o.status.success() => Some(out),
+        Ok(o) => {
+            eprintln!(
+                "skipping: the fixture writer failed: {}",
+                String::from_utf8_lossy(&o.stderr)
+            );
+            None
+        }
+        Err(e) => {
+            eprintln!("skipping: no Python to write the fixture ({e})");
+            None
+        }
+    }
+}
+
 /// The fixture DATAROOT (written once per test process).
 fn dataroot() -> Option<&'static Path> {
     static ROOT: OnceLock<Option<PathBuf>> = OnceLock::new();
-    ROOT.get_or_init(|| {
-        let shared = shared()?;
-        let out = std::env::temp_dir().join(format!("b2dr_nuscenes_{}", std::process::id()));
-        let _ = std::fs::remove_dir_all(&out);
-        let o = Command::new(python())
-            .current_dir(PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("python"))
-            .args(["-m", "b2dr_ref.nuscenes_fixture", "--shared"])
-            .arg(&shared)
-            .arg("--out")
-            .arg(&out)
-            .output();
-        match o {
-            Ok(o) if o.status.success() => Some(out),
-            Ok(o) => {
-                eprintln!(
-                    "skipping: the fixture writer failed: {}",
-                    String::from_utf8_lossy(&o.stderr)
-                );
-                None
-            }
-            Err(e) => {
-                eprintln!("skipping: no Python to write the fixture ({e})");
-                None
-            }
-        }
-    })
-    .as_deref()
+    ROOT.get_or_init(|| write_fixture("main", &[])).as_deref()
 }
 
 fn spec(root: &Path) -> NuscenesSpec {
@@ -574,4 +578,37 @@ fn log_replay_and_retrieval_use_the_recorded_images() {
         }
     }
     assert!(found > sc.len() * 6, "{found}");
+}
+
+/// Non-key camera sample_data (12 Hz sweeps) become frames of one image per camera between the keyframe frames;
+/// the keyframe frames stay on the log steps, and log replay can pick a sweep image.
+#[test]
+fn camera_sweeps_become_frames() {
+    let Some(root) = write_fixture("sweeps", &["--camera-sweeps"]) else {
+        return;
+    };
+    let sc = nuscenes::load(&spec(&root)).unwrap();
+    assert_eq!(sc.rig.frames.len(), 39 + 38 * 5);
+    let mut keyframes = 0;
+    for w in sc.rig.frames.windows(2) {
+        assert!(w[0].timestamp_us < w[1].timestamp_us);
+    }
+    for f in &sc.rig.frames {
+        assert_eq!(f.images.len(), 6);
+        let ts: Vec<i64> = f.images.iter().map(|i| i.timestamp_us).collect();
+        assert!(ts.iter().max().unwrap() - ts.iter().min().unwrap() < 60_000);
+        let mut cams: Vec<&str> = f.images.iter().map(|i| i.camera.as_str()).collect();
+        cams.sort_unstable();
+        cams.dedup();
+        assert_eq!(cams.len(), 6);
+        if f.timestamp_us % 500_000 == 0 {
+            keyframes += 1;
+        }
+    }
+    assert_eq!(keyframes, 39);
+    // 0.25 s: the nearest CAM_FRONT image is a sweep (keyframes fire at about -35 ms and 465 ms).
+    let img = b2dr::eval::sensors::nearest_recorded(&sc, "CAM_FRONT", 0.25).unwrap();
+    assert!(img.path.contains("/sweeps/CAM_FRONT/"), "{}", img.path);
+    assert!((img.timestamp_us - 250_000).abs() < 42_000);
+    let _ = std::fs::remove_dir_all(&root);
 }

@@ -23,6 +23,8 @@ road_divider records, `arcline_path_3`, `connectivity`). Where the values come f
   keyframes keep each camera's real time offset from the lidar and take the interpolated ego track;
 - calibrated_sensor: intrinsics and cam2ego of frame.json (translation + quaternion w, x, y, z); LIDAR_TOP gets
   a nominal mounting (it is not used by b2dr);
+- camera sweeps (`camera_sweeps=True` only): non-key camera sample_data at 12 Hz between the keyframes
+  (`sweeps/CAM_*/...`, each belonging to the sample that follows it, as in nuScenes), interpolated ego poses;
 - images: the six real JPEGs of frame.json are copied to the first sample's files; later samples' files are
   symbolic links to them (same pixels: only the first keyframe's images are real) unless `images="copy"`;
 - map: the scene's ScenarioNet lanes (with polygon) become `lane`, those without become `lane_connector` (polygon:
@@ -299,7 +301,7 @@ def _edge(p, q, flip=False, half=1.75):
     return [b, a] if flip else [a, b]
 
 
-def write_fixture(shared, out, scene_name="scene-0061", version="v1.0-mini", images="link"):
+def write_fixture(shared, out, scene_name="scene-0061", version="v1.0-mini", images="link", camera_sweeps=False):
     """Writes the fixture for `scene_name` under `out`; returns a summary (counts, tokens, t0)."""
     shared, out = Path(shared), Path(out)
     scene = json.loads((shared / "scenes" / f"{scene_name}.json").read_text())
@@ -383,6 +385,13 @@ def write_fixture(shared, out, scene_name="scene-0061", version="v1.0-mini", ima
             fn = f"samples/{ch}/{logfile}__{ch}__{ts}.jpg"
             chains.setdefault(ch, []).append(add_sd(ch, ts, j, True, pose, fn, "jpg", (c["width"], c["height"])))
             image_files.append((j, ch, fn))
+            if camera_sweeps and j + 1 < n_samples:
+                for m in range(1, 6):
+                    tsw = ts + m * 83333
+                    fn = f"sweeps/{ch}/{logfile}__{ch}__{tsw}.jpg"
+                    sd = add_sd(ch, tsw, j + 1, False, ego.at(tsw), fn, "jpg", (c["width"], c["height"]))
+                    chains[ch].append(sd)
+                    image_files.append((j + 1, ch, fn))
     by_tok = {r["token"]: r for r in tables["sample_data"]}
     for toks in chains.values():
         for a, b in zip(toks, toks[1:]):
@@ -454,8 +463,9 @@ def main(argv=None):
     ap.add_argument("--scene", default="scene-0061")
     ap.add_argument("--version", default="v1.0-mini")
     ap.add_argument("--images", choices=["link", "copy"], default="link")
+    ap.add_argument("--camera-sweeps", action="store_true", help="also write 12 Hz non-key camera sample_data")
     a = ap.parse_args(argv)
-    print(json.dumps(write_fixture(a.shared, a.out, a.scene, a.version, a.images)))
+    print(json.dumps(write_fixture(a.shared, a.out, a.scene, a.version, a.images, a.camera_sweeps)))
 
 
 if __name__ == "__main__":

@@ -125,3 +125,17 @@ def test_map_expansion(fixture):
     da = m["drivable_area"][0]["polygon_tokens"]
     assert da and all(p in polys for p in da)
     assert m["lane_divider"] and m["road_divider"]
+
+
+def test_camera_sweeps(tmp_path):
+    if not (SHARED / "scenes" / "scene-0061.json").exists():
+        pytest.skip(f"shared nuScenes data absent ({SHARED})")
+    nf.write_fixture(SHARED, tmp_path, camera_sweeps=True)
+    t = {n: json.loads((tmp_path / "v1.0-mini" / f"{n}.json").read_text()) for n in ("sample", "sample_data")}
+    ts = {r["token"]: r["timestamp"] for r in t["sample"]}
+    sweeps = [sd for sd in t["sample_data"] if not sd["is_key_frame"] and sd["fileformat"] == "jpg"]
+    assert len(sweeps) == 38 * 5 * 6
+    for sd in sweeps:
+        # A sweep belongs to the sample that follows it, within one sample period.
+        assert 0 < ts[sd["sample_token"]] - sd["timestamp"] < 500000
+        assert (tmp_path / sd["filename"]).is_file()
