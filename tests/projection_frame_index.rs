@@ -102,5 +102,8 @@ fn a_driven_path_visits_few_nodes() {
     }
     // log2(20000 / 8) ~ 11 levels; a linear scan touches 20,000 images.
     assert!(worst < 400, "visited {worst} nodes");
-    eprintln!("frame index: at most {worst} of {} nodes visited per query (20,000 images)", 2 * n / LEAF);
+    eprintln!(
+        "frame index: at most {worst} of {} nodes visited per query (20,000 images)",
+        2 * n / LEAF
+    );
 }

@@ -120,9 +120,17 @@ fn spec_syntax() {
             .len(),
         2
     );
-    for bad in ["nuscenes:", "nuscenes:/d", "nuscenes:/d:", "nuscenes::scene-1"] {
+    for bad in [
+        "nuscenes:",
+        "nuscenes:/d",
+        "nuscenes:/d:",
+        "nuscenes::scene-1",
+    ] {
         let e = format!("{:#}", resolve(bad).unwrap_err());
-        assert!(e.contains("nuscenes:DATAROOT[:VERSION]:SCENE"), "{bad}: {e}");
+        assert!(
+            e.contains("nuscenes:DATAROOT[:VERSION]:SCENE"),
+            "{bad}: {e}"
+        );
     }
 }
 
@@ -163,7 +171,11 @@ fn keyframe_projection_matches_the_oracle() {
             .map(|(i, o)| (i, o.center.truncate().distance(b.center.truncate())))
             .min_by(|a, b| a.1.total_cmp(&b.1))
             .unwrap();
-        assert!(d < 0.15, "oracle box at {:?}: nearest annotation {d} m", b.center);
+        assert!(
+            d < 0.15,
+            "oracle box at {:?}: nearest annotation {d} m",
+            b.center
+        );
         assert_eq!(ours[i].class, b.class);
         worst_match = worst_match.max(d);
         pairs.push((b, &ours[i]));
@@ -230,7 +242,9 @@ fn tracks_equal_the_scenarionet_log_at_keyframes() {
             let want = t.states[k];
             let got = ours.and_then(|x| x.states[k]);
             assert_eq!(want.is_some(), got.is_some(), "track {} at step {k}", t.id);
-            let (Some(w), Some(g)) = (want, got) else { continue };
+            let (Some(w), Some(g)) = (want, got) else {
+                continue;
+            };
             let o = ours.unwrap();
             assert_eq!(o.class, t.class, "{}", t.id);
             assert!((o.length - t.length).abs() < 1e-9 && (o.width - t.width).abs() < 1e-9);
@@ -307,7 +321,15 @@ fn sim_runs_on_a_nuscenes_scene() {
     for planner in ["expert", "cv"] {
         let o = b2dr()
             .args(["sim", "--scenario", &scenario, "--planner", planner])
-            .args(["--agents", "idm", "--steps", "20", "--bev-every", "0", "--out"])
+            .args([
+                "--agents",
+                "idm",
+                "--steps",
+                "20",
+                "--bev-every",
+                "0",
+                "--out",
+            ])
             .arg(out.join(planner))
             .output()
             .unwrap();
@@ -320,7 +342,9 @@ fn sim_runs_on_a_nuscenes_scene() {
                 .unwrap();
         assert!(m["failure"].is_null(), "{m}");
         let score = m["score"].as_f64().unwrap();
-        eprintln!("b2dr sim --planner {planner} on nuScenes scene-0061 (20 steps): score {score:.3}");
+        eprintln!(
+            "b2dr sim --planner {planner} on nuScenes scene-0061 (20 steps): score {score:.3}"
+        );
         assert!((0.0..=1.0).contains(&score));
         if planner == "expert" {
             assert!(score > 0.5, "expert score {score}");
@@ -343,14 +367,18 @@ fn broken(root: &Path, version: &str, edit: impl FnOnce(&Path)) -> String {
         version: version.into(),
         ..spec(root)
     };
-    let e = format!("{:#}", nuscenes::load(&s).expect_err("a broken table must fail"));
+    let e = format!(
+        "{:#}",
+        nuscenes::load(&s).expect_err("a broken table must fail")
+    );
     let _ = std::fs::remove_dir_all(&dst);
     e
 }
 
 fn edit_row(dir: &Path, table: &str, row: usize, f: impl FnOnce(&mut serde_json::Value)) {
     let p = dir.join(format!("{table}.json"));
-    let mut v: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+    let mut v: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
     f(&mut v[row]);
     std::fs::write(&p, serde_json::to_string(&v).unwrap()).unwrap();
 }
@@ -366,10 +394,13 @@ fn malformed_tables_give_clear_errors() {
         ),
         (
             "wrong column type",
-            Box::new(|d: &Path| {
-                edit_row(d, "sample_data", 3, |r| r["timestamp"] = "soon".into())
-            }),
-            vec!["table `sample_data`", "row 3", "column `timestamp`", "invalid type"],
+            Box::new(|d: &Path| edit_row(d, "sample_data", 3, |r| r["timestamp"] = "soon".into())),
+            vec![
+                "table `sample_data`",
+                "row 3",
+                "column `timestamp`",
+                "invalid type",
+            ],
         ),
         (
             "wrong array length",
@@ -387,14 +418,25 @@ fn malformed_tables_give_clear_errors() {
                     r["ego_pose_token"] = "0123456789abcdef0123456789abcdef".into()
                 })
             }),
-            vec!["table `sample_data`", "row 5", "column `ego_pose_token`", "dangling", "`ego_pose`"],
+            vec![
+                "table `sample_data`",
+                "row 5",
+                "column `ego_pose_token`",
+                "dangling",
+                "`ego_pose`",
+            ],
         ),
         (
             "dangling category",
             Box::new(|d: &Path| {
                 edit_row(d, "instance", 0, |r| r["category_token"] = "nope".into())
             }),
-            vec!["table `instance`", "row 0", "column `category_token`", "dangling"],
+            vec![
+                "table `instance`",
+                "row 0",
+                "column `category_token`",
+                "dangling",
+            ],
         ),
         (
             "missing column",
@@ -403,14 +445,25 @@ fn malformed_tables_give_clear_errors() {
                     r.as_object_mut().unwrap().remove("rotation");
                 })
             }),
-            vec!["table `calibrated_sensor`", "row 0", "column `rotation` is missing"],
+            vec![
+                "table `calibrated_sensor`",
+                "row 0",
+                "column `rotation` is missing",
+            ],
         ),
         (
             "not a rotation",
             Box::new(|d: &Path| {
-                edit_row(d, "ego_pose", 2, |r| r["rotation"] = serde_json::json!([0, 0, 0, 0]))
+                edit_row(d, "ego_pose", 2, |r| {
+                    r["rotation"] = serde_json::json!([0, 0, 0, 0])
+                })
             }),
-            vec!["table `ego_pose`", "row 2", "column `rotation`", "not a rotation"],
+            vec![
+                "table `ego_pose`",
+                "row 2",
+                "column `rotation`",
+                "not a rotation",
+            ],
         ),
         (
             "table not an array",
@@ -458,7 +511,10 @@ fn malformed_tables_give_clear_errors() {
         })
         .unwrap_err()
     );
-    assert!(e.contains("v1.0-nope") && e.contains("not a directory"), "{e}");
+    assert!(
+        e.contains("v1.0-nope") && e.contains("not a directory"),
+        "{e}"
+    );
     let bare = std::env::temp_dir().join(format!("b2dr_nuscenes_nomap_{}", std::process::id()));
     std::fs::create_dir_all(bare.join("v1.0-mini")).unwrap();
     for e in std::fs::read_dir(root.join("v1.0-mini")).unwrap() {
@@ -511,7 +567,10 @@ fn arcline_quarter_circle_and_straight() {
     let p = path("LSL", r, [q, 0.0, 0.0]);
     let pts = p.discretize(0.5).unwrap();
     let end = pts.last().unwrap();
-    assert!((end[0] - 11.0).abs() < 1e-9 && (end[1] - 12.0).abs() < 1e-9, "{end:?}");
+    assert!(
+        (end[0] - 11.0).abs() < 1e-9 && (end[1] - 12.0).abs() < 1e-9,
+        "{end:?}"
+    );
     assert!((end[2] - std::f64::consts::FRAC_PI_2).abs() < 1e-9);
     for w in pts.windows(2) {
         let d = ((w[1][0] - w[0][0]).powi(2) + (w[1][1] - w[0][1]).powi(2)).sqrt();
@@ -573,7 +632,12 @@ fn log_replay_and_retrieval_use_the_recorded_images() {
         let e2g = b2dr::scene::import::ego2global(&e.rear_axle);
         for c in &sc.rig.cameras {
             let r = idx.retrieve(&sc.rig.frames, &c.name, &e2g);
-            assert_eq!(r, retrieve(&sc.rig.frames, &c.name, &e2g), "step {k} {}", c.name);
+            assert_eq!(
+                r,
+                retrieve(&sc.rig.frames, &c.name, &e2g),
+                "step {k} {}",
+                c.name
+            );
             found += usize::from(r.front.is_some()) + usize::from(r.rear.is_some());
         }
     }

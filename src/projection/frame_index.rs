@@ -76,9 +76,8 @@ impl Tree {
         if hi - lo > LEAF {
             let axis = usize::from(max.y - min.y > max.x - min.x);
             let mid = (lo + hi) / 2;
-            items[lo..hi].select_nth_unstable_by(mid - lo, |a, b| {
-                a.pos[axis].total_cmp(&b.pos[axis])
-            });
+            items[lo..hi]
+                .select_nth_unstable_by(mid - lo, |a, b| a.pos[axis].total_cmp(&b.pos[axis]));
             let l = self.split(items, lo, mid);
             let r = self.split(items, mid, hi);
             self.nodes[id].kids = Some((l, r));

@@ -43,7 +43,11 @@ impl ArclinePath {
                 (_, b'L') => 1.0,
                 (_, b'R') => -1.0,
                 (1, b'S') => 0.0,
-                _ => bail!("arcline shape {:?}: unknown piece {:?}", self.shape, *c as char),
+                _ => bail!(
+                    "arcline shape {:?}: unknown piece {:?}",
+                    self.shape,
+                    *c as char
+                ),
             };
         }
         Ok(out)
@@ -134,7 +138,10 @@ impl MapFile {
             .iter()
             .map(|t| {
                 self.nodes.get(t).copied().ok_or_else(|| {
-                    anyhow!("{}: {what}: no row of layer `node` has token {t:?} (dangling token)", r.at())
+                    anyhow!(
+                        "{}: {what}: no row of layer `node` has token {t:?} (dangling token)",
+                        r.at()
+                    )
                 })
             })
             .collect()
@@ -181,14 +188,16 @@ pub fn load(dataroot: &Path, location: &str, region: &Aabb) -> Result<Map> {
     let text = std::fs::read_to_string(&path).with_context(|| {
         format!("nuScenes map expansion of {location:?}: reading {file} (the map expansion pack is needed for lanes)")
     })?;
-    let v: Value =
-        serde_json::from_str(&text).with_context(|| format!("map expansion {file}: not valid JSON"))?;
+    let v: Value = serde_json::from_str(&text)
+        .with_context(|| format!("map expansion {file}: not valid JSON"))?;
     let Value::Object(mut json) = v else {
         bail!("map expansion {file}: expected a JSON object of layers");
     };
     if let Some(ver) = json.get("version").and_then(Value::as_str) {
         if ver < "1.3" {
-            bail!("map expansion {file}: version {ver} is older than 1.3 (the devkit refuses it too)");
+            bail!(
+                "map expansion {file}: version {ver} is older than 1.3 (the devkit refuses it too)"
+            );
         }
     }
     let node_v = json
@@ -225,7 +234,10 @@ pub fn load(dataroot: &Path, location: &str, region: &Aabb) -> Result<Map> {
     };
 
     let mut specs: Vec<LaneSpec> = Vec::new();
-    for (layer, kind) in [("lane", LaneKind::Lane), ("lane_connector", LaneKind::Connector)] {
+    for (layer, kind) in [
+        ("lane", LaneKind::Lane),
+        ("lane_connector", LaneKind::Connector),
+    ] {
         let t = mf.layer(layer)?;
         for r in t.iter() {
             let r = r?;

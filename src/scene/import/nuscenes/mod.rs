@@ -187,7 +187,10 @@ pub fn load_log(spec: &NuscenesSpec) -> Result<NuscenesLog> {
         })?;
     let name = scene.str("name")?.to_string();
     let scene_token = scene.str("token")?.to_string();
-    let location = scene.follow("log_token", &t.log)?.str("location")?.to_string();
+    let location = scene
+        .follow("log_token", &t.log)?
+        .str("location")?
+        .to_string();
     let ctx = || format!("nuScenes scene {name} ({})", dir.display());
 
     // Samples, first to last along `next`.
@@ -198,7 +201,10 @@ pub fn load_log(spec: &NuscenesSpec) -> Result<NuscenesLog> {
             break;
         }
         if samples.len() > t.sample.len() {
-            bail!("{}: the `next` chain of the scene's samples loops", last.at());
+            bail!(
+                "{}: the `next` chain of the scene's samples loops",
+                last.at()
+            );
         }
         samples.push(last.follow("next", &t.sample)?);
     }
@@ -267,7 +273,9 @@ pub fn load_log(spec: &NuscenesSpec) -> Result<NuscenesLog> {
     let span = (sample_ts[sample_ts.len() - 1] - t0) as f64 * 1e-6;
     let n_steps = ((span / DT).round() as usize + 1).max(2);
     let step_t = |k: usize| t0 + (k as f64 * DT * 1e6).round() as i64;
-    let ego_pose: Vec<Pose2> = (0..n_steps).map(|k| interp_pose(&poses, step_t(k))).collect();
+    let ego_pose: Vec<Pose2> = (0..n_steps)
+        .map(|k| interp_pose(&poses, step_t(k)))
+        .collect();
     let mut ego: Vec<EgoLogState> = (0..n_steps)
         .map(|k| {
             let (a, b) = (k.saturating_sub(1), (k + 1).min(n_steps - 1));
@@ -396,7 +404,9 @@ fn box_velocities(
     sample_ts: &[i64],
 ) -> Result<Vec<Vec<DVec2>>> {
     let time_of = |r: &Row| -> Result<Option<i64>> {
-        Ok(sample_idx.get(r.str("sample_token")?).map(|&j| sample_ts[j]))
+        Ok(sample_idx
+            .get(r.str("sample_token")?)
+            .map(|&j| sample_ts[j]))
     };
     let mut out = Vec::with_capacity(anns.len());
     for (j, rows) in anns.iter().enumerate() {
@@ -416,9 +426,17 @@ fn box_velocities(
             }
             let ends = |x: Option<Row>| -> Result<Option<(i64, DVec2)>> {
                 match x {
-                    None => Ok(Some((sample_ts[j], DVec2::from_slice(&r.vec::<3>("translation")?)))),
+                    None => Ok(Some((
+                        sample_ts[j],
+                        DVec2::from_slice(&r.vec::<3>("translation")?),
+                    ))),
                     Some(x) => Ok(time_of(&x)?
-                        .map(|tt| Ok::<_, anyhow::Error>((tt, DVec2::from_slice(&x.vec::<3>("translation")?))))
+                        .map(|tt| {
+                            Ok::<_, anyhow::Error>((
+                                tt,
+                                DVec2::from_slice(&x.vec::<3>("translation")?),
+                            ))
+                        })
                         .transpose()?),
                 }
             };
@@ -567,7 +585,11 @@ fn camera_rig(
             .position(|c| *c == n)
             .unwrap_or(usize::MAX)
     };
-    cameras.sort_by(|a, b| order(&a.name).cmp(&order(&b.name)).then(a.name.cmp(&b.name)));
+    cameras.sort_by(|a, b| {
+        order(&a.name)
+            .cmp(&order(&b.name))
+            .then(a.name.cmp(&b.name))
+    });
     let image = |s: &Sd| CameraImage {
         camera: s.channel.clone(),
         path: dataroot.join(&s.filename).display().to_string(),
@@ -575,7 +597,11 @@ fn camera_rig(
         ego2global: s.e2g,
     };
     let sort_images = |v: &mut Vec<CameraImage>| {
-        v.sort_by(|a, b| order(&a.camera).cmp(&order(&b.camera)).then(a.camera.cmp(&b.camera)))
+        v.sort_by(|a, b| {
+            order(&a.camera)
+                .cmp(&order(&b.camera))
+                .then(a.camera.cmp(&b.camera))
+        })
     };
     let mut frames = Vec::new();
     for (j, &ts) in sample_ts.iter().enumerate() {

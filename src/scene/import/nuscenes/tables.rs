@@ -44,7 +44,10 @@ impl Table {
         let text = std::fs::read_to_string(&path)
             .with_context(|| format!("nuScenes table `{name}`: reading {}", path.display()))?;
         let v: Value = serde_json::from_str(&text).with_context(|| {
-            format!("nuScenes table `{name}` ({}): not valid JSON", path.display())
+            format!(
+                "nuScenes table `{name}` ({}): not valid JSON",
+                path.display()
+            )
         })?;
         Table::from_value(name, &path.display().to_string(), v)
     }
