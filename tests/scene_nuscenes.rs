@@ -383,10 +383,13 @@ fn edit_row(dir: &Path, table: &str, row: usize, f: impl FnOnce(&mut serde_json:
     std::fs::write(&p, serde_json::to_string(&v).unwrap()).unwrap();
 }
 
+/// A change made to a copy of the tables.
+type Edit = Box<dyn FnOnce(&Path)>;
+
 #[test]
 fn malformed_tables_give_clear_errors() {
     let Some(root) = dataroot() else { return };
-    let cases: Vec<(&str, Box<dyn FnOnce(&Path)>, Vec<&str>)> = vec![
+    let cases: Vec<(&str, Edit, Vec<&str>)> = vec![
         (
             "missing table",
             Box::new(|d: &Path| std::fs::remove_file(d.join("ego_pose.json")).unwrap()),
