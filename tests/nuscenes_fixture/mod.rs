@@ -40,6 +40,7 @@ pub fn python() -> String {
 /// shared data or Python is absent.
 pub fn write_fixture(name: &str, extra: &[&str]) -> Option<PathBuf> {
     let shared = shared()?;
+    remove_stale_fixtures();
     let out = std::env::temp_dir().join(format!("b2dr_nuscenes_{name}_{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
     let o = Command::new(python())
@@ -62,6 +63,30 @@ pub fn write_fixture(name: &str, extra: &[&str]) -> Option<PathBuf> {
         Err(e) => {
             eprintln!("skipping: no Python to write the fixture ({e})");
             None
+        }
+    }
+}
+
+/// Fixtures of earlier test processes that have ended (`b2dr_nuscenes_<name>_<pid>` whose /proc/<pid> is gone;
+/// nothing is removed where /proc does not exist): the fixture outlives its process, since tests share it.
+fn remove_stale_fixtures() {
+    if !Path::new("/proc/self").exists() {
+        return;
+    }
+    let Ok(entries) = std::fs::read_dir(std::env::temp_dir()) else {
+        return;
+    };
+    for e in entries.flatten() {
+        let name = e.file_name().to_string_lossy().into_owned();
+        let Some(pid) = name
+            .strip_prefix("b2dr_nuscenes_")
+            .and_then(|r| r.rsplit('_').next())
+            .and_then(|p| p.parse::<u32>().ok())
+        else {
+            continue;
+        };
+        if pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists() {
+            let _ = std::fs::remove_dir_all(e.path());
         }
     }
 }
