@@ -297,3 +297,21 @@ fn random_weights_are_deterministic_and_seed_dependent() {
     assert_eq!(Weights::load(&p, &exp).unwrap().tensors, a.tensors);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A safetensors header whose shape product overflows usize (issue #18) is an error naming the tensor, not an
+/// arithmetic overflow.
+#[test]
+fn overflowing_shape_products_are_errors() {
+    let exp: Vec<Spec> = vec![("conv.weight".into(), vec![2])];
+    for shape in [
+        vec![1usize << 40, 1 << 40],
+        vec![usize::MAX, 2],
+        vec![1 << 62],
+    ] {
+        let e = err_of(&one_tensor("conv.weight", "F32", &shape, &[0u8; 8]), &exp);
+        assert!(
+            e.contains("conv.weight") && e.contains("needs"),
+            "{shape:?}: {e}"
+        );
+    }
+}
