@@ -1,7 +1,10 @@
 //! Planners and the closed loop: determinism (bit-identical traces), external planner failures (crash,
 //! timeout, NaN, empty and short trajectories) end the scenario with a reason, the IDM ego planner drives.
+use b2dr::scene::geometry::Pose2;
 use b2dr::sim::external::ExternalPlanner;
-use b2dr::sim::{run, AgentMode, ExpertPlanner, IdmPlanner, SimConfig};
+use b2dr::sim::planner::trajectory_from_ego_frame;
+use b2dr::sim::trajectory::Trajectory;
+use b2dr::sim::{run, AgentMode, ExpertPlanner, IdmPlanner, Planner, PlannerInput, SimConfig};
 use b2dr::world::town as synthetic;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -123,4 +126,41 @@ fn idm_ego_planner_makes_progress_without_collisions_on_town() {
         "idm planner score {:.3} collisions {}",
         s.score, s.no_ego_at_fault_collisions
     );
+}
+
+/// A planner reply with finite but absurd poses (1e300 m ahead) or a NaN pose from an in-process planner ends
+/// the scenario with a reason naming the pose (issue #18), instead of a drive simulated from overflowing
+/// numbers.
+#[test]
+fn absurd_planner_poses_end_the_scenario_with_a_reason() {
+    let sc = synthetic::town(2, None);
+    let cfg = SimConfig {
+        agents: AgentMode::Idm,
+        steps: 10,
+        ..SimConfig::default()
+    };
+    let poses: Vec<String> = (0..8).map(|k| format!("[{}e300, 0, 0]", k + 1)).collect();
+    let cmd = format!(
+        "while read l; do echo '{{\"poses\": [{}]}}'; done",
+        poses.join(", ")
+    );
+    let mut p = ExternalPlanner::new(&cmd, Duration::from_secs(5)).unwrap();
+    let r = run(&sc, &mut p, &cfg);
+    let f = r.failure.clone().unwrap_or_default();
+    assert!(f.contains("poses[0]") && f.contains("<= 10000 m"), "{f}");
+
+    struct NanPlanner;
+    impl Planner for NanPlanner {
+        fn name(&self) -> String {
+            "nan".into()
+        }
+        fn plan(&mut self, input: &PlannerInput) -> anyhow::Result<Trajectory> {
+            let local = vec![Pose2::new(f64::NAN, 0.0, 0.0); 8];
+            trajectory_from_ego_frame(input.ego, &local, 8)
+        }
+    }
+    let r = run(&sc, &mut NanPlanner, &cfg);
+    let f = r.failure.clone().unwrap_or_default();
+    assert!(f.contains("non-finite pose: poses[0]"), "{f}");
+    assert_eq!(r.steps.len(), 1);
 }
