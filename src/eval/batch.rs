@@ -140,6 +140,16 @@ fn config_difference(a: &Value, b: &Value, ignore: &[&str]) -> Option<String> {
 pub fn prepare_out(out: &Path, config: &Value, resume: bool) -> Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let cpath = out.join("config.json");
+    if resume && !cpath.is_file() {
+        // results without the configuration that made them cannot be checked: refuse to reuse them
+        if let Some(done) = finished_scenario(out)? {
+            bail!(
+                "--resume: {} holds results ({}) but no config.json, so whether they were made with this                  planner and agents cannot be checked; delete the folder or rerun without --resume",
+                out.display(),
+                done.display()
+            );
+        }
+    }
     if resume && cpath.is_file() {
         let old = read_json(&cpath)?;
         if let Some(d) = config_difference(&old, config, &[]) {
@@ -155,6 +165,59 @@ pub fn prepare_out(out: &Path, config: &Value, resume: bool) -> Result<()> {
     if summary.is_file() {
         std::fs::remove_file(&summary)
             .with_context(|| format!("removing the old {}", summary.display()))?;
+    }
+    Ok(())
+}
+
+/// A scenario folder of `out` holding a `metrics.json`, if any.
+fn finished_scenario(out: &Path) -> Result<Option<PathBuf>> {
+    let entries = std::fs::read_dir(out).with_context(|| format!("reading {}", out.display()))?;
+    for e in entries {
+        let p = e
+            .with_context(|| format!("reading {}", out.display()))?
+            .path()
+            .join("metrics.json");
+        if p.is_file() {
+            return Ok(Some(p));
+        }
+    }
+    Ok(None)
+}
+
+/// Refuses an `out` folder that holds (or is) the folder of a scenario file: the batch's own `config.json` and
+/// `metrics.json` would be read back as scenarios by the next run over that folder.
+pub fn check_out_outside_scenarios(out: &Path, sources: &[Source]) -> Result<()> {
+    let canon = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+    let out_c = canon(out);
+    for s in sources {
+        if let Source::File(f) = s {
+            let parent = f.parent().filter(|p| !p.as_os_str().is_empty());
+            let dir = canon(parent.unwrap_or(Path::new(".")));
+            ensure!(
+                !dir.starts_with(&out_c),
+                "--out {} holds the scenario file {}: its config.json and metrics.json would be read as                  scenarios by the next run over that folder; give an --out outside the scenario folder",
+                out.display(),
+                f.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Fails (for a non-zero exit status) when every scenario of a summary failed; the summary is written
+/// first, so the failures stay readable in `metrics.json`.
+pub fn ensure_not_all_failed(summary: &Value, out: &Path) -> Result<()> {
+    let n = summary["scenarios"].as_array().map_or(0, |v| v.len());
+    let failures = summary["failures"].as_u64().unwrap_or(0) as usize;
+    if n > 0 && failures == n {
+        let first = summary["scenarios"][0]["failure"]
+            .as_str()
+            .unwrap_or("")
+            .to_string();
+        bail!(
+            "every scenario failed ({failures} of {n}; see {}); the first: {first}",
+            out.join("metrics.json").display()
+        );
     }
     Ok(())
 }
