@@ -292,9 +292,11 @@ fn shared_scenes_load() {
 
 /// Hostile numbers in a scenario (issue #18): coordinates beyond the world's extent, huge velocities and
 /// sizes are errors naming the file and the field, not maps or scores computed from overflowing geometry.
+type Edit = Box<dyn Fn(&mut serde_json::Value)>;
+
 #[test]
 fn far_and_huge_numbers_are_errors_naming_the_field() {
-    let cases: Vec<(&str, Box<dyn Fn(&mut serde_json::Value)>)> = vec![
+    let cases: Vec<(&str, Edit)> = vec![
         (
             "map_features.l1.polyline[1]",
             Box::new(|v| v["map_features"]["l1"]["polyline"][1] = json!([1e308, 0.0, 0.0])),
