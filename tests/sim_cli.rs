@@ -144,6 +144,11 @@ fn bad_arguments_give_clear_errors() {
         ),
         (vec!["--scenario", "/no/such/file.json"], "neither"),
         (vec!["--steps", "0"], "--steps"),
+        // timeouts that Duration::from_secs_f64 would panic on (issue #18)
+        (vec!["--planner-timeout", "1e300"], "--planner-timeout"),
+        (vec!["--planner-timeout", "NaN"], "--planner-timeout"),
+        (vec!["--planner-timeout=-1"], "--planner-timeout"),
+        (vec!["--planner-timeout", "inf"], "--planner-timeout"),
     ] {
         let o = b2dr()
             .arg("sim")

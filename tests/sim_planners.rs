@@ -164,3 +164,38 @@ fn absurd_planner_poses_end_the_scenario_with_a_reason() {
     assert!(f.contains("non-finite pose: poses[0]"), "{f}");
     assert_eq!(r.steps.len(), 1);
 }
+
+/// A planner that closes its stdout but lives on ends its scenario within the timeout, and its process (the
+/// whole group: the shell and what it started) is killed (issue #18).
+#[test]
+fn a_planner_that_closes_stdout_and_lives_is_killed() {
+    let sc = synthetic::town(2, None);
+    let cfg = SimConfig {
+        agents: AgentMode::Idm,
+        steps: 10,
+        ..SimConfig::default()
+    };
+    // a marker no other process carries: sleep's argument
+    let secs = 900_000 + std::process::id() % 90_000;
+    let mut p =
+        ExternalPlanner::new(&format!("exec 1>&-; sleep {secs}"), Duration::from_secs(2)).unwrap();
+    let t0 = std::time::Instant::now();
+    let r = run(&sc, &mut p, &cfg);
+    let f = r.failure.clone().unwrap_or_default();
+    assert!(f.contains("closed its output"), "{f}");
+    assert!(t0.elapsed() < Duration::from_secs(5), "{:?}", t0.elapsed());
+    let alive = || {
+        std::fs::read_dir("/proc")
+            .map(|d| {
+                d.filter_map(|e| e.ok())
+                    .filter_map(|e| std::fs::read(e.path().join("cmdline")).ok())
+                    .any(|c| c == format!("sleep\0{secs}\0").as_bytes())
+            })
+            .unwrap_or(false)
+    };
+    let deadline = std::time::Instant::now() + Duration::from_secs(2);
+    while alive() && std::time::Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert!(!alive(), "the planner's process outlived its scenario");
+}
