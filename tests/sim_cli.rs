@@ -302,3 +302,30 @@ fn resume_refuses_results_without_a_configuration() {
     assert!(!o.status.success() && e.contains("planner"), "{e}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `b2dr run` too: every scenario failed (one renderer, or every renderer of a comparison) is a non-zero exit
+/// status, the results still written.
+#[test]
+fn run_exits_non_zero_when_every_scenario_failed() {
+    for renderers in ["none", "none,groundtruth"] {
+        let out = tmp(&format!("run_all_failed_{}", renderers.replace(',', "_")));
+        let o = b2dr()
+            .args(["run", "--scenario", "builtin:town:1", "--renderer", renderers])
+            .args(["--planner", "cmd:exit 3", "--agents", "none", "--steps", "10", "--no-gif"])
+            .args(["--size", "16x24", "--out"])
+            .arg(&out)
+            .output()
+            .unwrap();
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "{renderers}: exited 0: {e}");
+        assert!(e.contains("every scenario failed (1 of 1"), "{renderers}: {e}");
+        let first = renderers.split(',').next().unwrap();
+        let summary = if renderers.contains(',') {
+            out.join(first).join("metrics.json")
+        } else {
+            out.join("metrics.json")
+        };
+        assert!(summary.is_file(), "{renderers}: {}", summary.display());
+        std::fs::remove_dir_all(&out).ok();
+    }
+}
