@@ -310,15 +310,32 @@ fn run_exits_non_zero_when_every_scenario_failed() {
     for renderers in ["none", "none,groundtruth"] {
         let out = tmp(&format!("run_all_failed_{}", renderers.replace(',', "_")));
         let o = b2dr()
-            .args(["run", "--scenario", "builtin:town:1", "--renderer", renderers])
-            .args(["--planner", "cmd:exit 3", "--agents", "none", "--steps", "10", "--no-gif"])
+            .args([
+                "run",
+                "--scenario",
+                "builtin:town:1",
+                "--renderer",
+                renderers,
+            ])
+            .args([
+                "--planner",
+                "cmd:exit 3",
+                "--agents",
+                "none",
+                "--steps",
+                "10",
+                "--no-gif",
+            ])
             .args(["--size", "16x24", "--out"])
             .arg(&out)
             .output()
             .unwrap();
         let e = String::from_utf8_lossy(&o.stderr);
         assert!(!o.status.success(), "{renderers}: exited 0: {e}");
-        assert!(e.contains("every scenario failed (1 of 1"), "{renderers}: {e}");
+        assert!(
+            e.contains("every scenario failed (1 of 1"),
+            "{renderers}: {e}"
+        );
         let first = renderers.split(',').next().unwrap();
         let summary = if renderers.contains(',') {
             out.join(first).join("metrics.json")

@@ -157,7 +157,8 @@ fn diverged(rows: &[(RendererMode, Value)], out: &Path) -> Result<Vec<(String, V
             .as_array()
             .and_then(|v| v.iter().find(|x| x["scenario"] == name.as_str()))
             .and_then(|x| x["steps"].as_u64())
-            .unwrap_or(150) as usize;
+            .unwrap_or(150)
+            .min(1 << 32) as usize; // read back from a file: no overflow below
         let dir = out.join("diverged");
         std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
         // the scenario name comes from the data: its folder name (as the run wrote it) cannot leave `out`
