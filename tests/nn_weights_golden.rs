@@ -315,3 +315,24 @@ fn overflowing_shape_products_are_errors() {
         );
     }
 }
+
+/// A checked weight file holding NaN or infinity is refused naming the tensor (every image would be NaN).
+#[test]
+fn non_finite_weights_are_refused() {
+    let exp: Vec<Spec> = vec![("conv.weight".into(), vec![2])];
+    for bad in [f32::NAN, f32::INFINITY] {
+        let raw: Vec<u8> = [1.0f32, bad].iter().flat_map(|v| v.to_le_bytes()).collect();
+        let e = err_of(&one_tensor("conv.weight", "F32", &[2], &raw), &exp);
+        assert!(
+            e.contains("conv.weight") && e.contains("NaN or infinite"),
+            "{bad}: {e}"
+        );
+    }
+    // the unchecked reader (inputs, goldens) keeps them
+    let raw: Vec<u8> = [1.0f32, f32::NAN]
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
+    let w = Weights::from_bytes_unchecked(&one_tensor("x", "F32", &[2], &raw), "in").unwrap();
+    assert!(w.tensors["x"].data[1].is_nan());
+}
