@@ -363,3 +363,72 @@ proptest! {
         }
     }
 }
+
+// ------------------------------------------------------------------------------------ far geometry, end to end
+
+/// A scenario with map features and objects far away (9e7 m) and huge (a 999 m box next to the ego) loads,
+/// and its layout masks (what the b2dr renderer projects each frame) are computed in bounded time.
+#[test]
+fn far_and_huge_geometry_projects_in_bounded_time() {
+    let mut v = scenario_json();
+    v["map_features"]["far"] = json!({"type": "LANE_SURFACE_STREET", "polyline": [[-9e7, -9e7], [9e7, 9e7]],
+        "polygon": [[-9e7, -9e7], [9e7, -9e7], [9e7, 9e7]]});
+    v["map_features"]["farx"] =
+        json!({"type": "CROSSWALK", "polygon": [[-9e7, -9e7], [9e7, -9e7], [9e7, 9e7]]});
+    v["tracks"]["huge"] = json!({"type": "VEHICLE", "state": {
+        "position": [[15.0, 0.5], [15.0, 0.5], [15.0, 0.5]], "heading": [0.0, 0.0, 0.0],
+        "velocity": [[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]], "valid": [1, 1, 1],
+        "length": [[999.0], [999.0], [999.0]], "width": [[999.0], [999.0], [999.0]],
+        "height": [[999.0], [999.0], [999.0]]}});
+    v["tracks"]["far"] = json!({"type": "VEHICLE", "state": {
+        "position": [[9e7, 9e7], [-9e7, 9e7], [9e7, -9e7]], "heading": [0.0, 0.0, 0.0],
+        "velocity": [[999.0, 0.0], [0.0, 0.0], [0.0, 0.0]], "valid": [1, 1, 1],
+        "length": [[4.0], [4.0], [4.0]], "width": [[2.0], [2.0], [2.0]], "height": [[1.5], [1.5], [1.5]]}});
+    let sc = bounded("far scenario", || scenarionet::parse(&v, "far.json", None)).unwrap();
+    let t0 = Instant::now();
+    let map = b2dr::projection::scene::map_layer(&sc.map);
+    let boxes: Vec<_> = b2dr::projection::scene::boxes_at(&sc, 0)
+        .into_iter()
+        .map(|(_, b)| b)
+        .collect();
+    let e2g = b2dr::scene::import::ego2global(&sc.ego[0].rear_axle);
+    let cams = sc.rig.cameras.clone();
+    let poses = vec![e2g; cams.len()];
+    let m =
+        b2dr::render::inputs::masks(&cams, &poses, &boxes, &map, (56, 100), &Default::default())
+            .unwrap();
+    assert!(m.iter().all(|x| x.is_finite()));
+    assert!(t0.elapsed() < BOUND, "masks took {:?}", t0.elapsed());
+}
+
+/// The world of a scenario file with a 2.5e8 m lane (what `b2dr run` builds for every scenario: its ground
+/// layers and roadside objects placed along the road edges) is built in bounded time and size; the built-in
+/// towns stay far below the caps, so their worlds are unchanged.
+#[test]
+fn far_roads_build_a_bounded_world() {
+    use b2dr::world::scenery::{MAX_GROUND, MAX_SOLIDS};
+    let mut v = scenario_json();
+    v["map_features"]["far"] = json!({"type": "LANE_SURFACE_STREET", "polyline": [[-9e7, -9e7], [9e7, 9e7]],
+        "polygon": [[-9e7, -9e7], [9e7, -9e7], [9e7, 9e7]]});
+    v["map_features"]["farx"] = json!({"type": "CROSSWALK",
+        "polygon": [[-9e7, -9e7], [9e7, -9e7], [9e7, -9e7 + 3.0], [-9e7, -9e7 + 3.0]]});
+    let sc = scenarionet::parse(&v, "far.json", None).unwrap();
+    let t0 = Instant::now();
+    let w = b2dr::world::World::new(&sc);
+    assert!(
+        t0.elapsed() < Duration::from_secs(60),
+        "world took {:?}",
+        t0.elapsed()
+    );
+    assert!(w.scenery.ground.len() <= MAX_GROUND && w.scenery.solids.len() <= MAX_SOLIDS);
+    for spec in ["builtin:town:0", "builtin:multilane:1"] {
+        let sc = b2dr::world::load_all(spec).unwrap().remove(0);
+        let w = b2dr::world::World::new(&sc);
+        assert!(
+            w.scenery.ground.len() < MAX_GROUND / 10 && w.scenery.solids.len() < MAX_SOLIDS / 10,
+            "{spec}: {} ground, {} solids",
+            w.scenery.ground.len(),
+            w.scenery.solids.len()
+        );
+    }
+}
