@@ -112,6 +112,18 @@ fn mutate(base: &Value, at: Index, new: Value, delete: bool) -> Value {
     v
 }
 
+/// `base` with one of its numbers replaced (documents that still parse more often than `mutate`'s).
+fn mutate_number(base: &Value, at: Index, new: Value) -> Value {
+    let mut ps = vec![];
+    pointers(base, String::new(), &mut ps);
+    ps.retain(|p| base.pointer(p).is_some_and(Value::is_number));
+    let mut v = base.clone();
+    if let Some(slot) = v.pointer_mut(&ps[at.index(ps.len())]) {
+        *slot = new;
+    }
+    v
+}
+
 /// Runs `f`, asserting that it returns (Ok or Err, never a panic: the property fails on one) within BOUND.
 fn bounded<T>(what: &str, f: impl FnOnce() -> T) -> T {
     let t0 = Instant::now();
@@ -260,8 +272,35 @@ proptest! {
     #[test]
     fn scenarios_parse_or_err(at in any::<Index>(), new in prop_oneof![arb_json(), nasty_number()], delete in any::<bool>(), doc in arb_json()) {
         let v = mutate(&scenario_json(), at, new, delete);
-        let _ = bounded("scenario", || scenarionet::parse(&v, "p.json", None));
+        if let Ok(sc) = bounded("scenario", || scenarionet::parse(&v, "p.json", None)) {
+            // what parses also builds its world, simulates (reactive agents) and scores without a panic
+            bounded("world", || b2dr::world::World::new(&sc));
+            let cfg = b2dr::sim::SimConfig { agents: b2dr::sim::AgentMode::Idm, steps: 3, ..Default::default() };
+            let r = bounded("sim", || b2dr::sim::run(&sc, &mut b2dr::sim::ConstantVelocityPlanner, &cfg));
+            let s = bounded("score", || {
+                b2dr::sim::score::score_run(&sc, &r, &b2dr::metrics::ScoreParams::default())
+            });
+            if let Ok(s) = s {
+                prop_assert!(s.score.is_finite() && (0.0..=1.0).contains(&s.score), "score {}", s.score);
+            }
+        }
         let _ = bounded("scenario doc", || scenarionet::parse(&doc, "p.json", None));
+    }
+
+    #[test]
+    fn scenario_numbers_parse_or_err_and_run(at in prop::collection::vec(any::<Index>(), 1..4), new in prop::collection::vec(nasty_number(), 3)) {
+        let mut v = scenario_json();
+        for (a, n) in at.into_iter().zip(new) {
+            v = mutate_number(&v, a, n);
+        }
+        if let Ok(sc) = bounded("scenario", || scenarionet::parse(&v, "p.json", None)) {
+            bounded("world", || b2dr::world::World::new(&sc));
+            let cfg = b2dr::sim::SimConfig { agents: b2dr::sim::AgentMode::Idm, steps: 3, ..Default::default() };
+            let r = bounded("sim", || b2dr::sim::run(&sc, &mut b2dr::sim::ConstantVelocityPlanner, &cfg));
+            if let Ok(s) = bounded("score", || b2dr::sim::score::score_run(&sc, &r, &b2dr::metrics::ScoreParams::default())) {
+                prop_assert!(s.score.is_finite() && (0.0..=1.0).contains(&s.score), "score {}", s.score);
+            }
+        }
     }
 
     #[test]
