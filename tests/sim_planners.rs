@@ -199,3 +199,29 @@ fn a_planner_that_closes_stdout_and_lives_is_killed() {
     }
     assert!(!alive(), "the planner's process outlived its scenario");
 }
+
+/// A planner that replies the most poses accepted (1000, 500 s) at every planner step costs about what an 8-pose
+/// one does (issue #18): the tracker fitted its profiles to the whole trajectory with a dense solve, cubic in
+/// its length, and a 150-step run took more than 5 minutes.
+#[test]
+fn a_planner_replying_1000_poses_runs_in_bounded_time() {
+    let sc = synthetic::town(2, None);
+    let cfg = SimConfig {
+        agents: AgentMode::Idm,
+        steps: 40,
+        ..SimConfig::default()
+    };
+    let poses: Vec<String> = (0..1000).map(|k| format!("[{}, 0, 0]", k + 1)).collect();
+    let dir = std::env::temp_dir().join(format!("b2dr_1000_poses_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let reply = dir.join("reply.json");
+    std::fs::write(&reply, format!("{{\"poses\": [{}]}}\n", poses.join(", "))).unwrap();
+    let cmd = format!("while read l; do cat {}; done", reply.display());
+    let mut p = ExternalPlanner::new(&cmd, Duration::from_secs(10)).unwrap();
+    let t0 = std::time::Instant::now();
+    let r = run(&sc, &mut p, &cfg);
+    assert!(r.failure.is_none(), "{:?}", r.failure);
+    assert_eq!(r.steps.len(), 41);
+    assert!(t0.elapsed() < Duration::from_secs(10), "{:?}", t0.elapsed());
+    std::fs::remove_dir_all(&dir).ok();
+}
