@@ -346,3 +346,35 @@ fn run_exits_non_zero_when_every_scenario_failed() {
         std::fs::remove_dir_all(&out).ok();
     }
 }
+
+/// A comparison writes comparison.json into --out itself: --out equal to the scenario folder is refused before
+/// any renderer runs.
+#[test]
+fn comparison_out_in_the_scenario_folder_is_refused() {
+    let dir = tmp("cmp_outin");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("good.json"), tiny_scenario("good")).unwrap();
+    let o = b2dr()
+        .args([
+            "run",
+            "--renderer",
+            "none,log-replay",
+            "--planner",
+            "cv",
+            "--agents",
+            "none",
+        ])
+        .arg("--scenario")
+        .arg(&dir)
+        .arg("--out")
+        .arg(&dir)
+        .output()
+        .unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && e.contains("holds the scenario file"),
+        "{e}"
+    );
+    assert!(!dir.join("comparison.json").exists() && !dir.join("none").exists());
+    std::fs::remove_dir_all(&dir).ok();
+}

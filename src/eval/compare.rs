@@ -25,6 +25,11 @@ pub fn compare(
     out: &Path,
     resume: bool,
 ) -> Result<Value> {
+    // comparison.json lands in `out` itself: the scenario folder must not be it (nor hold it)
+    super::batch::check_out_outside_scenarios(
+        out,
+        &crate::scene::import::resolve(&base.scenario)?,
+    )?;
     let mut rows = vec![];
     for &m in modes {
         let mut c = base.clone();
