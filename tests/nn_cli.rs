@@ -120,3 +120,48 @@ fn sample_writes_png_exr_and_report() {
     );
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// A model folder whose VAE does not downsample by 8, and NaN or infinite guidance / conditioning scales, are
+/// clear errors naming the file or flag (issue #18), found before any device work.
+#[test]
+fn sample_refuses_a_vae_of_another_factor_and_non_finite_scales() {
+    let dir = std::env::temp_dir().join(format!("b2dr-sample-hostile-{}", std::process::id()));
+    let model = dir.join("model");
+    std::fs::create_dir_all(model.join("vae")).unwrap();
+    let mut vae = b2dr::nn::config::VaeConfig::b2dr_tiny();
+    vae.block_out_channels = vec![16, 32, 64];
+    std::fs::write(
+        model.join("vae/config.json"),
+        serde_json::to_string(&vae.to_json()).unwrap(),
+    )
+    .unwrap();
+    let out = bin()
+        .args(["sample", "--steps", "1", "--size", "16x16", "--model"])
+        .arg(&model)
+        .arg("--out")
+        .arg(dir.join("out"))
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !out.status.success()
+            && err.contains("vae/config.json")
+            && err.contains("downsamples by 4"),
+        "{err}"
+    );
+    for (flag, val) in [("--guidance", "NaN"), ("--conditioning-scale", "inf")] {
+        let out = bin()
+            .args([
+                "sample", "--steps", "1", "--size", "16x16", flag, val, "--out",
+            ])
+            .arg(dir.join("out"))
+            .output()
+            .unwrap();
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !out.status.success() && err.contains(flag) && err.contains("finite"),
+            "{flag}: {err}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}

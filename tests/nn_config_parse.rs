@@ -234,3 +234,54 @@ fn config_files_read_from_disk() {
     assert!(e.contains("config.json"), "{e}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Config integers without a bound (issue #18): a channel count of 2^40, 2^40 layers or 1000 blocks are
+/// errors naming the key, not models sized from them.
+#[test]
+fn huge_config_integers_are_errors_naming_the_key() {
+    let huge = 1u64 << 40;
+    let cases: Vec<(&str, Edit)> = vec![
+        (
+            "block_out_channels",
+            Box::new(move |v| v["block_out_channels"] = json!([huge, 640, 1280, 1280])),
+        ),
+        (
+            "layers_per_block",
+            Box::new(move |v| v["layers_per_block"] = json!(huge)),
+        ),
+        (
+            "cross_attention_dim",
+            Box::new(|v| v["cross_attention_dim"] = json!(u64::MAX)),
+        ),
+        (
+            "attention_head_dim",
+            Box::new(move |v| v["attention_head_dim"] = json!(huge)),
+        ),
+        (
+            "in_channels",
+            Box::new(|v| v["in_channels"] = json!(1u64 << 20)),
+        ),
+        (
+            "down_block_types",
+            Box::new(|v| v["down_block_types"] = json!(vec!["DownBlock2D"; 1000])),
+        ),
+    ];
+    for (key, edit) in cases {
+        let e = unet_err(edit);
+        assert!(e.contains(key) && e.contains("at most"), "{key}: {e}");
+    }
+    let mut v = VaeConfig::sd15().to_json();
+    v["block_out_channels"] = json!(vec![64; 1000]);
+    let e = format!("{:#}", VaeConfig::from_json(v).unwrap_err());
+    assert!(
+        e.contains("block_out_channels") && e.contains("at most"),
+        "{e}"
+    );
+    let mut v = VaeConfig::sd15().to_json();
+    v["latent_channels"] = json!(huge);
+    let e = format!("{:#}", VaeConfig::from_json(v).unwrap_err());
+    assert!(
+        e.contains("latent_channels") && e.contains("at most"),
+        "{e}"
+    );
+}

@@ -297,3 +297,42 @@ fn random_weights_are_deterministic_and_seed_dependent() {
     assert_eq!(Weights::load(&p, &exp).unwrap().tensors, a.tensors);
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// A safetensors header whose shape product overflows usize (issue #18) is an error naming the tensor, not an
+/// arithmetic overflow.
+#[test]
+fn overflowing_shape_products_are_errors() {
+    let exp: Vec<Spec> = vec![("conv.weight".into(), vec![2])];
+    for shape in [
+        vec![1usize << 40, 1 << 40],
+        vec![usize::MAX, 2],
+        vec![1 << 62],
+    ] {
+        let e = err_of(&one_tensor("conv.weight", "F32", &shape, &[0u8; 8]), &exp);
+        assert!(
+            e.contains("conv.weight") && e.contains("needs"),
+            "{shape:?}: {e}"
+        );
+    }
+}
+
+/// A checked weight file holding NaN or infinity is refused naming the tensor (every image would be NaN).
+#[test]
+fn non_finite_weights_are_refused() {
+    let exp: Vec<Spec> = vec![("conv.weight".into(), vec![2])];
+    for bad in [f32::NAN, f32::INFINITY] {
+        let raw: Vec<u8> = [1.0f32, bad].iter().flat_map(|v| v.to_le_bytes()).collect();
+        let e = err_of(&one_tensor("conv.weight", "F32", &[2], &raw), &exp);
+        assert!(
+            e.contains("conv.weight") && e.contains("NaN or infinite"),
+            "{bad}: {e}"
+        );
+    }
+    // the unchecked reader (inputs, goldens) keeps them
+    let raw: Vec<u8> = [1.0f32, f32::NAN]
+        .iter()
+        .flat_map(|v| v.to_le_bytes())
+        .collect();
+    let w = Weights::from_bytes_unchecked(&one_tensor("x", "F32", &[2], &raw), "in").unwrap();
+    assert!(w.tensors["x"].data[1].is_nan());
+}

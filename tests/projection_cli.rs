@@ -99,3 +99,39 @@ fn project_reports_file_and_field_on_bad_frame() {
     );
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Camera names in a frame file are data: "../../escape" or "a/b" become folder names inside --out, never paths
+/// that leave it (issue #18).
+#[test]
+fn project_camera_names_from_the_frame_stay_inside_out() {
+    let dir = std::env::temp_dir().join(format!("b2dr_project_cli_names_{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    image::RgbImage::new(16, 9)
+        .save(dir.join("cam.png"))
+        .unwrap();
+    let eye = serde_json::json!([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]);
+    let cam = serde_json::json!({"image": "cam.png", "width": 16, "height": 9, "timestamp_us": 0,
+        "intrinsic": [[10.0, 0.0, 8.0], [0.0, 10.0, 4.5], [0.0, 0.0, 1.0]],
+        "cam2ego": [[0, 0, 1, 1.5], [-1, 0, 0, 0], [0, -1, 0, 1.5], [0, 0, 0, 1]], "ego2global": eye});
+    let frame = serde_json::json!({"format": "b2dr-shared-keyframe/v1", "ego2global": eye,
+        "cameras": {"../../escape": cam, "a/b": cam}, "boxes": []});
+    std::fs::write(dir.join("frame.json"), frame.to_string()).unwrap();
+    let out = dir.join("x").join("out");
+    let st = Command::new(env!("CARGO_BIN_EXE_b2dr"))
+        .args(["project", "--frame"])
+        .arg(dir.join("frame.json"))
+        .arg("--out")
+        .arg(&out)
+        .args(["--size", "16x8"])
+        .output()
+        .unwrap();
+    assert!(
+        st.status.success(),
+        "{}",
+        String::from_utf8_lossy(&st.stderr)
+    );
+    assert!(out.join("______escape").is_dir() && out.join("a_b").is_dir());
+    assert!(!dir.join("escape").exists() && !out.join("a").exists());
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -289,3 +289,91 @@ fn shared_scenes_load() {
         assert!(!sc.route.lane_ids.is_empty());
     }
 }
+
+/// Hostile numbers in a scenario (issue #18): coordinates beyond the world's extent, huge velocities and
+/// sizes are errors naming the file and the field, not maps or scores computed from overflowing geometry.
+type Edit = Box<dyn Fn(&mut serde_json::Value)>;
+
+#[test]
+fn far_and_huge_numbers_are_errors_naming_the_field() {
+    let cases: Vec<(&str, Edit)> = vec![
+        (
+            "map_features.l1.polyline[1]",
+            Box::new(|v| v["map_features"]["l1"]["polyline"][1] = json!([1e308, 0.0, 0.0])),
+        ),
+        (
+            "map_features.l1.polygon[2]",
+            Box::new(|v| v["map_features"]["l1"]["polygon"][2] = json!([3e9, 2.0])),
+        ),
+        (
+            "tracks.ego.state.position[1]",
+            Box::new(|v| v["tracks"]["ego"]["state"]["position"][1] = json!([1e300, 0.0, 0.0])),
+        ),
+        (
+            "tracks.ego.state.velocity[2]",
+            Box::new(|v| v["tracks"]["ego"]["state"]["velocity"][2] = json!([1e308, 0.0])),
+        ),
+        (
+            "tracks.ego.state.heading[0]",
+            Box::new(|v| v["tracks"]["ego"]["state"]["heading"][0] = json!(1e300)),
+        ),
+        (
+            "tracks.ego.state.length[0]",
+            Box::new(|v| v["tracks"]["ego"]["state"]["length"][0] = json!([1e308])),
+        ),
+    ];
+    for (field, edit) in cases {
+        let mut v = minimal_scene();
+        edit(&mut v);
+        let e = parse_err(&v);
+        assert!(
+            e.contains("dir/bad.json") && e.contains(field),
+            "{field}: {e}"
+        );
+    }
+    // far but plausible coordinates (1e5 m) still parse, in bounded time
+    let mut v = minimal_scene();
+    v["map_features"]["l2"] = json!({"type": "LANE_SURFACE_STREET",
+        "polyline": [[-1e5, -1e5], [1e5, 1e5]], "polygon": [[-1e5, -1e5], [1e5, -1e5], [1e5, 1e5]]});
+    let t0 = std::time::Instant::now();
+    scenarionet::parse(&v, "dir/far.json", None).unwrap();
+    assert!(t0.elapsed().as_secs_f64() < 5.0, "{:?}", t0.elapsed());
+}
+
+/// A drivable-area GeoJSON with a vertex beyond the world's extent is an error naming the file and field.
+#[test]
+fn geojson_far_vertex_is_an_error() {
+    let dir = std::env::temp_dir().join(format!("b2dr_geojson_far_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let f = dir.join("m.drivable_area.geojson");
+    std::fs::write(
+        &f,
+        r#"{"type": "Polygon", "coordinates": [[[0, 0], [1e308, 0], [1e308, 1e308]]]}"#,
+    )
+    .unwrap();
+    let e = format!("{:#}", scenarionet::load_geojson_polygons(&f).unwrap_err());
+    assert!(
+        e.contains("m.drivable_area.geojson") && e.contains("coordinates[0][0][1]"),
+        "{e}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The map name becomes a file name next to the scenes: a path ("../../etc/x", "/abs", NUL) is an error naming
+/// `metadata.map`, not a file read from elsewhere.
+#[test]
+fn map_names_that_are_paths_are_errors() {
+    for bad in [
+        "../../etc/passwd",
+        "/abs/map",
+        "a\\b",
+        "nul\0x",
+        "",
+        ".hidden",
+    ] {
+        let mut v = minimal_scene();
+        v["metadata"]["map"] = json!(bad);
+        let e = parse_err(&v);
+        assert!(e.contains("metadata.map"), "{bad:?}: {e}");
+    }
+}

@@ -114,12 +114,21 @@ fn failing_planner_is_recorded_and_the_run_continues() {
         .arg(&out)
         .output()
         .unwrap();
-    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // every scenario failed: a non-zero exit status (issue #18), the failure still recorded
+    assert!(
+        !o.status.success(),
+        "a run where every scenario failed exited 0"
+    );
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(e.contains("every scenario failed (1 of 1"), "{e}");
     let m: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(out.join("town-1/metrics.json")).unwrap())
             .unwrap();
     assert!(m["failure"].as_str().unwrap().contains("planner"), "{m}");
     assert_eq!(m["score"].as_f64(), Some(0.0));
+    let s: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(s["failures"].as_u64(), Some(1), "{s}");
     std::fs::remove_dir_all(&out).ok();
 }
 
@@ -135,6 +144,11 @@ fn bad_arguments_give_clear_errors() {
         ),
         (vec!["--scenario", "/no/such/file.json"], "neither"),
         (vec!["--steps", "0"], "--steps"),
+        // timeouts that Duration::from_secs_f64 would panic on (issue #18)
+        (vec!["--planner-timeout", "1e300"], "--planner-timeout"),
+        (vec!["--planner-timeout", "NaN"], "--planner-timeout"),
+        (vec!["--planner-timeout=-1"], "--planner-timeout"),
+        (vec!["--planner-timeout", "inf"], "--planner-timeout"),
     ] {
         let o = b2dr()
             .arg("sim")
@@ -148,4 +162,219 @@ fn bad_arguments_give_clear_errors() {
         assert!(e.contains(needle), "{args:?}: {e}");
     }
     std::fs::remove_dir_all(&out).ok();
+}
+
+/// A three-step ScenarioNet scenario on one straight lane.
+fn tiny_scenario(id: &str) -> String {
+    serde_json::json!({
+        "format": "scenarionet-scenario-description/json",
+        "id": id, "length": 3,
+        "metadata": {"sdc_id": "ego", "map": "nowhere", "sample_rate": 0.1},
+        "tracks": {
+            "ego": {"type": "VEHICLE", "state": {
+                "position": [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]],
+                "heading": [0.0, 0.0, 0.0], "velocity": [[10.0, 0.0], [10.0, 0.0], [10.0, 0.0]],
+                "valid": [1, 1, 1], "length": [[4.5], [4.5], [4.5]], "width": [[1.9], [1.9], [1.9]],
+                "height": [[1.5], [1.5], [1.5]]}}
+        },
+        "map_features": {
+            "l1": {"type": "LANE_SURFACE_STREET", "polyline": [[-10.0, 0.0, 0.0], [30.0, 0.0, 0.0]],
+                   "polygon": [[-10.0, -2.0], [30.0, -2.0], [30.0, 2.0], [-10.0, 2.0]]}
+        },
+        "dynamic_map_states": {}
+    })
+    .to_string()
+}
+
+fn sim_folder(
+    scenarios: &std::path::Path,
+    out: &std::path::Path,
+    resume: bool,
+) -> std::process::Output {
+    let mut c = b2dr();
+    c.args([
+        "sim",
+        "--planner",
+        "expert",
+        "--agents",
+        "none",
+        "--bev-every",
+        "0",
+        "--scenario",
+    ])
+    .arg(scenarios)
+    .arg("--out")
+    .arg(out);
+    if resume {
+        c.arg("--resume");
+    }
+    c.output().unwrap()
+}
+
+/// An unreadable scenario file of a folder run is named on stderr (even behind the progress bar) and counted
+/// in metrics.json's failures; the run still ends 0 as one scenario ran.
+#[test]
+fn unreadable_scenario_in_a_folder_is_reported() {
+    let dir = tmp("folder");
+    let (scenarios, out) = (dir.join("scenarios"), dir.join("out"));
+    std::fs::create_dir_all(&scenarios).unwrap();
+    std::fs::write(scenarios.join("a_good.json"), tiny_scenario("good")).unwrap();
+    std::fs::write(scenarios.join("b_broken.json"), "{ not json").unwrap();
+    let o = sim_folder(&scenarios, &out, false);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{e}");
+    assert!(
+        e.contains("b_broken") && e.contains("failed") && e.contains("not valid JSON"),
+        "{e}"
+    );
+    let s: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(s["failures"].as_u64(), Some(1), "{s}");
+    let failed: Vec<&serde_json::Value> = s["scenarios"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|v| !v["failure"].is_null())
+        .collect();
+    assert!(
+        failed[0]["failure"]
+            .as_str()
+            .unwrap()
+            .contains("b_broken.json"),
+        "{s}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `--out` equal to the scenario folder is refused: its config.json and metrics.json would be read back as
+/// scenarios by the next run over the folder.
+#[test]
+fn out_in_the_scenario_folder_is_refused() {
+    let dir = tmp("outin");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("good.json"), tiny_scenario("good")).unwrap();
+    let o = sim_folder(&dir, &dir, false);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && e.contains("holds the scenario file"),
+        "{e}"
+    );
+    assert!(!dir.join("config.json").exists());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `--resume` on a folder with results but no config.json cannot check which planner made them: refused.
+#[test]
+fn resume_refuses_results_without_a_configuration() {
+    let dir = tmp("resume_noconfig");
+    let (scenarios, out) = (dir.join("scenarios"), dir.join("out"));
+    std::fs::create_dir_all(&scenarios).unwrap();
+    std::fs::write(scenarios.join("good.json"), tiny_scenario("good")).unwrap();
+    std::fs::create_dir_all(out.join("good")).unwrap();
+    std::fs::write(
+        out.join("good/metrics.json"),
+        r#"{"scenario": "good", "planner": "cv", "score": 1.0, "failure": null}"#,
+    )
+    .unwrap();
+    let o = sim_folder(&scenarios, &out, true);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("no config.json"), "{e}");
+    // with its config.json, another planner's folder is refused too (naming the field)
+    let o = sim_folder(&scenarios, &out, false);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let mut c = b2dr();
+    c.args([
+        "sim",
+        "--planner",
+        "cv",
+        "--agents",
+        "none",
+        "--bev-every",
+        "0",
+        "--resume",
+        "--scenario",
+    ])
+    .arg(&scenarios)
+    .arg("--out")
+    .arg(&out);
+    let o = c.output().unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && e.contains("planner"), "{e}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `b2dr run` too: every scenario failed (one renderer, or every renderer of a comparison) is a non-zero exit
+/// status, the results still written.
+#[test]
+fn run_exits_non_zero_when_every_scenario_failed() {
+    for renderers in ["none", "none,groundtruth"] {
+        let out = tmp(&format!("run_all_failed_{}", renderers.replace(',', "_")));
+        let o = b2dr()
+            .args([
+                "run",
+                "--scenario",
+                "builtin:town:1",
+                "--renderer",
+                renderers,
+            ])
+            .args([
+                "--planner",
+                "cmd:exit 3",
+                "--agents",
+                "none",
+                "--steps",
+                "10",
+                "--no-gif",
+            ])
+            .args(["--size", "16x24", "--out"])
+            .arg(&out)
+            .output()
+            .unwrap();
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "{renderers}: exited 0: {e}");
+        assert!(
+            e.contains("every scenario failed (1 of 1"),
+            "{renderers}: {e}"
+        );
+        let first = renderers.split(',').next().unwrap();
+        let summary = if renderers.contains(',') {
+            out.join(first).join("metrics.json")
+        } else {
+            out.join("metrics.json")
+        };
+        assert!(summary.is_file(), "{renderers}: {}", summary.display());
+        std::fs::remove_dir_all(&out).ok();
+    }
+}
+
+/// A comparison writes comparison.json into --out itself: --out equal to the scenario folder is refused before
+/// any renderer runs.
+#[test]
+fn comparison_out_in_the_scenario_folder_is_refused() {
+    let dir = tmp("cmp_outin");
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("good.json"), tiny_scenario("good")).unwrap();
+    let o = b2dr()
+        .args([
+            "run",
+            "--renderer",
+            "none,log-replay",
+            "--planner",
+            "cv",
+            "--agents",
+            "none",
+        ])
+        .arg("--scenario")
+        .arg(&dir)
+        .arg("--out")
+        .arg(&dir)
+        .output()
+        .unwrap();
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && e.contains("holds the scenario file"),
+        "{e}"
+    );
+    assert!(!dir.join("comparison.json").exists() && !dir.join("none").exists());
+    std::fs::remove_dir_all(&dir).ok();
 }

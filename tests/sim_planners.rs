@@ -1,7 +1,10 @@
 //! Planners and the closed loop: determinism (bit-identical traces), external planner failures (crash,
 //! timeout, NaN, empty and short trajectories) end the scenario with a reason, the IDM ego planner drives.
+use b2dr::scene::geometry::Pose2;
 use b2dr::sim::external::ExternalPlanner;
-use b2dr::sim::{run, AgentMode, ExpertPlanner, IdmPlanner, SimConfig};
+use b2dr::sim::planner::trajectory_from_ego_frame;
+use b2dr::sim::trajectory::Trajectory;
+use b2dr::sim::{run, AgentMode, ExpertPlanner, IdmPlanner, Planner, PlannerInput, SimConfig};
 use b2dr::world::town as synthetic;
 use std::path::PathBuf;
 use std::time::Duration;
@@ -123,4 +126,102 @@ fn idm_ego_planner_makes_progress_without_collisions_on_town() {
         "idm planner score {:.3} collisions {}",
         s.score, s.no_ego_at_fault_collisions
     );
+}
+
+/// A planner reply with finite but absurd poses (1e300 m ahead) or a NaN pose from an in-process planner ends
+/// the scenario with a reason naming the pose (issue #18), instead of a drive simulated from overflowing
+/// numbers.
+#[test]
+fn absurd_planner_poses_end_the_scenario_with_a_reason() {
+    let sc = synthetic::town(2, None);
+    let cfg = SimConfig {
+        agents: AgentMode::Idm,
+        steps: 10,
+        ..SimConfig::default()
+    };
+    let poses: Vec<String> = (0..8).map(|k| format!("[{}e300, 0, 0]", k + 1)).collect();
+    let cmd = format!(
+        "while read l; do echo '{{\"poses\": [{}]}}'; done",
+        poses.join(", ")
+    );
+    let mut p = ExternalPlanner::new(&cmd, Duration::from_secs(5)).unwrap();
+    let r = run(&sc, &mut p, &cfg);
+    let f = r.failure.clone().unwrap_or_default();
+    assert!(f.contains("poses[0]") && f.contains("<= 10000 m"), "{f}");
+
+    struct NanPlanner;
+    impl Planner for NanPlanner {
+        fn name(&self) -> String {
+            "nan".into()
+        }
+        fn plan(&mut self, input: &PlannerInput) -> anyhow::Result<Trajectory> {
+            let local = vec![Pose2::new(f64::NAN, 0.0, 0.0); 8];
+            trajectory_from_ego_frame(input.ego, &local, 8)
+        }
+    }
+    let r = run(&sc, &mut NanPlanner, &cfg);
+    let f = r.failure.clone().unwrap_or_default();
+    assert!(f.contains("non-finite pose: poses[0]"), "{f}");
+    assert_eq!(r.steps.len(), 1);
+}
+
+/// A planner that closes its stdout but lives on ends its scenario within the timeout, and its process (the
+/// whole group: the shell and what it started) is killed (issue #18).
+#[test]
+fn a_planner_that_closes_stdout_and_lives_is_killed() {
+    let sc = synthetic::town(2, None);
+    let cfg = SimConfig {
+        agents: AgentMode::Idm,
+        steps: 10,
+        ..SimConfig::default()
+    };
+    // a marker no other process carries: sleep's argument
+    let secs = 900_000 + std::process::id() % 90_000;
+    let mut p =
+        ExternalPlanner::new(&format!("exec 1>&-; sleep {secs}"), Duration::from_secs(2)).unwrap();
+    let t0 = std::time::Instant::now();
+    let r = run(&sc, &mut p, &cfg);
+    let f = r.failure.clone().unwrap_or_default();
+    assert!(f.contains("closed its output"), "{f}");
+    assert!(t0.elapsed() < Duration::from_secs(5), "{:?}", t0.elapsed());
+    let alive = || {
+        std::fs::read_dir("/proc")
+            .map(|d| {
+                d.filter_map(|e| e.ok())
+                    .filter_map(|e| std::fs::read(e.path().join("cmdline")).ok())
+                    .any(|c| c == format!("sleep\0{secs}\0").as_bytes())
+            })
+            .unwrap_or(false)
+    };
+    let deadline = std::time::Instant::now() + Duration::from_secs(2);
+    while alive() && std::time::Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    assert!(!alive(), "the planner's process outlived its scenario");
+}
+
+/// A planner that replies the most poses accepted (1000, 500 s) at every planner step costs about what an 8-pose
+/// one does (issue #18): the tracker fitted its profiles to the whole trajectory with a dense solve, cubic in
+/// its length, and a 150-step run took more than 5 minutes.
+#[test]
+fn a_planner_replying_1000_poses_runs_in_bounded_time() {
+    let sc = synthetic::town(2, None);
+    let cfg = SimConfig {
+        agents: AgentMode::Idm,
+        steps: 40,
+        ..SimConfig::default()
+    };
+    let poses: Vec<String> = (0..1000).map(|k| format!("[{}, 0, 0]", k + 1)).collect();
+    let dir = std::env::temp_dir().join(format!("b2dr_1000_poses_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let reply = dir.join("reply.json");
+    std::fs::write(&reply, format!("{{\"poses\": [{}]}}\n", poses.join(", "))).unwrap();
+    let cmd = format!("while read l; do cat {}; done", reply.display());
+    let mut p = ExternalPlanner::new(&cmd, Duration::from_secs(10)).unwrap();
+    let t0 = std::time::Instant::now();
+    let r = run(&sc, &mut p, &cfg);
+    assert!(r.failure.is_none(), "{:?}", r.failure);
+    assert_eq!(r.steps.len(), 41);
+    assert!(t0.elapsed() < Duration::from_secs(10), "{:?}", t0.elapsed());
+    std::fs::remove_dir_all(&dir).ok();
 }

@@ -197,3 +197,36 @@ fn hostile_planners_end_only_their_scenario() {
     let r = run(&sc, &mut planner("--mode cv --images none", 20.0, &d));
     assert!(r.failure.is_none(), "{:?}", r.failure);
 }
+
+/// Camera names come from data (a model package, a frame file): one with separators or `..` becomes a plain
+/// file name inside the image folder (issue #18), and the scenario runs.
+#[test]
+fn camera_names_from_data_stay_inside_the_image_folder() {
+    if !python() {
+        println!("SKIP: python3 not available");
+        return;
+    }
+    let mut sc = synthetic::town(1, None);
+    sc.rig.cameras[0].name = "../../escape".into();
+    sc.rig.cameras[1].name = "/tmp/b2dr-abs".into();
+    let d = tmp("names").join("images");
+    std::fs::create_dir_all(&d).unwrap();
+    let r = run(
+        &sc,
+        &mut planner("--mode checksum --images paths", 20.0, &d),
+    );
+    assert!(r.failure.is_none(), "{:?}", r.failure);
+    let names: Vec<String> = std::fs::read_dir(&d)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().to_string())
+        .collect();
+    assert!(
+        names.iter().any(|n| n.ends_with("______escape.png")),
+        "{names:?}"
+    );
+    assert!(
+        names.iter().any(|n| n.ends_with("_tmp_b2dr-abs.png")),
+        "{names:?}"
+    );
+    assert!(std::fs::read_dir(d.parent().unwrap()).unwrap().count() == 1);
+}

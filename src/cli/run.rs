@@ -115,5 +115,5 @@ pub fn run(device: Option<String>, a: RunArgs) -> Result<()> {
         renderer.name(),
         a.out.join("metrics.json").display()
     );
-    Ok(())
+    b2dr::eval::batch::ensure_not_all_failed(&s, &a.out)
 }

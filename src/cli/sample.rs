@@ -76,6 +76,25 @@ pub fn run(device: Option<String>, a: SampleArgs) -> Result<()> {
     let (ih, iw) = parse_size(&a.size)?;
     let (h, w) = (ih / 8, iw / 8);
     ensure!(a.steps >= 1, "--steps must be >= 1");
+    ensure!(
+        a.guidance.is_finite(),
+        "--guidance {}: must be a finite number",
+        a.guidance
+    );
+    ensure!(
+        a.conditioning_scale.is_finite(),
+        "--conditioning-scale {}: must be a finite number",
+        a.conditioning_scale
+    );
+    if let Some(dir) = &a.model {
+        // before the device: a VAE that does not downsample by 8 would decode images of another size
+        let vdir = dir.join("vae");
+        let (vcj, _) = read_component(&vdir)?;
+        let what = vdir.join("config.json").display().to_string();
+        VaeConfig::from_json(vcj)
+            .with_context(|| what.clone())?
+            .check_factor_8(&what)?;
+    }
     let ctx = Context::new(&ContextOptions {
         device,
         profile: false,

@@ -133,6 +133,7 @@ pub fn run(args: SimArgs) -> Result<()> {
     if let (Some(s), Some(o)) = (args.shard, config.as_object_mut()) {
         o.insert("shard".into(), serde_json::to_value(s)?);
     }
+    batch::check_out_outside_scenarios(&args.out, &sources)?;
     batch::prepare_out(&args.out, &config, args.resume)?;
     let bar = (sources.len() > 1).then(|| {
         let b = indicatif::ProgressBar::new(sources.len() as u64);
@@ -155,6 +156,12 @@ pub fn run(args: SimArgs) -> Result<()> {
             run_one(src, &args, &cfg, dir)
         },
         |name, v| match &bar {
+            // a failed scenario is always named (its score 0 lowers the CLS), on a terminal or not (a hidden
+            // bar's println prints nothing)
+            Some(b) if !v["failure"].is_null() => {
+                b.suspend(|| eprintln!("{}", batch::score_line(name, v)));
+                b.inc(1)
+            }
             Some(b) => b.inc(1),
             None => eprintln!("{}", batch::score_line(name, v)),
         },
@@ -182,5 +189,5 @@ pub fn run(args: SimArgs) -> Result<()> {
         summary["cls"].as_f64().unwrap_or(0.0),
         args.out.join("metrics.json").display()
     );
-    Ok(())
+    batch::ensure_not_all_failed(&summary, &args.out)
 }

@@ -140,6 +140,16 @@ fn config_difference(a: &Value, b: &Value, ignore: &[&str]) -> Option<String> {
 pub fn prepare_out(out: &Path, config: &Value, resume: bool) -> Result<()> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let cpath = out.join("config.json");
+    if resume && !cpath.is_file() {
+        // results without the configuration that made them cannot be checked: refuse to reuse them
+        if let Some(done) = finished_scenario(out)? {
+            bail!(
+                "--resume: {} holds results ({}) but no config.json, so whether they were made with this                  planner and agents cannot be checked; delete the folder or rerun without --resume",
+                out.display(),
+                done.display()
+            );
+        }
+    }
     if resume && cpath.is_file() {
         let old = read_json(&cpath)?;
         if let Some(d) = config_difference(&old, config, &[]) {
@@ -155,6 +165,59 @@ pub fn prepare_out(out: &Path, config: &Value, resume: bool) -> Result<()> {
     if summary.is_file() {
         std::fs::remove_file(&summary)
             .with_context(|| format!("removing the old {}", summary.display()))?;
+    }
+    Ok(())
+}
+
+/// A scenario folder of `out` holding a `metrics.json`, if any.
+fn finished_scenario(out: &Path) -> Result<Option<PathBuf>> {
+    let entries = std::fs::read_dir(out).with_context(|| format!("reading {}", out.display()))?;
+    for e in entries {
+        let p = e
+            .with_context(|| format!("reading {}", out.display()))?
+            .path()
+            .join("metrics.json");
+        if p.is_file() {
+            return Ok(Some(p));
+        }
+    }
+    Ok(None)
+}
+
+/// Refuses an `out` folder that holds (or is) the folder of a scenario file: the batch's own `config.json` and
+/// `metrics.json` would be read back as scenarios by the next run over that folder.
+pub fn check_out_outside_scenarios(out: &Path, sources: &[Source]) -> Result<()> {
+    let canon = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+    let out_c = canon(out);
+    for s in sources {
+        if let Source::File(f) = s {
+            let parent = f.parent().filter(|p| !p.as_os_str().is_empty());
+            let dir = canon(parent.unwrap_or(Path::new(".")));
+            ensure!(
+                !dir.starts_with(&out_c),
+                "--out {} holds the scenario file {}: its config.json and metrics.json would be read as                  scenarios by the next run over that folder; give an --out outside the scenario folder",
+                out.display(),
+                f.display()
+            );
+        }
+    }
+    Ok(())
+}
+
+/// Fails (for a non-zero exit status) when every scenario of a summary failed; the summary is written
+/// first, so the failures stay readable in `metrics.json`.
+pub fn ensure_not_all_failed(summary: &Value, out: &Path) -> Result<()> {
+    let n = summary["scenarios"].as_array().map_or(0, |v| v.len());
+    let failures = summary["failures"].as_u64().unwrap_or(0) as usize;
+    if n > 0 && failures == n {
+        let first = summary["scenarios"][0]["failure"]
+            .as_str()
+            .unwrap_or("")
+            .to_string();
+        bail!(
+            "every scenario failed ({failures} of {n}; see {}); the first: {first}",
+            out.join("metrics.json").display()
+        );
     }
     Ok(())
 }
@@ -294,7 +357,9 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Value> {
         out.display()
     );
     let mut first: Option<(PathBuf, Value)> = None;
-    let mut seen: Vec<Option<PathBuf>> = vec![];
+    // shard index -> folder, and N: a map, so that an N read from a file sizes nothing
+    let mut seen: std::collections::BTreeMap<usize, PathBuf> = Default::default();
+    let mut count: Option<usize> = None;
     let mut results: Vec<Value> = vec![];
     let mut header: Option<Map<String, Value>> = None;
     let mut shards = vec![];
@@ -319,6 +384,14 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Value> {
             Some(s) => serde_json::from_value(s.clone())
                 .with_context(|| format!("merge: {}: invalid \"shard\"", cpath.display()))?,
         };
+        // the file is data: a shard K/N read back must be one `--shard` accepts
+        ensure!(
+            shard.count >= 1 && shard.index < shard.count,
+            "merge: {}: \"shard\" {}/{} is not a shard K/N with 0 <= K < N",
+            cpath.display(),
+            shard.index,
+            shard.count
+        );
         match &first {
             None => first = Some((d.clone(), cfg.clone())),
             Some((d0, c0)) => {
@@ -332,27 +405,25 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Value> {
                 }
             }
         }
-        if seen.is_empty() {
-            seen = vec![None; shard.count];
-        }
+        let n = *count.get_or_insert(shard.count);
         ensure!(
-            seen.len() == shard.count,
+            n == shard.count,
             "merge: {} is shard {shard} but {} was cut into {} shards",
             d.display(),
             first
                 .as_ref()
                 .map(|f| f.0.display().to_string())
                 .unwrap_or_default(),
-            seen.len()
+            n
         );
-        if let Some(prev) = &seen[shard.index] {
+        if let Some(prev) = seen.get(&shard.index) {
             bail!(
                 "merge: shard {shard} is given twice ({} and {})",
                 prev.display(),
                 d.display()
             );
         }
-        seen[shard.index] = Some(d.clone());
+        seen.insert(shard.index, d.clone());
         let h = header_of(&summary);
         let mut h_cmp = h.clone();
         if let Some(dev) = h_cmp.remove("device") {
@@ -383,16 +454,23 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Value> {
         );
         results.extend(sc.iter().cloned());
     }
-    let missing: Vec<String> = seen
-        .iter()
-        .enumerate()
-        .filter(|(_, s)| s.is_none())
-        .map(|(i, _)| format!("{i}/{}", seen.len()))
+    let n = count.unwrap_or(0);
+    // the first few missing shards (N may be huge: the scan stops after 10 of them)
+    let missing: Vec<String> = (0..n)
+        .filter(|i| !seen.contains_key(i))
+        .take(10)
+        .map(|i| format!("{i}/{n}"))
         .collect();
+    let more = (n - seen.len()).saturating_sub(missing.len());
     ensure!(
         missing.is_empty(),
-        "merge: shard(s) {} missing (every shard of --shard K/N must be given)",
-        missing.join(", ")
+        "merge: shard(s) {}{} missing (every shard of --shard K/N must be given)",
+        missing.join(", "),
+        if more > 0 {
+            format!(" and {more} more")
+        } else {
+            String::new()
+        }
     );
     let mut keys: Vec<(String, String)> = results.iter().map(order_key).collect();
     keys.sort_unstable();
@@ -421,4 +499,37 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Value> {
     )?;
     write_summary(out, &summary)?;
     Ok(summary)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A config.json whose "shard" is not one `--shard` accepts (N = 0, K >= N, N = 10^18) is an error naming
+    /// the file, not an index panic or a 10^18-entry allocation (issue #18).
+    #[test]
+    fn merge_refuses_hostile_shard_fields() {
+        let root = std::env::temp_dir().join(format!("b2dr_merge_hostile_{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let d = root.join("shard");
+        std::fs::create_dir_all(&d).unwrap();
+        std::fs::write(d.join("metrics.json"), r#"{"scenarios": []}"#).unwrap();
+        for (shard, needle) in [
+            (json!({"index": 0, "count": 0}), "0 <= K < N"),
+            (json!({"index": 5, "count": 2}), "0 <= K < N"),
+            (
+                json!({"index": 0, "count": 1_000_000_000_000_000_000u64}),
+                "10/1000000000000000000 and 999999999999999989 more missing",
+            ),
+        ] {
+            let cfg = json!({"command": "sim", "shard": shard});
+            std::fs::write(d.join("config.json"), cfg.to_string()).unwrap();
+            let e = format!(
+                "{:#}",
+                merge(std::slice::from_ref(&d), &root.join("out")).unwrap_err()
+            );
+            assert!(e.contains(needle) && e.contains("shard"), "{shard}: {e}");
+        }
+        std::fs::remove_dir_all(&root).ok();
+    }
 }

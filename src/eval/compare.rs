@@ -25,6 +25,11 @@ pub fn compare(
     out: &Path,
     resume: bool,
 ) -> Result<Value> {
+    // comparison.json lands in `out` itself: the scenario folder must not be it (nor hold it)
+    super::batch::check_out_outside_scenarios(
+        out,
+        &crate::scene::import::resolve(&base.scenario)?,
+    )?;
     let mut rows = vec![];
     for &m in modes {
         let mut c = base.clone();
@@ -109,6 +114,14 @@ pub fn compare(
     )?;
     side_by_side(base, modes, out)?;
     println!("{md}");
+    let all_failed = |s: &Value| super::batch::ensure_not_all_failed(s, out).is_err();
+    if let Some((m, s)) = rows
+        .first()
+        .filter(|_| rows.iter().all(|(_, s)| all_failed(s)))
+    {
+        // no scenario of any renderer ran: the table is empty of results, a non-zero exit status says so
+        super::batch::ensure_not_all_failed(s, &out.join(m.name()))?;
+    }
     Ok(summary)
 }
 
@@ -149,19 +162,22 @@ fn diverged(rows: &[(RendererMode, Value)], out: &Path) -> Result<Vec<(String, V
             .as_array()
             .and_then(|v| v.iter().find(|x| x["scenario"] == name.as_str()))
             .and_then(|x| x["steps"].as_u64())
-            .unwrap_or(150) as usize;
+            .unwrap_or(150)
+            .min(1 << 32) as usize; // read back from a file: no overflow below
         let dir = out.join("diverged");
         std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+        // the scenario name comes from the data: its folder name (as the run wrote it) cannot leave `out`
+        let folder = folder_name(name);
         for q in 0..4 {
             // planner steps (multiples of 5) at 0, 1/4, 1/2, 3/4 of the run
             let step = steps * q / 4 / 5 * 5;
             let mosaics = rows.iter().map(|(m, _)| {
                 out.join(m.name())
-                    .join(name)
+                    .join(&folder)
                     .join("mosaic")
                     .join(format!("{step:04}.png"))
             });
-            save_stack(mosaics, &dir.join(format!("{name}_{step:04}.png")))?;
+            save_stack(mosaics, &dir.join(format!("{folder}_{step:04}.png")))?;
         }
         found.push((name.clone(), scores));
     }
@@ -259,5 +275,38 @@ mod tests {
         assert_eq!(img.get_pixel(0, 5)[0], 200);
         assert!(!out.join("diverged/same_0000.png").exists());
         std::fs::remove_dir_all(&out).unwrap();
+    }
+
+    /// Scenario names from the data ("../../x", "a/b") become folder names: the diverged mosaics are read from
+    /// the folders the run wrote and written inside `diverged/`, never outside `out` (issue #18).
+    #[test]
+    fn diverged_names_from_data_stay_inside_out() {
+        let root = std::env::temp_dir().join(format!("b2dr-compare-names-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let out = root.join("a").join("out");
+        let modes = [RendererMode::Groundtruth, RendererMode::LogReplay];
+        let names = ["../../escape", "x/y"];
+        for m in &modes {
+            for sc in names {
+                let d = out.join(m.name()).join(folder_name(sc)).join("mosaic");
+                std::fs::create_dir_all(&d).unwrap();
+                image::RgbImage::new(2, 2).save(d.join("0000.png")).unwrap();
+            }
+        }
+        let summary = |score: f64| {
+            json!({"scenarios": names.iter().map(|n| json!({"scenario": n, "score": score, "steps": 4}))
+                .collect::<Vec<_>>()})
+        };
+        let rows = vec![(modes[0], summary(1.0)), (modes[1], summary(0.0))];
+        assert_eq!(diverged(&rows, &out).unwrap().len(), 2);
+        for sc in names {
+            let f = out
+                .join("diverged")
+                .join(format!("{}_0000.png", folder_name(sc)));
+            assert!(f.is_file(), "{}", f.display());
+        }
+        assert!(!root.join("a/escape_0000.png").exists());
+        assert!(!out.join("diverged/x").exists());
+        std::fs::remove_dir_all(&root).ok();
     }
 }

@@ -101,7 +101,10 @@ pub fn export(o: &PlannerDataOptions) -> Result<PlannerDataSummary> {
     ensure!(o.every >= 1, "--every must be >= 1");
     ensure!(!o.offsets.is_empty(), "--offsets: no offset given");
     let (h, w) = o.size;
-    ensure!(h >= 8 && w >= 8, "--size {h}x{w}: at least 8x8");
+    ensure!(
+        (8..=4096).contains(&h) && (8..=4096).contains(&w),
+        "--size {h}x{w}: each side must be in 8..=4096"
+    );
     std::fs::create_dir_all(&o.out).with_context(|| format!("creating {}", o.out.display()))?;
     let cams_req = if o.cameras.is_empty() {
         vec!["CAM_FRONT".to_string()]
@@ -233,5 +236,25 @@ mod tests {
                 "pose {k}"
             );
         }
+    }
+
+    /// An export size too large to allocate (issue #18) is an error naming --size, before any work.
+    #[test]
+    fn huge_size_is_refused() {
+        let out = std::env::temp_dir().join(format!("b2dr_pd_huge_{}", std::process::id()));
+        for size in [(1usize << 40, 64), (64, usize::MAX), (4097, 8)] {
+            let e = export(&PlannerDataOptions {
+                scenarios: vec!["builtin:straight:3".into()],
+                out: out.clone(),
+                size,
+                cameras: vec![],
+                offsets: vec![(0.0, 0.0)],
+                every: 5,
+                progress: false,
+            })
+            .unwrap_err();
+            assert!(format!("{e:#}").contains("--size"), "{size:?}: {e:#}");
+        }
+        assert!(!out.exists());
     }
 }

@@ -315,6 +315,7 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
     );
     planner(cfg, out)?;
     let sources = batch::select(resolve(&cfg.scenario)?, cfg.shard)?;
+    batch::check_out_outside_scenarios(out, &sources)?;
     batch::prepare_out(out, &serde_json::to_value(cfg)?, resume)?;
     let mut engine = if cfg.renderer.uses_model() {
         let ctx = ctx.context("the b2dr renderer needs a Vulkan device")?;
@@ -354,7 +355,9 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
             bar.set_prefix(format!("scenario {}/{n}", i + 1));
             run_one(src, cfg, engine.as_mut(), dir, &bar)
         },
-        |name, v| bar.println(batch::score_line(name, v)),
+        // suspend + eprintln, not println: a hidden bar (stderr not a terminal) prints nothing, and a failed
+        // scenario must be named in logs too
+        |name, v| bar.suspend(|| eprintln!("{}", batch::score_line(name, v))),
     )?;
     bar.finish_and_clear();
     let header = json!({

@@ -99,7 +99,31 @@ pub struct VaeConfig {
 impl VaeConfig {
     /// GroupNorm eps inside the VAE (diffusers hard-codes 1e-6).
     pub const NORM_EPS: f64 = 1e-6;
+
+    /// How much the encoder downsamples (and the decoder upsamples): 2 per block after the first.
+    pub fn downsample_factor(&self) -> usize {
+        1usize << self.block_out_channels.len().saturating_sub(1).min(16)
+    }
+
+    /// The SD pipeline's latent grid is the image's / 8: a VAE of another factor is an error naming `what`
+    /// (the config file), not images of the wrong size.
+    pub fn check_factor_8(&self, what: &str) -> Result<()> {
+        ensure!(
+            self.downsample_factor() == 8,
+            "{what}: block_out_channels {:?} give a VAE that downsamples by {}; b2dr's pipeline needs 8 (4 blocks)",
+            self.block_out_channels,
+            self.downsample_factor()
+        );
+        Ok(())
+    }
 }
+
+/// Largest integer a config key may hold (channels, groups, layers; SD1.5's largest is 1280): a larger one
+/// is an error naming the key, not a model sized from it (allocations of 2^40 channels, overflowing shape
+/// products, loops over 2^60 layers).
+pub const MAX_CONFIG_INT: u64 = 1 << 16;
+/// Most entries of a per-block list (SD1.5: 4 blocks).
+pub const MAX_BLOCKS: usize = 16;
 
 /// Reads a key map, tracking which keys were consumed.
 struct Keys {
@@ -137,8 +161,12 @@ impl Keys {
         match self.take(key) {
             None => Ok(default),
             Some(v) => match v.as_u64() {
-                Some(x) if x > 0 => Ok(x as usize),
-                _ => Err(self.err(key, &v, "expected a positive integer")),
+                Some(x) if x > 0 && x <= MAX_CONFIG_INT => Ok(x as usize),
+                _ => Err(self.err(
+                    key,
+                    &v,
+                    &format!("expected a positive integer (at most {MAX_CONFIG_INT})"),
+                )),
             },
         }
     }
@@ -171,11 +199,24 @@ impl Keys {
                     .ok_or_else(|| self.err(key, &v, "expected a list of positive integers"))?;
                 let out: Option<Vec<usize>> = arr
                     .iter()
-                    .map(|x| x.as_u64().filter(|x| *x > 0).map(|x| x as usize))
+                    .map(|x| {
+                        x.as_u64()
+                            .filter(|x| *x > 0 && *x <= MAX_CONFIG_INT)
+                            .map(|x| x as usize)
+                    })
                     .collect();
-                let out =
-                    out.ok_or_else(|| self.err(key, &v, "expected a list of positive integers"))?;
+                let out = out.ok_or_else(|| {
+                    self.err(
+                        key,
+                        &v,
+                        &format!("expected a list of positive integers (at most {MAX_CONFIG_INT})"),
+                    )
+                })?;
                 ensure!(!out.is_empty(), self.err(key, &v, "must not be empty"));
+                ensure!(
+                    out.len() <= MAX_BLOCKS,
+                    self.err(key, &v, &format!("at most {MAX_BLOCKS} entries"))
+                );
                 Ok(out)
             }
         }
@@ -186,8 +227,16 @@ impl Keys {
         match self.take(key) {
             None => Ok(vec![default; n]),
             Some(v) if v.is_u64() => {
-                let x = v.as_u64().unwrap_or(0) as usize;
-                ensure!(x > 0, self.err(key, &v, "expected a positive integer"));
+                let x = v.as_u64().unwrap_or(0);
+                ensure!(
+                    x > 0 && x <= MAX_CONFIG_INT,
+                    self.err(
+                        key,
+                        &v,
+                        &format!("expected a positive integer (at most {MAX_CONFIG_INT})")
+                    )
+                );
+                let x = x as usize;
                 Ok(vec![x; n])
             }
             Some(v) => {
@@ -209,6 +258,10 @@ impl Keys {
                 let arr = v
                     .as_array()
                     .ok_or_else(|| self.err(key, &v, "expected a list of strings"))?;
+                ensure!(
+                    arr.len() <= MAX_BLOCKS,
+                    self.err(key, &v, &format!("at most {MAX_BLOCKS} entries"))
+                );
                 arr.iter()
                     .map(|x| {
                         x.as_str()

@@ -345,6 +345,19 @@ impl Pipeline {
         let (h, w) = shape.latent;
         let n = shape.batch;
         ensure!(n > 0 && h > 0 && w > 0, "pipeline: empty shape {shape:?}");
+        ensure!(
+            shape.guidance.is_none_or(f64::is_finite) && shape.conditioning_scale.is_finite(),
+            "pipeline: guidance {:?} and conditioning scale {} must be finite",
+            shape.guidance,
+            shape.conditioning_scale
+        );
+        if let Some((v, scale)) = vae {
+            v.cfg().check_factor_8("pipeline: the VAE")?;
+            ensure!(
+                scale.is_finite() && scale > 0.0,
+                "pipeline: VAE scaling factor {scale} must be finite and > 0"
+            );
+        }
         let mb = if shape.guidance.is_some() { 2 * n } else { n };
         let before = ctx.allocated_bytes();
         let mut ws = Workspace::new(ctx, model_dtype);

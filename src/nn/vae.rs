@@ -155,6 +155,10 @@ pub struct VaeDecoder {
 }
 
 impl VaeDecoder {
+    pub fn cfg(&self) -> &VaeConfig {
+        &self.cfg
+    }
+
     pub fn load(dw: &DeviceWeights, cfg: &VaeConfig) -> Result<Self> {
         let (g, eps) = (cfg.norm_num_groups, VaeConfig::NORM_EPS);
         let n = cfg.block_out_channels.len();

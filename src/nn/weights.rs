@@ -398,13 +398,18 @@ fn decode(name: &str, e: &Entry, raw: &[u8], what: &str) -> Result<HostTensor> {
         "BF16" => FileDType::Bf16,
         other => bail!("{what}: tensor `{name}` has dtype {other}; b2dr reads F32, F16 and BF16"),
     };
-    let count: usize = e.shape.iter().product();
+    // checked: a hostile header's shape product overflows usize
+    let need = e
+        .shape
+        .iter()
+        .try_fold(1usize, |a, &d| a.checked_mul(d))
+        .and_then(|c| c.checked_mul(dtype.size()));
     ensure!(
-        raw.len() == count * dtype.size(),
+        need == Some(raw.len()),
         "{what}: tensor `{name}` {:?} {} needs {} bytes, the file gives {}",
         e.shape,
         dtype.name(),
-        count * dtype.size(),
+        need.map_or("more than 2^64".to_string(), |n| n.to_string()),
         raw.len()
     );
     let data = match dtype {
@@ -467,6 +472,14 @@ impl Weights {
     pub fn from_bytes(bytes: &[u8], expected: &[Spec], what: &str) -> Result<Self> {
         let w = Self::from_bytes_unchecked(bytes, what)?;
         w.check(expected).with_context(|| what.to_string())?;
+        // a NaN weight makes every image NaN: refuse the file, naming the tensor
+        if let Some((n, _)) = w
+            .tensors
+            .iter()
+            .find(|(_, t)| t.data.iter().any(|v| !v.is_finite()))
+        {
+            bail!("{what}: tensor `{n}` holds NaN or infinite values");
+        }
         Ok(w)
     }
 

@@ -94,8 +94,8 @@ impl KeyFrame {
                 height: c.height,
             };
             ensure!(
-                c.width > 0 && c.height > 0,
-                "{}: size {}x{}",
+                c.width > 0 && c.height > 0 && c.width <= 16384 && c.height <= 16384,
+                "{}: size {}x{} (each side in 1..=16384)",
                 ctx(format!("cameras.{name}.width/height")),
                 c.width,
                 c.height

@@ -52,8 +52,9 @@ fn flag(v: &Value, key: &str) -> Result<bool> {
 /// (UniPC: linspace, DDIM: leading), as diffusers' `from_config` does.
 pub fn from_diffusers_json(v: &Value) -> Result<SchedulerSettings> {
     let n = num(v, "num_train_timesteps", 1000.0)?;
-    if n < 1.0 || n.fract() != 0.0 {
-        bail!("scheduler config: key `num_train_timesteps` = {n}: expected a positive integer");
+    // bounded: the schedule holds one entry per training timestep (SD: 1000)
+    if !(1.0..=100_000.0).contains(&n) || n.fract() != 0.0 {
+        bail!("scheduler config: key `num_train_timesteps` = {n}: expected a positive integer (at most 100000)");
     }
     let n = n as usize;
     let b0 = num(v, "beta_start", 0.0001)?;

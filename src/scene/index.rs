@@ -5,12 +5,21 @@ use glam::DVec2;
 use std::cell::RefCell;
 use std::collections::HashMap;
 
-/// Uniform grid over item bounding boxes. An item is stored in every cell its box touches; queries
-/// deduplicate with a per-query stamp, so a query costs the cells it touches plus their items.
+/// Most cells one item is stored in; a larger (or non-finite) box goes to the list every query scans, so a
+/// far-flung or huge item (a 1e5 m edge, a 1e308 coordinate) costs one entry, not a walk over its cells.
+pub const MAX_ITEM_CELLS: u64 = 1 << 14;
+
+/// Uniform grid over item bounding boxes. An item is stored in every cell its box touches (at most
+/// [`MAX_ITEM_CELLS`]; larger items are kept in a list every query visits); queries deduplicate with a
+/// per-query stamp, so a query costs the cells it touches plus their items, and never more than a scan of
+/// every item (a query box larger than that scans the items instead of the cells). Callback order is
+/// unspecified.
 #[derive(Clone, Debug)]
 pub struct GridIndex {
     cell: f64,
     cells: HashMap<(i32, i32), Vec<u32>>,
+    /// Items too large (or not finite) to store per cell.
+    large: Vec<u32>,
     boxes: Vec<Aabb>,
     stamp: RefCell<(u32, Vec<u32>)>,
 }
@@ -20,6 +29,7 @@ impl GridIndex {
         Self {
             cell,
             cells: HashMap::new(),
+            large: Vec::new(),
             boxes: Vec::new(),
             stamp: RefCell::new((0, Vec::new())),
         }
@@ -28,11 +38,23 @@ impl GridIndex {
     fn key(&self, v: f64) -> i32 {
         (v / self.cell).floor().clamp(-1e9, 1e9) as i32
     }
+    /// Number of cells a box touches (saturating; non-finite boxes count as unbounded).
+    fn cell_count(&self, b: &Aabb) -> u64 {
+        let finite = b.min.is_finite() && b.max.is_finite();
+        if !finite {
+            return u64::MAX;
+        }
+        let nx = (self.key(b.max.x) as i64 - self.key(b.min.x) as i64 + 1).max(0) as u64;
+        let ny = (self.key(b.max.y) as i64 - self.key(b.min.y) as i64 + 1).max(0) as u64;
+        nx.saturating_mul(ny)
+    }
     /// Inserts an item (ids are assigned densely in insertion order) and returns its id.
     pub fn insert(&mut self, b: Aabb) -> u32 {
         let id = self.boxes.len() as u32;
         self.boxes.push(b);
-        if !b.is_empty() {
+        if !b.is_empty() && self.cell_count(&b) > MAX_ITEM_CELLS {
+            self.large.push(id);
+        } else if !b.is_empty() {
             for ix in self.key(b.min.x)..=self.key(b.max.x) {
                 for iy in self.key(b.min.y)..=self.key(b.max.y) {
                     self.cells.entry((ix, iy)).or_default().push(id);
@@ -60,18 +82,25 @@ impl GridIndex {
             st.1.resize(n, 0);
         }
         let cur = st.0;
+        let mut visit = |id: u32| {
+            let i = id as usize;
+            if st.1[i] != cur {
+                st.1[i] = cur;
+                if self.boxes[i].overlaps(q) {
+                    f(id);
+                }
+            }
+        };
+        if self.cell_count(q) > (n as u64).saturating_mul(4).saturating_add(64) {
+            // a query box larger than the index: scanning every item is cheaper than walking its cells
+            (0..n as u32).for_each(visit);
+            return;
+        }
+        self.large.iter().for_each(|&id| visit(id));
         for ix in self.key(q.min.x)..=self.key(q.max.x) {
             for iy in self.key(q.min.y)..=self.key(q.max.y) {
                 if let Some(v) = self.cells.get(&(ix, iy)) {
-                    for &id in v {
-                        let i = id as usize;
-                        if st.1[i] != cur {
-                            st.1[i] = cur;
-                            if self.boxes[i].overlaps(q) {
-                                f(id);
-                            }
-                        }
-                    }
+                    v.iter().for_each(|&id| visit(id));
                 }
             }
         }
@@ -81,6 +110,9 @@ impl GridIndex {
         self.query(&Aabb { min: p, max: p }, f)
     }
 }
+
+/// Most horizontal bands of a [`PolygonSet`] (their height grows past 4 m for sets wider than 262 km).
+pub const MAX_BANDS: usize = 1 << 16;
 
 /// A set of polygons with holes (e.g. a GeoJSON MultiPolygon) with an edge index: containment counts ray
 /// crossings among the edges of the point's horizontal band only; distance searches the edge grid.
@@ -124,7 +156,10 @@ impl PolygonSet {
             return s;
         }
         s.y0 = bb.min.y;
-        let nb = (((bb.max.y - bb.min.y) / band).floor() as usize) + 1;
+        // at most MAX_BANDS bands: a set spanning more than 4 * MAX_BANDS metres gets wider bands
+        s.band = band.max((bb.max.y - bb.min.y) / MAX_BANDS as f64);
+        let band = s.band;
+        let nb = ((((bb.max.y - bb.min.y) / band).floor() as usize) + 1).min(MAX_BANDS);
         s.bands = vec![Vec::new(); nb];
         let mut grid = GridIndex::new(8.0);
         for (i, (a, b)) in s.edges.iter().enumerate() {
@@ -240,5 +275,63 @@ mod tests {
         assert!((s.distance(DVec2::new(10.0, 10.0), 50.0) - 5.0).abs() < 1e-12);
         assert!((s.distance(DVec2::new(23.0, 10.0), 50.0) - 3.0).abs() < 1e-12);
         assert_eq!(s.distance(DVec2::new(100.0, 10.0), 5.0), f64::INFINITY);
+    }
+
+    /// Far-away and huge items (a 1e5 m box at 1 m cells: 1e10 cells; a 1e308 coordinate) are stored in
+    /// bounded time and still found; a query box larger than the index scans the items instead of its cells.
+    #[test]
+    fn grid_bounds_work_for_huge_and_far_boxes() {
+        let t0 = std::time::Instant::now();
+        let mut g = GridIndex::new(1.0);
+        let small = g.insert(Aabb {
+            min: DVec2::new(0.0, 0.0),
+            max: DVec2::new(1.0, 1.0),
+        });
+        let huge = g.insert(Aabb {
+            min: DVec2::new(-1e5, -1e5),
+            max: DVec2::new(1e5, 1e5),
+        });
+        let far = g.insert(Aabb {
+            min: DVec2::new(-1e308, 0.0),
+            max: DVec2::new(1e308, 1.0),
+        });
+        let mut hits = vec![];
+        g.query_point(DVec2::new(0.5, 0.5), |i| hits.push(i));
+        hits.sort();
+        assert_eq!(hits, vec![small, huge, far]);
+        hits.clear();
+        g.query_point(DVec2::new(5e4, -5e4), |i| hits.push(i));
+        assert_eq!(hits, vec![huge]);
+        hits.clear();
+        let everything = Aabb {
+            min: DVec2::splat(-1e300),
+            max: DVec2::splat(1e300),
+        };
+        g.query(&everything, |i| hits.push(i));
+        hits.sort();
+        assert_eq!(hits, vec![small, huge, far]);
+        assert!(t0.elapsed().as_secs_f64() < 2.0, "{:?}", t0.elapsed());
+    }
+
+    /// A drivable area with vertices at 1e5 m and 1e308 m builds and answers in bounded time (bands capped).
+    #[test]
+    fn polygon_set_far_vertices_are_bounded() {
+        let t0 = std::time::Instant::now();
+        for far in [1e5, 1e9, 1e308] {
+            let ring = vec![
+                DVec2::new(0.0, 0.0),
+                DVec2::new(far, 0.0),
+                DVec2::new(far, far),
+                DVec2::new(0.0, far),
+            ];
+            let s = PolygonSet::new(vec![ring]);
+            assert!(s.bands.len() <= MAX_BANDS);
+            assert!(s.contains(DVec2::new(10.0, 10.0)), "far {far}");
+            assert!(!s.contains(DVec2::new(-10.0, 10.0)), "far {far}");
+            let d = s.distance(DVec2::new(-3.0, 10.0), 50.0);
+            // at 1e308 squared lengths overflow (importers reject such coordinates); only boundedness counts
+            assert!(far > 1e300 || (d - 3.0).abs() < 1e-9, "far {far}: {d}");
+        }
+        assert!(t0.elapsed().as_secs_f64() < 2.0, "{:?}", t0.elapsed());
     }
 }

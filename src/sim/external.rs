@@ -303,7 +303,12 @@ impl ExternalPlanner {
                         .unwrap_or_else(|| std::env::temp_dir().join("b2dr-planner-images"));
                     std::fs::create_dir_all(&dir)
                         .with_context(|| format!("creating {}", dir.display()))?;
-                    let p = dir.join(format!("{}_{step:04}_{}.png", self.scenario, f.camera));
+                    // camera names come from data (a model package, a frame file): file-name safe
+                    let p = dir.join(format!(
+                        "{}_{step:04}_{}.png",
+                        self.scenario,
+                        crate::scene::safe_name(&f.camera)
+                    ));
                     f.to_image()
                         .save(&p)
                         .with_context(|| format!("writing {}", p.display()))?;
@@ -361,7 +366,7 @@ impl Planner for ExternalPlanner {
     fn start(&mut self, sc: &Scenario) -> Result<()> {
         self.kill();
         self.spawn()?;
-        self.scenario = sc.name.replace(['/', '\\', ':'], "_");
+        self.scenario = crate::scene::safe_name(&sc.name);
         if self.protocol < 2 {
             return Ok(());
         }

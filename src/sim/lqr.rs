@@ -249,6 +249,9 @@ pub fn resample(traj: &Trajectory, dt: f64) -> (Vec<f64>, Vec<Pose2>) {
     (times.iter().map(|&t| t as f64 / 1e6).collect(), poses)
 }
 
+/// Longest span of a trajectory the tracker fits its profiles to (s); the tracker looks 1 s ahead.
+pub const MAX_FIT_S: f64 = 10.0;
+
 /// Output of one tracker call (for traces and tests).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct TrackerCommand {
@@ -268,10 +271,16 @@ impl LqrTracker {
         Self { p }
     }
 
-    /// Reference speed at t + N dt and curvatures at t + k dt, k < N.
+    /// Reference speed at t + N dt and curvatures at t + k dt, k < N. The profiles are fitted to the first
+    /// [`MAX_FIT_S`] seconds of the trajectory (all of nuPlan's 8 s ones): the fit is a dense solve, cubic in
+    /// the samples, and a 1000-pose (500 s) reply made every 10 Hz step take minutes.
     pub fn reference_profiles(&self, t_now: f64, traj: &Trajectory) -> (f64, Vec<f64>) {
         let p = &self.p;
-        let (times, poses) = resample(traj, p.dt);
+        let (mut times, mut poses) = resample(traj, p.dt);
+        let t_end = times.first().copied().unwrap_or(0.0) + MAX_FIT_S + 1e-9;
+        let keep = times.partition_point(|&t| t <= t_end);
+        times.truncate(keep);
+        poses.truncate(keep);
         if poses.len() < 3 {
             // Too short to fit (fewer than 2 displacements): hold the average speed, no curvature.
             let d = traj.poses[traj.poses.len() - 1].pos() - traj.poses[0].pos();

@@ -50,8 +50,11 @@ pub trait Planner {
     fn finish(&mut self) {}
 }
 
+/// Largest ego-frame coordinate of a planned pose (m).
+pub const MAX_PLAN_EXTENT_M: f64 = 1e4;
+
 /// Converts an ego-frame reply (poses at t + 0.5 k, k = 1..=8) into a global trajectory that starts at the
-/// current rear-axle pose. Checks count and finiteness.
+/// current rear-axle pose. Checks count, finiteness and magnitude.
 pub fn trajectory_from_ego_frame(
     ego: &EgoState,
     local: &[Pose2],
@@ -63,10 +66,22 @@ pub fn trajectory_from_ego_frame(
         "planner returned {} poses, at least {min_poses} are required",
         local.len()
     );
-    for p in local {
+    for (i, p) in local.iter().enumerate() {
         ensure!(
             p.x.is_finite() && p.y.is_finite() && p.heading.is_finite(),
-            "planner returned a non-finite pose"
+            "planner returned a non-finite pose: poses[{i}] = ({}, {}, {})",
+            p.x,
+            p.y,
+            p.heading
+        );
+        // beyond these the controller and the metrics would compute with overflowing squares
+        ensure!(
+            p.x.abs() <= MAX_PLAN_EXTENT_M && p.y.abs() <= MAX_PLAN_EXTENT_M && p.heading.abs() <= 1e3,
+            "planner returned poses[{i}] = ({}, {}, {}): |x|, |y| must be <= {MAX_PLAN_EXTENT_M} m (ego frame) \
+             and |heading| <= 1000 rad",
+            p.x,
+            p.y,
+            p.heading
         );
     }
     let t0 = (ego.time_s * 1e6).round() as i64;

@@ -39,6 +39,13 @@ const SIDEWALK_W: f64 = 3.2;
 const LINE_W: f64 = 0.18;
 const DASH: f64 = 3.0;
 const DASH_PERIOD: f64 = 9.0;
+/// Most ground polygons and roadside solids of one world: a map with far-flung roads (a 1e8 m lane of a
+/// scenario file) stops being decorated there instead of placing 10^7 trees (built-in towns hold a few
+/// thousand of each).
+pub const MAX_GROUND: usize = 200_000;
+pub const MAX_SOLIDS: usize = 50_000;
+/// Most zebra bars of one crosswalk (a 1 km crossing).
+const MAX_ZEBRA_BARS: usize = 1000;
 
 /// The scenery seed of a scenario: FNV-1a of its source string and map name.
 pub fn scenery_seed(sc: &Scenario) -> u64 {
@@ -92,7 +99,7 @@ fn dashes(line: &RoadLine, d0: f64, d1: f64, out: &mut Vec<Vec<DVec2>>) {
         (pts[i - 1] + (pts[i] - pts[i - 1]) * f, n)
     };
     let mut t = 1.0;
-    while t + DASH <= s {
+    while t + DASH <= s && out.len() < MAX_GROUND {
         let (a, na) = at(t);
         let (b, nb) = at(t + DASH);
         out.push(vec![a + na * d0, b + nb * d0, b + nb * d1, a + na * d1]);
@@ -114,7 +121,7 @@ fn zebra(pts: &[DVec2]) -> Vec<Vec<DVec2>> {
     };
     let len = long.length();
     let u = long / len.max(1e-9);
-    let n = (len / 1.0).floor() as usize;
+    let n = ((len / 1.0).floor() as usize).min(MAX_ZEBRA_BARS);
     let margin = (len - n as f64 * 1.0 + 0.5) * 0.5;
     (0..n)
         .map(|i| {
@@ -190,7 +197,11 @@ fn ground_layers(map: &Map, lines: &[RoadLine], pal: &Palette) -> Vec<GroundPoly
         for r in rings {
             g.extend(poly(vec![r], colour, SemanticClass::LaneMarking));
         }
+        if g.len() >= MAX_GROUND {
+            break;
+        }
     }
+    g.truncate(MAX_GROUND);
     g
 }
 
@@ -315,8 +326,14 @@ fn pole(pal: &Palette, p: DVec2, towards_road: DVec2) -> Solid {
 fn roadside(map: &Map, lines: &[RoadLine], pal: &Palette, seed: u64) -> Vec<Solid> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let mut out = Vec::new();
+    // footprints placed so far, indexed: the overlap test of a new lot looks at its neighbours only (a scan
+    // of every earlier footprint made placement quadratic in the road length)
     let mut footprints: Vec<[DVec2; 4]> = Vec::new();
+    let mut footprint_index = crate::scene::index::GridIndex::new(32.0);
     for l in lines.iter().filter(|l| l.kind == LineKind::RoadEdge) {
+        if out.len() >= MAX_SOLIDS {
+            break;
+        }
         let pts = &l.points;
         let mut acc = vec![0.0];
         for w in pts.windows(2) {
@@ -333,7 +350,7 @@ fn roadside(map: &Map, lines: &[RoadLine], pal: &Palette, seed: u64) -> Vec<Soli
         };
         // Poles and street trees on the sidewalk.
         let mut t = rng.gen_range(2.0..10.0);
-        while t < total {
+        while t < total && out.len() < MAX_SOLIDS {
             let (p, n) = at(t);
             if rng.gen_bool(0.45) {
                 out.push(pole(pal, p + n * (KERB_W + 0.5), -n));
@@ -344,7 +361,7 @@ fn roadside(map: &Map, lines: &[RoadLine], pal: &Palette, seed: u64) -> Vec<Soli
         }
         // Lots behind the sidewalk: a building or a small park.
         let mut t = rng.gen_range(0.0..6.0);
-        while t < total {
+        while t < total && out.len() < MAX_SOLIDS {
             let front = rng.gen_range(8.0..20.0);
             let (p, n) = at((t + front * 0.5).min(total));
             let depth = rng.gen_range(8.0..16.0);
@@ -358,8 +375,13 @@ fn roadside(map: &Map, lines: &[RoadLine], pal: &Palette, seed: u64) -> Vec<Soli
                 c - n * (depth * 0.5) - u * (front * 0.5),
                 c + n * (depth * 0.5) - u * (front * 0.5),
             ];
-            let free = clear_of_roads(map, &fp, KERB_W + SIDEWALK_W + 0.5)
-                && footprints.iter().all(|o| !convex_intersect(o, &fp));
+            let free = clear_of_roads(map, &fp, KERB_W + SIDEWALK_W + 0.5) && {
+                let mut hit = false;
+                footprint_index.query(&Aabb::from_points(&fp), |i| {
+                    hit = hit || convex_intersect(&footprints[i as usize], &fp)
+                });
+                !hit
+            };
             if free {
                 if rng.gen_bool(0.8) {
                     let height = if rng.gen_bool(0.25) {
@@ -374,6 +396,7 @@ fn roadside(map: &Map, lines: &[RoadLine], pal: &Palette, seed: u64) -> Vec<Soli
                         out.push(tree(pal, &mut rng, q));
                     }
                 }
+                footprint_index.insert(Aabb::from_points(&fp));
                 footprints.push(fp);
             }
             t += front + rng.gen_range(1.0..5.0);
@@ -388,7 +411,11 @@ impl Scenery {
         let lines = road_lines(&sc.map);
         Scenery {
             ground: ground_layers(&sc.map, &lines, &pal),
-            solids: roadside(&sc.map, &lines, &pal, scenery_seed(sc)),
+            solids: {
+                let mut v = roadside(&sc.map, &lines, &pal, scenery_seed(sc));
+                v.truncate(MAX_SOLIDS);
+                v
+            },
             palette: pal,
         }
     }

@@ -12,7 +12,7 @@ use crate::projection::{
 use crate::scene::camera::Camera;
 use crate::scene::geometry::Pose2;
 use crate::scene::import::ego2global;
-use crate::scene::{ObjectClass, Scenario};
+use crate::scene::{safe_name, ObjectClass, Scenario};
 use anyhow::{bail, ensure, Context, Result};
 use glam::{DMat3, DMat4, DVec2, DVec3, DVec4};
 use image::{Rgb, RgbImage};
@@ -375,7 +375,7 @@ pub fn write_view(out: &ViewOutput, sc: &Scenario, step: usize, dir: &Path) -> R
     let cfg = ProjectionConfig::default();
     for ((cam, f), m) in out.cameras.iter().zip(&out.frames).zip(&out.masks) {
         let img = to_image(&f.rgb, f.width, f.height);
-        save(&img, &dir.join(format!("{}.png", cam.name)))?;
+        save(&img, &dir.join(format!("{}.png", safe_name(&cam.name))))?;
         let mut ov = overlay(f, m);
         let proj = CameraProjector::new(cam, &out.ego2global, f.width as u32, f.height as u32)?;
         for (_, b) in &boxes {
@@ -383,7 +383,10 @@ pub fn write_view(out: &ViewOutput, sc: &Scenario, step: usize, dir: &Path) -> R
                 draw_segments(&mut ov, &segs, MASK_COLOURS[b.class.index()]);
             }
         }
-        save(&ov, &dir.join(format!("{}_overlay.png", cam.name)))?;
+        save(
+            &ov,
+            &dir.join(format!("{}_overlay.png", safe_name(&cam.name))),
+        )?;
         let mut cls = RgbImage::new(f.width as u32, f.height as u32);
         for (p, &c) in f.class.iter().enumerate() {
             let col = super::SemanticClass::ALL
@@ -392,7 +395,10 @@ pub fn write_view(out: &ViewOutput, sc: &Scenario, step: usize, dir: &Path) -> R
                 .unwrap_or([0, 0, 0]);
             cls.put_pixel((p % f.width) as u32, (p / f.width) as u32, Rgb(col));
         }
-        save(&cls, &dir.join(format!("{}_class.png", cam.name)))?;
+        save(
+            &cls,
+            &dir.join(format!("{}_class.png", safe_name(&cam.name))),
+        )?;
         // Depth as 16-bit PNG in centimetres (0 = sky or beyond 655 m).
         let depth: Vec<u16> = f
             .depth
@@ -405,7 +411,7 @@ pub fn write_view(out: &ViewOutput, sc: &Scenario, step: usize, dir: &Path) -> R
                 }
             })
             .collect();
-        let path = dir.join(format!("{}_depth.png", cam.name));
+        let path = dir.join(format!("{}_depth.png", safe_name(&cam.name)));
         image::ImageBuffer::<image::Luma<u16>, Vec<u16>>::from_raw(
             f.width as u32,
             f.height as u32,

@@ -69,9 +69,13 @@ pub fn resolve(spec: &str) -> Result<Vec<Source>> {
     }
     let p = PathBuf::from(spec);
     if p.is_dir() {
+        // an entry that cannot be read is an error, not a scenario silently left out of the CLS
         let mut files: Vec<PathBuf> = std::fs::read_dir(&p)
             .with_context(|| format!("reading scenario directory {}", p.display()))?
-            .filter_map(|e| e.ok().map(|e| e.path()))
+            .map(|e| e.map(|e| e.path()))
+            .collect::<std::io::Result<Vec<_>>>()
+            .with_context(|| format!("reading scenario directory {}", p.display()))?
+            .into_iter()
             .filter(|f| f.extension().is_some_and(|x| x == "json"))
             .collect();
         files.sort();

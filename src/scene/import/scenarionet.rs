@@ -28,6 +28,14 @@ use std::path::Path;
 /// Width given to connector polygons (nuScenes lanes are about 3-3.5 m wide).
 pub const CONNECTOR_WIDTH_M: f64 = 3.5;
 
+/// Largest coordinate accepted (metres from the map origin; UTM northings stay below 1e7): a coordinate
+/// beyond it is an error naming the field, not a map whose geometry overflows.
+pub const MAX_COORD_M: f64 = 1e8;
+/// Largest speed accepted in a logged velocity (m/s).
+pub const MAX_SPEED_MPS: f64 = 1e3;
+/// Largest object dimension accepted (m).
+pub const MAX_SIZE_M: f64 = 1e3;
+
 /// Field access with errors that name the file and the JSON path.
 struct Ctx<'a> {
     file: &'a str,
@@ -73,6 +81,7 @@ impl Ctx<'_> {
             if !x.is_finite() || !y.is_finite() {
                 return Err(self.err(&pp, "non-finite coordinate"));
             }
+            self.within_world(x, y, &pp)?;
             pts.push(DVec2::new(x, y));
             if c.len() >= 3 {
                 third.push(self.f64(&c[2], &pp)?);
@@ -80,6 +89,16 @@ impl Ctx<'_> {
         }
         let third = (third.len() == pts.len() && !pts.is_empty()).then_some(third);
         Ok((pts, third))
+    }
+    /// A coordinate pair within [`MAX_COORD_M`].
+    fn within_world(&self, x: f64, y: f64, path: &str) -> Result<()> {
+        if x.abs() > MAX_COORD_M || y.abs() > MAX_COORD_M {
+            return Err(self.err(
+                path,
+                &format!("coordinate ({x}, {y}) lies beyond {MAX_COORD_M:e} m of the origin"),
+            ));
+        }
+        Ok(())
     }
     /// A per-step array of length exactly t.
     fn steps<'v>(&self, v: &'v Value, key: &str, path: &str, t: usize) -> Result<&'v Vec<Value>> {
@@ -168,6 +187,16 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
     let map_name = c
         .str(c.get(meta, "map", "metadata")?, "metadata.map")?
         .to_string();
+    // the map name becomes a file name (`<map>.drivable_area.geojson` in maps_dir): a plain name only
+    if map_name.is_empty()
+        || map_name.starts_with('.')
+        || map_name.chars().any(|ch| matches!(ch, '/' | '\\' | '\0'))
+    {
+        return Err(c.err(
+            "metadata.map",
+            &format!("{map_name:?} is not a plain map name (no separators, NUL or leading dot)"),
+        ));
+    }
     let dt = match meta.get("sample_rate") {
         Some(s) => c.f64(s, "metadata.sample_rate")?,
         None => 0.1,
@@ -237,11 +266,37 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
             if !(x.is_finite() && y.is_finite() && h.is_finite()) {
                 return Err(c.err(&pp, "non-finite position or heading at a valid step"));
             }
+            c.within_world(x, y, &pp)?;
+            if h.abs() > 1e3 {
+                return Err(c.err(
+                    &format!("{sp}.heading[{k}]"),
+                    &format!("heading {h} rad is not an angle"),
+                ));
+            }
+            // NaN (unknown) velocities are kept; a finite one must be a speed
+            if vx.abs() > MAX_SPEED_MPS
+                || vy.abs() > MAX_SPEED_MPS
+                || vx.is_infinite()
+                || vy.is_infinite()
+            {
+                return Err(c.err(
+                    &vp,
+                    &format!("velocity ({vx}, {vy}) beyond {MAX_SPEED_MPS} m/s"),
+                ));
+            }
             if size.is_none() {
+                let dim = |a: &Value, what: &str| -> Result<f64> {
+                    let path = format!("{sp}.{what}[{k}]");
+                    let d = c.f64(a, &path)?;
+                    if !(d.is_finite() && d.abs() <= MAX_SIZE_M) {
+                        return Err(c.err(&path, &format!("size {d} m is not in 0..={MAX_SIZE_M}")));
+                    }
+                    Ok(d)
+                };
                 size = Some((
-                    c.f64(&len[k], &format!("{sp}.length[{k}]"))?,
-                    c.f64(&wid[k], &format!("{sp}.width[{k}]"))?,
-                    c.f64(&hei[k], &format!("{sp}.height[{k}]"))?,
+                    dim(&len[k], "length")?,
+                    dim(&wid[k], "width")?,
+                    dim(&hei[k], "height")?,
                 ));
             }
             states.push(Some(ObjectState {

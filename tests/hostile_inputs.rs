@@ -1,0 +1,473 @@
+//! Property tests over the entry points that read files and replies (issue #18): safetensors headers, model
+//! and scheduler configs, ScenarioNet scenarios, GeoJSON drivable areas, keyframe files and planner replies.
+//! Every input either parses or is an `Err`, within a time bound, never a panic. Inputs are valid documents
+//! with one value replaced by an arbitrary one (wrong types, huge and negative numbers, deep nesting), and
+//! arbitrary documents. Case counts are bounded (a minute or two in all on a CI machine).
+use std::path::{Path, PathBuf};
+use std::time::{Duration, Instant};
+
+use b2dr::nn::b2dr_config::ControlNetKind;
+use b2dr::nn::config::{ControlNetConfig, UNetConfig, VaeConfig};
+use b2dr::nn::weights::Weights;
+use b2dr::projection::keyframe::{drivable_area_from_geojson, KeyFrame};
+use b2dr::scene::geometry::Pose2;
+use b2dr::scene::import::scenarionet;
+use b2dr::sim::ego::EgoState;
+use b2dr::sim::external::parse_reply;
+use b2dr::sim::planner::trajectory_from_ego_frame;
+use proptest::prelude::*;
+use proptest::sample::Index;
+use serde_json::{json, Value};
+
+/// Longest one parse may take.
+const BOUND: Duration = Duration::from_secs(5);
+
+fn config(cases: u32) -> ProptestConfig {
+    ProptestConfig {
+        cases,
+        failure_persistence: None,
+        ..ProptestConfig::default()
+    }
+}
+
+/// Numbers that break naive code: huge, tiny, negative, zero, integers past usize and f64 extremes.
+fn nasty_number() -> impl Strategy<Value = Value> {
+    prop_oneof![
+        Just(json!(0)),
+        Just(json!(-1)),
+        Just(json!(1u64 << 40)),
+        Just(json!(u64::MAX)),
+        Just(json!(i64::MIN)),
+        Just(json!(1e308)),
+        Just(json!(-1e308)),
+        Just(json!(1e5)),
+        Just(json!(5e-324)),
+        Just(json!(0.5)),
+        any::<i64>().prop_map(|i| json!(i)),
+        any::<f64>().prop_filter_map("finite", |f| serde_json::Number::from_f64(f)
+            .map(Value::Number)),
+    ]
+}
+
+/// Arbitrary JSON (bounded depth and width).
+fn arb_json() -> impl Strategy<Value = Value> {
+    let leaf = prop_oneof![
+        Just(Value::Null),
+        any::<bool>().prop_map(Value::Bool),
+        nasty_number(),
+        "[A-Za-z_./\\\\]{0,10}".prop_map(Value::String),
+    ];
+    leaf.prop_recursive(3, 24, 5, |inner| {
+        prop_oneof![
+            prop::collection::vec(inner.clone(), 0..5).prop_map(Value::Array),
+            prop::collection::btree_map("[a-z_]{1,8}", inner, 0..5)
+                .prop_map(|m| Value::Object(m.into_iter().collect())),
+        ]
+    })
+}
+
+/// Every JSON pointer of a document (the root included).
+fn pointers(v: &Value, at: String, out: &mut Vec<String>) {
+    match v {
+        Value::Array(a) => a
+            .iter()
+            .enumerate()
+            .for_each(|(i, x)| pointers(x, format!("{at}/{i}"), out)),
+        Value::Object(o) => o.iter().for_each(|(k, x)| {
+            pointers(
+                x,
+                format!("{at}/{}", k.replace('~', "~0").replace('/', "~1")),
+                out,
+            )
+        }),
+        _ => {}
+    }
+    out.push(at);
+}
+
+/// `base` with the value at one pointer replaced (or, for `delete`, removed from its object/array).
+fn mutate(base: &Value, at: Index, new: Value, delete: bool) -> Value {
+    let mut v = base.clone();
+    let mut ps = vec![];
+    pointers(base, String::new(), &mut ps);
+    let p = &ps[at.index(ps.len())];
+    if delete && !p.is_empty() {
+        let (parent, key) = p.rsplit_once('/').unwrap_or(("", p));
+        match v.pointer_mut(parent) {
+            Some(Value::Object(o)) => {
+                o.remove(&key.replace("~1", "/").replace("~0", "~"));
+            }
+            Some(Value::Array(a)) => {
+                if let Ok(i) = key.parse::<usize>() {
+                    if i < a.len() {
+                        a.remove(i);
+                    }
+                }
+            }
+            _ => {}
+        }
+    } else if let Some(slot) = v.pointer_mut(p) {
+        *slot = new;
+    }
+    v
+}
+
+/// `base` with one of its numbers replaced (documents that still parse more often than `mutate`'s).
+fn mutate_number(base: &Value, at: Index, new: Value) -> Value {
+    let mut ps = vec![];
+    pointers(base, String::new(), &mut ps);
+    ps.retain(|p| base.pointer(p).is_some_and(Value::is_number));
+    let mut v = base.clone();
+    if let Some(slot) = v.pointer_mut(&ps[at.index(ps.len())]) {
+        *slot = new;
+    }
+    v
+}
+
+/// Runs `f`, asserting that it returns (Ok or Err, never a panic: the property fails on one) within BOUND.
+fn bounded<T>(what: &str, f: impl FnOnce() -> T) -> T {
+    let t0 = Instant::now();
+    let r = f();
+    assert!(t0.elapsed() < BOUND, "{what} took {:?}", t0.elapsed());
+    r
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("b2dr_hostile_{}_{name}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+// ------------------------------------------------------------------------------------------------ safetensors
+
+/// A safetensors buffer from a header value and data bytes.
+fn safetensors(header: &Value, data: &[u8]) -> Vec<u8> {
+    let h = serde_json::to_vec(header).unwrap();
+    let mut out = (h.len() as u64).to_le_bytes().to_vec();
+    out.extend_from_slice(&h);
+    out.extend_from_slice(data);
+    out
+}
+
+fn arb_entry() -> impl Strategy<Value = Value> {
+    let dim = prop_oneof![0u64..5, Just(1u64 << 32), Just(1u64 << 62), Just(u64::MAX)];
+    let off = prop_oneof![0u64..40, Just(u64::MAX), Just(1u64 << 63)];
+    (
+        prop::sample::select(vec!["F32", "F16", "BF16", "I64", "F64", ""]),
+        prop::collection::vec(dim, 0..4),
+        off.clone(),
+        off,
+    )
+        .prop_map(|(d, s, a, b)| json!({"dtype": d, "shape": s, "data_offsets": [a, b]}))
+}
+
+proptest! {
+    #![proptest_config(config(256))]
+
+    #[test]
+    fn safetensors_headers_parse_or_err(
+        entries in prop::collection::btree_map("[a-z.]{1,6}", arb_entry(), 0..4),
+        data in prop::collection::vec(any::<u8>(), 0..48),
+        junk in arb_json(),
+        raw in prop::collection::vec(any::<u8>(), 0..64),
+        declared in prop_oneof![0u64..80, Just(u64::MAX)],
+    ) {
+        let header = Value::Object(entries.into_iter().collect());
+        let _ = bounded("safetensors", || Weights::from_bytes_unchecked(&safetensors(&header, &data), "p.safetensors"));
+        let _ = bounded("safetensors junk", || Weights::from_bytes_unchecked(&safetensors(&junk, &data), "p.safetensors"));
+        // a declared header length that lies
+        let mut lying = declared.to_le_bytes().to_vec();
+        lying.extend_from_slice(&raw);
+        let _ = bounded("safetensors raw", || Weights::from_bytes_unchecked(&lying, "p.safetensors"));
+        let _ = bounded("safetensors bytes", || Weights::from_bytes_unchecked(&raw, "p.safetensors"));
+    }
+}
+
+// ---------------------------------------------------------------------------------------------------- configs
+
+fn scheduler_json() -> Value {
+    json!({"_class_name": "UniPCMultistepScheduler", "num_train_timesteps": 1000, "beta_start": 0.00085,
+        "beta_end": 0.012, "beta_schedule": "scaled_linear", "prediction_type": "epsilon",
+        "timestep_spacing": "linspace", "steps_offset": 1, "solver_order": 2})
+}
+
+proptest! {
+    #![proptest_config(config(192))]
+
+    #[test]
+    fn model_configs_parse_or_err(at in any::<Index>(), new in arb_json(), delete in any::<bool>(), doc in arb_json()) {
+        let bases = [
+            UNetConfig::b2dr_tiny().to_json(),
+            ControlNetConfig::b2dr_tiny().to_json(),
+            VaeConfig::b2dr_tiny().to_json(),
+            b2dr::nn::b2dr_config::B2drConfig::from_unet(&UNetConfig::b2dr_tiny(), vec![16, 32, 96, 256]).to_json(),
+            scheduler_json(),
+        ];
+        for base in &bases {
+            let v = mutate(base, at, new.clone(), delete);
+            let _ = bounded("unet config", || UNetConfig::from_json(v.clone()));
+            let _ = bounded("controlnet config", || ControlNetKind::from_json(v.clone()));
+            let _ = bounded("vae config", || VaeConfig::from_json(v.clone()));
+            let _ = bounded("scheduler config", || b2dr::sampling::config::from_diffusers_json(&v));
+        }
+        let _ = bounded("unet config", || UNetConfig::from_json(doc.clone()));
+        let _ = bounded("vae config", || VaeConfig::from_json(doc.clone()));
+        let _ = bounded("scheduler config", || b2dr::sampling::config::from_diffusers_json(&doc));
+    }
+}
+
+/// A config that parses yields expected weight lists whose sizes are computable (bounded integers).
+#[test]
+fn huge_scheduler_timesteps_are_an_error() {
+    let mut v = scheduler_json();
+    v["num_train_timesteps"] = json!(1e15);
+    let e = format!(
+        "{:#}",
+        b2dr::sampling::config::from_diffusers_json(&v).unwrap_err()
+    );
+    assert!(e.contains("num_train_timesteps"), "{e}");
+}
+
+// ------------------------------------------------------------------------------------------------- scenarios
+
+fn scenario_json() -> Value {
+    json!({
+        "format": "scenarionet-scenario-description/json",
+        "id": "tiny", "length": 3,
+        "metadata": {"sdc_id": "ego", "map": "nowhere", "sample_rate": 0.1},
+        "tracks": {
+            "ego": {"type": "VEHICLE", "state": {
+                "position": [[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]],
+                "heading": [0.0, 0.0, 0.0], "velocity": [[10.0, 0.0], [10.0, 0.0], [10.0, 0.0]],
+                "valid": [1, 1, 1], "length": [[4.5], [4.5], [4.5]], "width": [[1.9], [1.9], [1.9]],
+                "height": [[1.5], [1.5], [1.5]]}},
+            "car": {"type": "VEHICLE", "state": {
+                "position": [[10.0, 0.0, 0.0], [11.0, 0.0, 0.0], [12.0, 0.0, 0.0]],
+                "heading": [0.0, 0.0, 0.0], "velocity": [[10.0, 0.0], [10.0, 0.0], [10.0, 0.0]],
+                "valid": [1, 0, 1], "length": [[4.5], [4.5], [4.5]], "width": [[1.9], [1.9], [1.9]],
+                "height": [[1.5], [1.5], [1.5]]}}
+        },
+        "map_features": {
+            "l1": {"type": "LANE_SURFACE_STREET", "polyline": [[-10.0, 0.0, 0.0], [30.0, 0.0, 0.0]],
+                   "polygon": [[-10.0, -2.0], [30.0, -2.0], [30.0, 2.0], [-10.0, 2.0]]},
+            "c1": {"type": "LANE_SURFACE_STREET", "polyline": [[30.0, 0.0], [40.0, 5.0]]},
+            "x1": {"type": "CROSSWALK", "polygon": [[0.0, -2.0], [2.0, -2.0], [2.0, 2.0]]}
+        },
+        "dynamic_map_states": {"t1": {"lane": "c1", "state": {"object_state": ["LANE_STATE_STOP", null, "GO"]}}}
+    })
+}
+
+fn geojson() -> Value {
+    json!({"type": "FeatureCollection", "features": [
+        {"type": "Feature", "geometry": {"type": "Polygon",
+            "coordinates": [[[-20.0, -5.0], [50.0, -5.0], [50.0, 5.0], [-20.0, 5.0]], [[0.0, 0.0], [1.0, 0.0], [1.0, 1.0]]]}},
+        {"type": "Feature", "geometry": {"type": "MultiPolygon",
+            "coordinates": [[[[100.0, 100.0], [110.0, 100.0], [110.0, 110.0]]]]}}
+    ]})
+}
+
+proptest! {
+    #![proptest_config(config(192))]
+
+    #[test]
+    fn scenarios_parse_or_err(at in any::<Index>(), new in prop_oneof![arb_json(), nasty_number()], delete in any::<bool>(), doc in arb_json()) {
+        let v = mutate(&scenario_json(), at, new, delete);
+        if let Ok(sc) = bounded("scenario", || scenarionet::parse(&v, "p.json", None)) {
+            // what parses also builds its world, simulates (reactive agents) and scores without a panic
+            bounded("world", || b2dr::world::World::new(&sc));
+            let cfg = b2dr::sim::SimConfig { agents: b2dr::sim::AgentMode::Idm, steps: 3, ..Default::default() };
+            let r = bounded("sim", || b2dr::sim::run(&sc, &mut b2dr::sim::ConstantVelocityPlanner, &cfg));
+            let s = bounded("score", || {
+                b2dr::sim::score::score_run(&sc, &r, &b2dr::metrics::ScoreParams::default())
+            });
+            if let Ok(s) = s {
+                prop_assert!(s.score.is_finite() && (0.0..=1.0).contains(&s.score), "score {}", s.score);
+            }
+        }
+        let _ = bounded("scenario doc", || scenarionet::parse(&doc, "p.json", None));
+    }
+
+    #[test]
+    fn scenario_numbers_parse_or_err_and_run(at in prop::collection::vec(any::<Index>(), 1..4), new in prop::collection::vec(nasty_number(), 3)) {
+        let mut v = scenario_json();
+        for (a, n) in at.into_iter().zip(new) {
+            v = mutate_number(&v, a, n);
+        }
+        if let Ok(sc) = bounded("scenario", || scenarionet::parse(&v, "p.json", None)) {
+            bounded("world", || b2dr::world::World::new(&sc));
+            let cfg = b2dr::sim::SimConfig { agents: b2dr::sim::AgentMode::Idm, steps: 3, ..Default::default() };
+            let r = bounded("sim", || b2dr::sim::run(&sc, &mut b2dr::sim::ConstantVelocityPlanner, &cfg));
+            if let Ok(s) = bounded("score", || b2dr::sim::score::score_run(&sc, &r, &b2dr::metrics::ScoreParams::default())) {
+                prop_assert!(s.score.is_finite() && (0.0..=1.0).contains(&s.score), "score {}", s.score);
+            }
+        }
+    }
+
+    #[test]
+    fn scenarios_with_a_drivable_area_parse_or_err(at in any::<Index>(), new in prop_oneof![arb_json(), nasty_number()], delete in any::<bool>()) {
+        // <root>/scenes/s.json with <root>/maps/nowhere.drivable_area.geojson
+        let root = tmp("geo");
+        std::fs::create_dir_all(root.join("maps")).unwrap();
+        std::fs::create_dir_all(root.join("scenes")).unwrap();
+        let g = mutate(&geojson(), at, new, delete);
+        let gpath = root.join("maps/nowhere.drivable_area.geojson");
+        std::fs::write(&gpath, g.to_string()).unwrap();
+        let s = root.join("scenes/s.json");
+        std::fs::write(&s, scenario_json().to_string()).unwrap();
+        let _ = bounded("geojson", || scenarionet::load_geojson_polygons(&gpath));
+        let _ = bounded("geojson (projection)", || drivable_area_from_geojson(&gpath, 0.0));
+        let _ = bounded("scenario + geojson", || scenarionet::load_file(&s));
+    }
+}
+
+// ---------------------------------------------------------------------------------------------- frame files
+
+fn frame_json() -> Value {
+    let eye = json!([[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]);
+    let cam = json!({"image": "cam.png", "width": 16, "height": 9, "timestamp_us": 0,
+        "intrinsic": [[10.0, 0.0, 8.0], [0.0, 10.0, 4.5], [0.0, 0.0, 1.0]],
+        "cam2ego": [[0, 0, 1, 1.5], [-1, 0, 0, 0], [0, -1, 0, 1.5], [0, 0, 0, 1]], "ego2global": eye});
+    json!({"format": "b2dr-shared-keyframe/v1", "ego2global": eye, "cameras": {"CAM_FRONT": cam},
+        "boxes": [{"category": "vehicle.car", "center": [10.0, 0.0, 1.0], "size_lwh": [4.0, 2.0, 1.5], "yaw": 0.0,
+                   "velocity": [1.0, 0.0, 0.0]}]})
+}
+
+fn load_frame(dir: &Path, text: &str) -> anyhow::Result<KeyFrame> {
+    let p = dir.join("frame.json");
+    std::fs::write(&p, text).unwrap();
+    KeyFrame::load(&p)
+}
+
+proptest! {
+    #![proptest_config(config(192))]
+
+    #[test]
+    fn frame_files_parse_or_err(at in any::<Index>(), new in prop_oneof![arb_json(), nasty_number()], delete in any::<bool>(), cut in any::<Index>()) {
+        let dir = tmp("frame");
+        let v = mutate(&frame_json(), at, new, delete);
+        let _ = bounded("frame", || load_frame(&dir, &v.to_string()));
+        // truncated files and NaN literals (the reader maps NaN to null)
+        let text = frame_json().to_string().replace("10.0", "NaN");
+        let _ = bounded("frame NaN", || load_frame(&dir, &text));
+        let _ = bounded("frame cut", || load_frame(&dir, &text[..cut.index(text.len())]));
+    }
+}
+
+/// A keyframe's camera too large to render an overlay at (4e9 pixels wide) is an error naming the field.
+#[test]
+fn huge_keyframe_camera_is_an_error() {
+    let dir = tmp("frame_huge");
+    let mut v = frame_json();
+    v["cameras"]["CAM_FRONT"]["width"] = json!(4_000_000_000u32);
+    let e = format!("{:#}", load_frame(&dir, &v.to_string()).unwrap_err());
+    assert!(e.contains("cameras.CAM_FRONT.width"), "{e}");
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+// ------------------------------------------------------------------------------------------- planner replies
+
+fn ego() -> EgoState {
+    EgoState {
+        time_s: 1.0,
+        rear_axle: Pose2::new(100.0, -50.0, 0.3),
+        vx: 5.0,
+        vy: 0.0,
+        ax: 0.0,
+        ay: 0.0,
+        steering: 0.0,
+        steering_rate: 0.0,
+        yaw_rate: 0.0,
+        yaw_accel: 0.0,
+    }
+}
+
+proptest! {
+    #![proptest_config(config(256))]
+
+    #[test]
+    fn planner_replies_parse_or_err(
+        doc in arb_json(),
+        poses in prop::collection::vec(prop::collection::vec(nasty_number(), 0..5), 0..12),
+        extra in arb_json(),
+    ) {
+        let _ = bounded("reply", || parse_reply(&doc));
+        let reply = json!({"poses": poses, "step": extra});
+        if let Ok(local) = bounded("reply poses", || parse_reply(&reply)) {
+            // whatever parses either becomes a finite trajectory or is refused
+            if let Ok(t) = bounded("trajectory", || trajectory_from_ego_frame(&ego(), &local, 1)) {
+                for p in &t.poses {
+                    prop_assert!(p.x.is_finite() && p.y.is_finite() && p.heading.is_finite());
+                }
+            }
+        }
+    }
+}
+
+// ------------------------------------------------------------------------------------ far geometry, end to end
+
+/// A scenario with map features and objects far away (9e7 m) and huge (a 999 m box next to the ego) loads,
+/// and its layout masks (what the b2dr renderer projects each frame) are computed in bounded time.
+#[test]
+fn far_and_huge_geometry_projects_in_bounded_time() {
+    let mut v = scenario_json();
+    v["map_features"]["far"] = json!({"type": "LANE_SURFACE_STREET", "polyline": [[-9e7, -9e7], [9e7, 9e7]],
+        "polygon": [[-9e7, -9e7], [9e7, -9e7], [9e7, 9e7]]});
+    v["map_features"]["farx"] =
+        json!({"type": "CROSSWALK", "polygon": [[-9e7, -9e7], [9e7, -9e7], [9e7, 9e7]]});
+    v["tracks"]["huge"] = json!({"type": "VEHICLE", "state": {
+        "position": [[15.0, 0.5], [15.0, 0.5], [15.0, 0.5]], "heading": [0.0, 0.0, 0.0],
+        "velocity": [[0.0, 0.0], [0.0, 0.0], [0.0, 0.0]], "valid": [1, 1, 1],
+        "length": [[999.0], [999.0], [999.0]], "width": [[999.0], [999.0], [999.0]],
+        "height": [[999.0], [999.0], [999.0]]}});
+    v["tracks"]["far"] = json!({"type": "VEHICLE", "state": {
+        "position": [[9e7, 9e7], [-9e7, 9e7], [9e7, -9e7]], "heading": [0.0, 0.0, 0.0],
+        "velocity": [[999.0, 0.0], [0.0, 0.0], [0.0, 0.0]], "valid": [1, 1, 1],
+        "length": [[4.0], [4.0], [4.0]], "width": [[2.0], [2.0], [2.0]], "height": [[1.5], [1.5], [1.5]]}});
+    let sc = bounded("far scenario", || scenarionet::parse(&v, "far.json", None)).unwrap();
+    let t0 = Instant::now();
+    let map = b2dr::projection::scene::map_layer(&sc.map);
+    let boxes: Vec<_> = b2dr::projection::scene::boxes_at(&sc, 0)
+        .into_iter()
+        .map(|(_, b)| b)
+        .collect();
+    let e2g = b2dr::scene::import::ego2global(&sc.ego[0].rear_axle);
+    let cams = sc.rig.cameras.clone();
+    let poses = vec![e2g; cams.len()];
+    let m =
+        b2dr::render::inputs::masks(&cams, &poses, &boxes, &map, (56, 100), &Default::default())
+            .unwrap();
+    assert!(m.iter().all(|x| x.is_finite()));
+    assert!(t0.elapsed() < BOUND, "masks took {:?}", t0.elapsed());
+}
+
+/// The world of a scenario file with a 2.5e8 m lane (what `b2dr run` builds for every scenario: its ground
+/// layers and roadside objects placed along the road edges) is built in bounded time and size; the built-in
+/// towns stay far below the caps, so their worlds are unchanged.
+#[test]
+fn far_roads_build_a_bounded_world() {
+    use b2dr::world::scenery::{MAX_GROUND, MAX_SOLIDS};
+    let mut v = scenario_json();
+    v["map_features"]["far"] = json!({"type": "LANE_SURFACE_STREET", "polyline": [[-9e7, -9e7], [9e7, 9e7]],
+        "polygon": [[-9e7, -9e7], [9e7, -9e7], [9e7, 9e7]]});
+    v["map_features"]["farx"] = json!({"type": "CROSSWALK",
+        "polygon": [[-9e7, -9e7], [9e7, -9e7], [9e7, -9e7 + 3.0], [-9e7, -9e7 + 3.0]]});
+    let sc = scenarionet::parse(&v, "far.json", None).unwrap();
+    let t0 = Instant::now();
+    let w = b2dr::world::World::new(&sc);
+    assert!(
+        t0.elapsed() < Duration::from_secs(60),
+        "world took {:?}",
+        t0.elapsed()
+    );
+    assert!(w.scenery.ground.len() <= MAX_GROUND && w.scenery.solids.len() <= MAX_SOLIDS);
+    for spec in ["builtin:town:0", "builtin:multilane:1"] {
+        let sc = b2dr::world::load_all(spec).unwrap().remove(0);
+        let w = b2dr::world::World::new(&sc);
+        assert!(
+            w.scenery.ground.len() < MAX_GROUND / 10 && w.scenery.solids.len() < MAX_SOLIDS / 10,
+            "{spec}: {} ground, {} solids",
+            w.scenery.ground.len(),
+            w.scenery.solids.len()
+        );
+    }
+}
