@@ -347,10 +347,10 @@ def write_fixture(out: Path, seconds: float = 20.0, png: bool = False) -> dict:
             track_last[name] = (bt, k)
         db.execute("INSERT INTO traffic_light_status VALUES (?,?,?,?)", (token(), lpc[k], 21, light_at(t)))
         db.execute("INSERT INTO traffic_light_status VALUES (?,?,?,?)", (token(), lpc[k], 22, "unknown"))
-        # Images: every camera at 10 Hz, 10 ms apart from each other, from the lidar sweep time.
+        # Images: every camera at 10 Hz, 5 ms apart from each other, from the lidar sweep time.
         if k % 2 == 0:
             for i, c in enumerate(cams):
-                it = ts + 10_000 * i
+                it = ts + 5_000 * i
                 tokn = token()
                 rel = f"{LOG}/{c['channel']}/{tokn.hex()}.{'png' if png else 'jpg'}"
                 p = blobs / rel
