@@ -307,6 +307,37 @@ fn only_subdir(out: &Path) -> PathBuf {
     dirs[0].clone()
 }
 
+/// A map stored in EPSG:4326 (longitude, latitude; the meta layer's projectedCoordSystem epsg:32611) is projected
+/// to UTM: lanes, connectors, crosswalk and route equal those of the UTM map within 1e-6 m.
+#[test]
+fn lonlat_map_is_projected_to_utm() {
+    let Some(root) = root() else { return };
+    let Some(ll) = write_fixture("lonlat", &["--lonlat", "--png", "--seconds", "4"]) else {
+        return;
+    };
+    let a = nuplan::load(&spec(&db_path(root), None)).unwrap();
+    let b = nuplan::load(&spec(&db_path(&ll), None)).unwrap();
+    assert_eq!(a.map.lanes.len(), b.map.lanes.len());
+    let mut worst = 0f64;
+    for la in &a.map.lanes {
+        let lb = &b.map.lanes[b.map.lane_index(&la.id).unwrap()];
+        assert_eq!(la.centre.points.len(), lb.centre.points.len());
+        for (p, q) in la.centre.points.iter().zip(&lb.centre.points) {
+            worst = worst.max(p.distance(*q));
+        }
+        for (p, q) in la.polygon.iter().zip(&lb.polygon) {
+            worst = worst.max(p.distance(*q));
+        }
+    }
+    for (p, q) in a.map.crosswalks[0].polygon.iter().zip(&b.map.crosswalks[0].polygon) {
+        worst = worst.max(p.distance(*q));
+    }
+    assert!(worst < 1e-6, "{worst} m");
+    assert_eq!(b.route.roadblock_ids, vec!["1"]); // 4 s: the ego stays in lane group 1
+    eprintln!("lon / lat map projected to UTM: largest difference {worst:.2e} m");
+    let _ = std::fs::remove_dir_all(&ll);
+}
+
 fn b2dr() -> Command {
     Command::new(env!("CARGO_BIN_EXE_b2dr"))
 }

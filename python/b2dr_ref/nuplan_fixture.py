@@ -10,7 +10,8 @@ The known scenario (`--seconds`, default 20 s, at 20 Hz in the DB):
 - a straight road along +x in UTM zone 11N (origin X0, Y0): lane group 1 (lanes 11 at y = 0 and 12 at y = 3.5,
   x in [0, 100]), an intersection x in [100, 120] with lane group connector 2 (connectors 21: 11 -> 31 and
   22: 12 -> 32), lane group 3 (lanes 31, 32, x in [120, 300]); a crosswalk before the intersection, a stop
-  polygon on lane 11's end, an intersection polygon, the `meta` layer;
+  polygon on lane 11's end, an intersection polygon, the `meta` layer (projectedCoordSystem epsg:32611); with
+  `--lonlat` the layers are stored in EPSG:4326 (longitude, latitude: the UTM design points inverse-projected);
 - the ego (rear axle) drives lane 11 from x = 10 with v(t) = 8 + 0.1 t m/s, heading 0 (a slight yaw wobble);
 - tracks: a car ahead in lane 11 at 10 m/s, a pedestrian walking across at x = 97, a cyclist in lane 12
   (appears at t = 2 s, leaves at t = 15 s), a static traffic cone;
@@ -137,19 +138,26 @@ def image_bytes(cam_i, k, png):
 
 
 # ---------------------------------------------------------------- GeoPackage
+_LONLAT = [False]
+
+
+def _pt(p):
+    return tm_inverse(*p) if _LONLAT[0] else p
+
+
 def wkb_point(x, y):
     return struct.pack("<BIdd", 1, 1, x, y)
 
 
 def wkb_line(pts):
-    return struct.pack("<BII", 1, 2, len(pts)) + b"".join(struct.pack("<dd", *p) for p in pts)
+    return struct.pack("<BII", 1, 2, len(pts)) + b"".join(struct.pack("<dd", *_pt(p)) for p in pts)
 
 
 def wkb_polygon(rings):
     out = struct.pack("<BII", 1, 3, len(rings))
     for r in rings:
         r = list(r) + [r[0]]  # closed, as WKB stores it
-        out += struct.pack("<I", len(r)) + b"".join(struct.pack("<dd", *p) for p in r)
+        out += struct.pack("<I", len(r)) + b"".join(struct.pack("<dd", *_pt(p)) for p in r)
     return out
 
 
@@ -157,11 +165,13 @@ def wkb_multipolygon(polys):
     return struct.pack("<BII", 1, 6, len(polys)) + b"".join(wkb_polygon(p) for p in polys)
 
 
-def gpkg_blob(wkb, pts, envelope=True, srs=EPSG):
+def gpkg_blob(wkb, pts, envelope=True, srs=None):
     """GPKG geometry header (magic, version 0, flags: little endian, envelope [minx, maxx, miny, maxy]) + WKB."""
+    srs = srs if srs is not None else (4326 if _LONLAT[0] else EPSG)
     flags = 0x01 | (0x02 if envelope else 0)
     head = b"GP" + bytes([0, flags]) + struct.pack("<i", srs)
     if envelope:
+        pts = [_pt(p) for p in pts]
         xs, ys = [p[0] for p in pts], [p[1] for p in pts]
         head += struct.pack("<dddd", min(xs), max(xs), min(ys), max(ys))
     return head + wkb
@@ -182,10 +192,50 @@ CONNECTORS = [(21, 2, 11, 31, 0.0), (22, 2, 12, 32, 3.5)]
 SPEED_LIMIT = 13.4112
 
 
-def write_map(path: Path):
+def tm_forward(lon, lat, lon0=-117.0, a=6378137.0, f=1 / 298.257223563, k0=0.9996):
+    """UTM (easting, northing) of lon / lat degrees (Krueger series to n^6, northern hemisphere)."""
+    n = f / (2 - f)
+    big_a = a / (1 + n) * (1 + n**2 / 4 + n**4 / 64 + n**6 / 256)
+    al = [n / 2 - 2 * n**2 / 3 + 5 * n**3 / 16 + 41 * n**4 / 180 - 127 * n**5 / 288 + 7891 * n**6 / 37800,
+          13 * n**2 / 48 - 3 * n**3 / 5 + 557 * n**4 / 1440 + 281 * n**5 / 630 - 1983433 * n**6 / 1935360,
+          61 * n**3 / 240 - 103 * n**4 / 140 + 15061 * n**5 / 26880 + 167603 * n**6 / 181440,
+          49561 * n**4 / 161280 - 179 * n**5 / 168 + 6601661 * n**6 / 7257600,
+          34729 * n**5 / 80640 - 3418889 * n**6 / 1995840, 212378941 * n**6 / 319334400]
+    e = math.sqrt(f * (2 - f))
+    phi, dl = math.radians(lat), math.radians(lon - lon0)
+    t = math.sinh(math.atanh(math.sin(phi)) - e * math.atanh(e * math.sin(phi)))
+    xi_p, eta_p = math.atan2(t, math.cos(dl)), math.atanh(math.sin(dl) / math.sqrt(1 + t * t))
+    xi, eta = xi_p, eta_p
+    for j, a_j in enumerate(al, 1):
+        xi += a_j * math.sin(2 * j * xi_p) * math.cosh(2 * j * eta_p)
+        eta += a_j * math.cos(2 * j * xi_p) * math.sinh(2 * j * eta_p)
+    return 500000.0 + k0 * big_a * eta, k0 * big_a * xi
+
+
+def tm_inverse(x, y):
+    """lon / lat of a UTM zone 11N point (Newton on tm_forward, to 1e-9 m)."""
+    lon, lat = -117.0 + (x - 500000.0) / 90000.0, y / 111000.0
+    for _ in range(20):
+        fx, fy = tm_forward(lon, lat)
+        h = 1e-7
+        ax, ay = tm_forward(lon + h, lat)
+        bx, by = tm_forward(lon, lat + h)
+        j = [[(ax - fx) / h, (bx - fx) / h], [(ay - fy) / h, (by - fy) / h]]
+        det = j[0][0] * j[1][1] - j[0][1] * j[1][0]
+        rx, ry = x - fx, y - fy
+        lon += (j[1][1] * rx - j[0][1] * ry) / det
+        lat += (-j[1][0] * rx + j[0][0] * ry) / det
+        if abs(rx) < 1e-9 and abs(ry) < 1e-9:
+            break
+    return lon, lat
+
+
+def write_map(path: Path, lonlat: bool = False):
     path.parent.mkdir(parents=True, exist_ok=True)
     if path.exists():
         path.unlink()
+    _LONLAT[0] = lonlat
+    srs_layers = 4326 if lonlat else EPSG
     db = sqlite3.connect(path)
     db.executescript("""
     CREATE TABLE gpkg_spatial_ref_sys (srs_name TEXT NOT NULL, srs_id INTEGER NOT NULL PRIMARY KEY,
@@ -203,6 +253,7 @@ def write_map(path: Path):
         ("Undefined cartesian SRS", -1, "NONE", -1, "undefined", ""),
         ("Undefined geographic SRS", 0, "NONE", 0, "undefined", ""),
         ("WGS 84 / UTM zone 11N", EPSG, "EPSG", EPSG, 'PROJCS["WGS 84 / UTM zone 11N"]', ""),
+        ("WGS 84 geodetic", 4326, "EPSG", 4326, 'GEOGCS["WGS 84"]', ""),
     ])
 
     def layer(name, gtype, cols, rows):
@@ -210,8 +261,8 @@ def write_map(path: Path):
         coldefs = "".join(f", {c} {t}" for c, t in cols)
         db.execute(f"CREATE TABLE {name} (fid INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, geom {gtype}{coldefs})")
         db.execute("INSERT INTO gpkg_contents (table_name, data_type, identifier, srs_id) VALUES (?,?,?,?)",
-                   (name, "features", name, EPSG))
-        db.execute("INSERT INTO gpkg_geometry_columns VALUES (?,?,?,?,0,0)", (name, "geom", gtype, EPSG))
+                   (name, "features", name, srs_layers))
+        db.execute("INSERT INTO gpkg_geometry_columns VALUES (?,?,?,?,0,0)", (name, "geom", gtype, srs_layers))
         marks = ",".join("?" * (2 + len(cols)))
         db.executemany(f"INSERT INTO {name} (fid, geom{''.join(', ' + c for c, _ in cols)}) VALUES ({marks})",
                        rows)
@@ -267,21 +318,23 @@ def write_map(path: Path):
     db.execute("CREATE TABLE meta (fid INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, key TEXT, value TEXT)")
     db.execute("INSERT INTO gpkg_contents (table_name, data_type, identifier) VALUES ('meta','attributes','meta')")
     db.executemany("INSERT INTO meta (key, value) VALUES (?,?)", [
-        ("projectedCoordSystem", "+proj=utm +zone=11 +datum=WGS84 +units=m +no_defs"),
+        ("projectedCoordSystem", "epsg:32611"),
+        ("geographicCoordSystem", "epsg:4326"),
         ("version", MAP_VERSION)])
     db.commit()
     db.close()
+    _LONLAT[0] = False
 
 
 # ---------------------------------------------------------------- the log
-def write_fixture(out: Path, seconds: float = 20.0, png: bool = False) -> dict:
+def write_fixture(out: Path, seconds: float = 20.0, png: bool = False, lonlat: bool = False) -> dict:
     _counter[0] = 0
     out = Path(out)
     db_path = out / "nuplan-v1.1" / "splits" / "mini" / f"{LOG}.db"
     db_path.parent.mkdir(parents=True, exist_ok=True)
     if db_path.exists():
         db_path.unlink()
-    write_map(out / "maps" / LOCATION / MAP_VERSION / "map.gpkg")
+    write_map(out / "maps" / LOCATION / MAP_VERSION / "map.gpkg", lonlat)
     blobs = out / "nuplan-v1.1" / "sensor_blobs"
     db = sqlite3.connect(db_path)
     db.executescript(SCHEMA)
@@ -417,8 +470,10 @@ def main():
     ap.add_argument("--out", required=True, type=Path)
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--png", action="store_true", help="PNG images (no Pillow needed)")
+    ap.add_argument("--lonlat", action="store_true",
+                    help="map layers in EPSG:4326 longitude / latitude (as the devkit reprojects with to_crs)")
     a = ap.parse_args()
-    s = write_fixture(a.out, a.seconds, a.png)
+    s = write_fixture(a.out, a.seconds, a.png, a.lonlat)
     print(json.dumps({k: s[k] for k in ("db", "maps_root", "sensor_root", "lidar_pc")}))
 
 

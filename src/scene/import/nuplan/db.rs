@@ -242,6 +242,17 @@ impl Rec {
             self.token(col).map(Some)
         }
     }
+    /// An id column (a fid): an integer, an integral real or non-empty text; None when NULL or empty text.
+    pub fn opt_id(&self, col: &str) -> Result<Option<String>> {
+        match self.raw(col) {
+            Value::Null => Ok(None),
+            Value::Integer(i) => Ok(Some(i.to_string())),
+            Value::Real(f) if f.fract() == 0.0 && f.abs() < 9e15 => Ok(Some((*f as i64).to_string())),
+            Value::Text(t) if t.trim().is_empty() => Ok(None),
+            Value::Text(t) => Ok(Some(t.trim().to_string())),
+            _ => Err(self.bad(col, "an id (integer or text)")),
+        }
+    }
     /// A pickled numeric array of `n` values.
     pub fn pickled(&self, col: &str, n: usize) -> Result<Vec<f64>> {
         let b = self.blob(col)?;

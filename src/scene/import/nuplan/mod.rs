@@ -30,6 +30,7 @@ use std::path::{Path, PathBuf};
 pub mod db;
 pub mod gpkg;
 pub mod pickle;
+pub mod utm;
 pub mod wkb;
 
 use db::{unhex, Db, Rec};

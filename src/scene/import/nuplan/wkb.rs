@@ -25,6 +25,17 @@ impl Geometry {
             _ => vec![],
         }
     }
+    /// The geometry with every point mapped by `f`.
+    pub fn try_map(&self, f: &impl Fn(DVec2) -> Result<DVec2>) -> Result<Geometry> {
+        let ring = |r: &Vec<DVec2>| r.iter().map(|p| f(*p)).collect::<Result<Vec<_>>>();
+        Ok(match self {
+            Geometry::Point(p) => Geometry::Point(f(*p)?),
+            Geometry::LineString(l) => Geometry::LineString(ring(l)?),
+            Geometry::Polygon(rs) => Geometry::Polygon(rs.iter().map(ring).collect::<Result<_>>()?),
+            Geometry::Multi(g) => Geometry::Multi(g.iter().map(|x| x.try_map(f)).collect::<Result<_>>()?),
+            Geometry::Empty => Geometry::Empty,
+        })
+    }
     /// Every line string in it, flattening Multi*.
     pub fn lines(&self) -> Vec<Vec<DVec2>> {
         match self {
