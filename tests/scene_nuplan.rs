@@ -111,7 +111,10 @@ fn f(v: &Value) -> f64 {
 fn spec_syntax() {
     let s = resolve("nuplan:/data/x.db").unwrap();
     let Source::Nuplan(n) = &s[0] else { panic!() };
-    assert_eq!((n.db.to_str(), n.token.as_deref()), (Some("/data/x.db"), None));
+    assert_eq!(
+        (n.db.to_str(), n.token.as_deref()),
+        (Some("/data/x.db"), None)
+    );
     assert_eq!(s[0].name(), "x");
     let s = resolve("nuplan:/data/x.db:5A00000000009e37").unwrap();
     let Source::Nuplan(n) = &s[0] else { panic!() };
@@ -121,7 +124,10 @@ fn spec_syntax() {
     let Source::Nuplan(n) = &resolve("nuplan:/a:b/x.db").unwrap()[0] else {
         panic!()
     };
-    assert_eq!((n.db.to_str(), n.token.as_deref()), (Some("/a:b/x.db"), None));
+    assert_eq!(
+        (n.db.to_str(), n.token.as_deref()),
+        (Some("/a:b/x.db"), None)
+    );
     let e = format!("{:#}", resolve("nuplan:").unwrap_err());
     assert!(e.contains("nuplan:DB[:SCENARIO_TOKEN]"), "{e}");
 }
@@ -151,7 +157,10 @@ fn round_trip_equals_the_known_scenario() {
     for (k, st) in steps.iter().enumerate() {
         let e = &st["ego"];
         let p = sc.ego[k].rear_axle;
-        assert!((p.x - f(&e[0])).abs() < 1e-6 && (p.y - f(&e[1])).abs() < 1e-6, "step {k}");
+        assert!(
+            (p.x - f(&e[0])).abs() < 1e-6 && (p.y - f(&e[1])).abs() < 1e-6,
+            "step {k}"
+        );
         assert!((p.heading - f(&e[2])).abs() < 1e-9, "step {k}");
         let v = sc.ego[k].velocity;
         let want = DVec2::new(f(&e[2]).cos(), f(&e[2]).sin()) * f(&e[3]);
@@ -178,14 +187,33 @@ fn round_trip_equals_the_known_scenario() {
         };
         assert_eq!(
             lights,
-            &[(c21.min(c22), if c21 < c22 { want21 } else { TrafficLightStatus::Unknown }),
-              (c21.max(c22), if c21 < c22 { TrafficLightStatus::Unknown } else { want21 })],
+            &[
+                (
+                    c21.min(c22),
+                    if c21 < c22 {
+                        want21
+                    } else {
+                        TrafficLightStatus::Unknown
+                    }
+                ),
+                (
+                    c21.max(c22),
+                    if c21 < c22 {
+                        TrafficLightStatus::Unknown
+                    } else {
+                        want21
+                    }
+                )
+            ],
             "step {k}"
         );
     }
     for tr in &sc.tracks {
         let s = &ex["track_sizes"][&tok[&tr.id]];
-        assert_eq!((tr.length, tr.width, tr.height), (f(&s[0]), f(&s[1]), f(&s[2])));
+        assert_eq!(
+            (tr.length, tr.width, tr.height),
+            (f(&s[0]), f(&s[1]), f(&s[2]))
+        );
     }
     let class = |n: &str| sc.tracks.iter().find(|t| tok[&t.id] == n).unwrap().class;
     use b2dr::scene::ObjectClass::*;
@@ -204,7 +232,8 @@ fn round_trip_equals_the_known_scenario() {
             .iter()
             .flat_map(|r| r.as_array().unwrap().iter().map(f).collect::<Vec<_>>())
             .collect();
-        let want_k = DMat3::from_cols_array(&[k[0], k[3], k[6], k[1], k[4], k[7], k[2], k[5], k[8]]);
+        let want_k =
+            DMat3::from_cols_array(&[k[0], k[3], k[6], k[1], k[4], k[7], k[2], k[5], k[8]]);
         assert!(cam.intrinsic.abs_diff_eq(want_k, 1e-9));
         let q = &c["rotation"];
         let t = &c["translation"];
@@ -250,7 +279,10 @@ fn scenario_tag_window() {
     assert_eq!(log.t0_us, ex["t0_us"].as_i64().unwrap() + 2_000_000);
     let e0 = &ex["steps"][20]["ego"];
     assert!((sc.ego[0].rear_axle.x - f(&e0[0])).abs() < 1e-6);
-    assert!(log.tags.iter().any(|(t, ty)| t == token && ty == "following_lane_with_lead"));
+    assert!(log
+        .tags
+        .iter()
+        .any(|(t, ty)| t == token && ty == "following_lane_with_lead"));
     assert_eq!(sc.rig.frames.len(), 150);
     // A token that is no lidar_pc.
     let e = format!(
@@ -277,7 +309,9 @@ fn map_gives_route_and_drivable_area() {
     assert_eq!(ids(&c21.predecessors), vec!["11"]);
     assert!(c21.has_traffic_light);
     assert_eq!(c21.stop_lines.len(), 1);
-    assert!(l11.speed_limit_mps.is_some_and(|v| (v - 13.4112).abs() < 1e-9));
+    assert!(l11
+        .speed_limit_mps
+        .is_some_and(|v| (v - 13.4112).abs() < 1e-9));
     assert_eq!(m.roadblocks[l11.roadblock].id, "1");
     assert_eq!(m.roadblocks[l11.roadblock].lanes.len(), 2);
     assert_eq!(m.roadblocks[c21.roadblock].id, "2");
@@ -329,7 +363,11 @@ fn lonlat_map_is_projected_to_utm() {
             worst = worst.max(p.distance(*q));
         }
     }
-    for (p, q) in a.map.crosswalks[0].polygon.iter().zip(&b.map.crosswalks[0].polygon) {
+    for (p, q) in a.map.crosswalks[0]
+        .polygon
+        .iter()
+        .zip(&b.map.crosswalks[0].polygon)
+    {
         worst = worst.max(p.distance(*q));
     }
     assert!(worst < 1e-6, "{worst} m");
@@ -350,7 +388,15 @@ fn sim_runs_on_a_nuplan_log() {
     let scenario = format!("nuplan:{}", db_path(root).display());
     let o = b2dr()
         .args(["sim", "--scenario", &scenario, "--planner", "expert"])
-        .args(["--agents", "idm", "--steps", "30", "--bev-every", "0", "--out"])
+        .args([
+            "--agents",
+            "idm",
+            "--steps",
+            "30",
+            "--bev-every",
+            "0",
+            "--out",
+        ])
         .arg(&out)
         .output()
         .unwrap();
@@ -410,9 +456,14 @@ fn log_replay_uses_the_recorded_images() {
 fn broken(name: &str, edit: impl FnOnce(&rusqlite::Connection, &rusqlite::Connection)) -> String {
     let root = root().unwrap();
     let ex = expected(root);
-    let dst = std::env::temp_dir().join(format!("b2dr_nuplan_broken_{name}_{}", std::process::id()));
+    let dst =
+        std::env::temp_dir().join(format!("b2dr_nuplan_broken_{name}_{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dst);
-    let map_rel = format!("maps/{}/{}/map.gpkg", ex["location"].as_str().unwrap(), ex["map_version"].as_str().unwrap());
+    let map_rel = format!(
+        "maps/{}/{}/map.gpkg",
+        ex["location"].as_str().unwrap(),
+        ex["map_version"].as_str().unwrap()
+    );
     std::fs::create_dir_all(dst.join(&map_rel).parent().unwrap()).unwrap();
     std::fs::copy(root.join(&map_rel), dst.join(&map_rel)).unwrap();
     let db = dst.join("log.db");
@@ -448,60 +499,128 @@ fn malformed_inputs_give_clear_errors() {
         }
         eprintln!("{e}");
     };
-    let e = broken("table", |db, _| db.execute_batch("DROP TABLE lidar_box").unwrap());
+    let e = broken("table", |db, _| {
+        db.execute_batch("DROP TABLE lidar_box").unwrap()
+    });
     check(&e, &["log.db", "table `lidar_box` is missing"]);
     let e = broken("column", |db, _| {
-        db.execute_batch("ALTER TABLE ego_pose DROP COLUMN qz").unwrap()
+        db.execute_batch("ALTER TABLE ego_pose DROP COLUMN qz")
+            .unwrap()
     });
     check(&e, &["table `ego_pose` has no column `qz`"]);
     let e = broken("type", |db, _| {
-        db.execute_batch("UPDATE lidar_box SET x = 'abc' WHERE rowid = 7").unwrap()
+        db.execute_batch("UPDATE lidar_box SET x = 'abc' WHERE rowid = 7")
+            .unwrap()
     });
-    check(&e, &["table `lidar_box` row token ", "column `x`", "expected a finite number", "\"abc\""]);
+    check(
+        &e,
+        &[
+            "table `lidar_box` row token ",
+            "column `x`",
+            "expected a finite number",
+            "\"abc\"",
+        ],
+    );
     let e = broken("dangling", |db, _| {
         db.execute_batch("UPDATE lidar_pc SET ego_pose_token = X'00000000000000ff' WHERE rowid = 3")
             .unwrap()
     });
-    check(&e, &["table `lidar_pc` row token ", "column `ego_pose_token`", "00000000000000ff", "dangling"]);
+    check(
+        &e,
+        &[
+            "table `lidar_pc` row token ",
+            "column `ego_pose_token`",
+            "00000000000000ff",
+            "dangling",
+        ],
+    );
     let e = broken("track", |db, _| {
-        db.execute_batch("UPDATE lidar_box SET track_token = X'00000000000000ee' WHERE rowid = 1").unwrap()
+        db.execute_batch("UPDATE lidar_box SET track_token = X'00000000000000ee' WHERE rowid = 1")
+            .unwrap()
     });
     check(&e, &["table `lidar_box` row token ", "`track`", "dangling"]);
     let e = broken("pickle", |db, _| {
-        db.execute_batch("UPDATE camera SET intrinsic = X'8004ff2e' WHERE channel = 'CAM_L1'").unwrap()
-    });
-    check(&e, &["table `camera` row token ", "column `intrinsic`", "pickle", "0xff"]);
-    let e = broken("pickle_short", |db, _| {
-        db.execute_batch("UPDATE camera SET translation = substr(translation, 1, 12) WHERE channel = 'CAM_F0'")
+        db.execute_batch("UPDATE camera SET intrinsic = X'8004ff2e' WHERE channel = 'CAM_L1'")
             .unwrap()
     });
-    check(&e, &["table `camera` row token ", "column `translation`", "truncated"]);
+    check(
+        &e,
+        &[
+            "table `camera` row token ",
+            "column `intrinsic`",
+            "pickle",
+            "0xff",
+        ],
+    );
+    let e = broken("pickle_short", |db, _| {
+        db.execute_batch(
+            "UPDATE camera SET translation = substr(translation, 1, 12) WHERE channel = 'CAM_F0'",
+        )
+        .unwrap()
+    });
+    check(
+        &e,
+        &[
+            "table `camera` row token ",
+            "column `translation`",
+            "truncated",
+        ],
+    );
     let e = broken("light", |db, _| {
-        db.execute_batch("UPDATE traffic_light_status SET status = 'purple' WHERE rowid = 2").unwrap()
+        db.execute_batch("UPDATE traffic_light_status SET status = 'purple' WHERE rowid = 2")
+            .unwrap()
     });
-    check(&e, &["table `traffic_light_status` row token ", "\"purple\""]);
+    check(
+        &e,
+        &["table `traffic_light_status` row token ", "\"purple\""],
+    );
     let e = broken("wkb", |_, m| {
-        m.execute_batch("UPDATE baseline_paths SET geom = substr(geom, 1, 40) WHERE fid = 1011").unwrap()
+        m.execute_batch("UPDATE baseline_paths SET geom = substr(geom, 1, 40) WHERE fid = 1011")
+            .unwrap()
     });
-    check(&e, &["map.gpkg", "table `baseline_paths` row fid 1011", "column `geom`", "WKB"]);
+    check(
+        &e,
+        &[
+            "map.gpkg",
+            "table `baseline_paths` row fid 1011",
+            "column `geom`",
+            "WKB",
+        ],
+    );
     let e = broken("gp", |_, m| {
-        m.execute_batch("UPDATE lanes_polygons SET geom = X'00010203' WHERE fid = 12").unwrap()
+        m.execute_batch("UPDATE lanes_polygons SET geom = X'00010203' WHERE fid = 12")
+            .unwrap()
     });
     check(&e, &["table `lanes_polygons` row fid 12", "GP"]);
-    let e = broken("maplayer", |_, m| m.execute_batch("DROP TABLE lane_connectors").unwrap());
+    let e = broken("maplayer", |_, m| {
+        m.execute_batch("DROP TABLE lane_connectors").unwrap()
+    });
     check(&e, &["map.gpkg", "table `lane_connectors` is missing"]);
     let e = broken("log", |db, _| db.execute_batch("DELETE FROM log").unwrap());
     check(&e, &["table `log` is empty"]);
     // Not a database, no map.
     let dir = std::env::temp_dir().join(format!("b2dr_nuplan_junk_{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    std::fs::write(dir.join("junk.db"), b"this is not sqlite, just some text that is long enough").unwrap();
-    let e = format!("{:#}", nuplan::load(&spec(&dir.join("junk.db"), None)).unwrap_err());
+    std::fs::write(
+        dir.join("junk.db"),
+        b"this is not sqlite, just some text that is long enough",
+    )
+    .unwrap();
+    let e = format!(
+        "{:#}",
+        nuplan::load(&spec(&dir.join("junk.db"), None)).unwrap_err()
+    );
     check(&e, &["junk.db", "not a readable SQLite database"]);
     std::fs::copy(db_path(root().unwrap()), dir.join("log.db")).unwrap();
-    let e = format!("{:#}", nuplan::load(&spec(&dir.join("log.db"), None)).unwrap_err());
+    let e = format!(
+        "{:#}",
+        nuplan::load(&spec(&dir.join("log.db"), None)).unwrap_err()
+    );
     check(&e, &["no maps folder", "NUPLAN_MAPS_ROOT"]);
-    let e = format!("{:#}", nuplan::load(&spec(&dir.join("missing.db"), None)).unwrap_err());
+    let e = format!(
+        "{:#}",
+        nuplan::load(&spec(&dir.join("missing.db"), None)).unwrap_err()
+    );
     check(&e, &["missing.db", "no such file"]);
     let _ = std::fs::remove_dir_all(&dir);
 }

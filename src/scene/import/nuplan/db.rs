@@ -247,7 +247,9 @@ impl Rec {
         match self.raw(col) {
             Value::Null => Ok(None),
             Value::Integer(i) => Ok(Some(i.to_string())),
-            Value::Real(f) if f.fract() == 0.0 && f.abs() < 9e15 => Ok(Some((*f as i64).to_string())),
+            Value::Real(f) if f.fract() == 0.0 && f.abs() < 9e15 => {
+                Ok(Some((*f as i64).to_string()))
+            }
             Value::Text(t) if t.trim().is_empty() => Ok(None),
             Value::Text(t) => Ok(Some(t.trim().to_string())),
             _ => Err(self.bad(col, "an id (integer or text)")),

@@ -90,11 +90,18 @@ impl<'a> Geo<'a> {
                 if self.db.has_table("gpkg_spatial_ref_sys")? {
                     for s in self.db.select(
                         "gpkg_spatial_ref_sys",
-                        &["srs_id", "organization", "organization_coordsys_id", "definition"],
+                        &[
+                            "srs_id",
+                            "organization",
+                            "organization_coordsys_id",
+                            "definition",
+                        ],
                         "WHERE srs_id = ?1",
                         &[&srs as &dyn rusqlite::ToSql],
                     )? {
-                        if s.opt_text("organization")?.is_some_and(|o| o.eq_ignore_ascii_case("epsg")) {
+                        if s.opt_text("organization")?
+                            .is_some_and(|o| o.eq_ignore_ascii_case("epsg"))
+                        {
                             code = s.i64("organization_coordsys_id")?;
                         }
                         def = s.opt_text("definition")?.unwrap_or("").to_ascii_uppercase();
@@ -177,9 +184,12 @@ pub fn load(path: &Path, name: &str, region: &Aabb) -> Result<Map> {
         "",
         &[],
     )? {
-        let line = geo.geom(&r, &gc)?.lines().into_iter().next().ok_or_else(|| {
-            anyhow!("{}: column `{gc}`: expected a LineString", r.at())
-        })?;
+        let line = geo
+            .geom(&r, &gc)?
+            .lines()
+            .into_iter()
+            .next()
+            .ok_or_else(|| anyhow!("{}: column `{gc}`: expected a LineString", r.at()))?;
         match (fid(&r, "lane_fid")?, fid(&r, "lane_connector_fid")?) {
             (Some(l), _) => lane_line.insert(l, line),
             (None, Some(c)) => conn_line.insert(c, line),

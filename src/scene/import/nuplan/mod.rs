@@ -174,7 +174,12 @@ fn marks(n: usize) -> String {
 }
 
 /// Rows of `table` whose `token` is one of `tokens` (hex), by token; in chunks (SQLite's parameter limit).
-fn by_token(db: &Db, table: &str, cols: &[&str], tokens: &[String]) -> Result<HashMap<String, Rec>> {
+fn by_token(
+    db: &Db,
+    table: &str,
+    cols: &[&str],
+    tokens: &[String],
+) -> Result<HashMap<String, Rec>> {
     let mut out = HashMap::new();
     let mut uniq: Vec<&String> = tokens.iter().collect();
     uniq.sort();
@@ -294,7 +299,10 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
     let t0 = sel[0].i64("timestamp")?;
     let t_last = sel[sel.len() - 1].i64("timestamp")?;
     let n = sel.len();
-    let pc_tokens: Vec<String> = sel.iter().map(|r| r.token("token")).collect::<Result<_>>()?;
+    let pc_tokens: Vec<String> = sel
+        .iter()
+        .map(|r| r.token("token"))
+        .collect::<Result<_>>()?;
     let step_of: HashMap<&str, usize> = pc_tokens
         .iter()
         .enumerate()
@@ -433,7 +441,12 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
 
     // Scenario tags in the window.
     let mut tags = Vec::new();
-    for r in db.select("scenario_tag", &["token", "lidar_pc_token", "type"], &win, &[])? {
+    for r in db.select(
+        "scenario_tag",
+        &["token", "lidar_pc_token", "type"],
+        &win,
+        &[],
+    )? {
         tags.push((
             r.token("lidar_pc_token")?,
             r.opt_text("type")?.unwrap_or("").to_string(),
@@ -529,14 +542,23 @@ fn camera_rig(
         cameras.push(Camera {
             name,
             // Row-major 3x3 -> columns.
-            intrinsic: DMat3::from_cols_array(&[k[0], k[3], k[6], k[1], k[4], k[7], k[2], k[5], k[8]]),
-            cam2ego: DMat4::from_rotation_translation(rot.normalize(), DVec3::new(t[0], t[1], t[2])),
+            intrinsic: DMat3::from_cols_array(&[
+                k[0], k[3], k[6], k[1], k[4], k[7], k[2], k[5], k[8],
+            ]),
+            cam2ego: DMat4::from_rotation_translation(
+                rot.normalize(),
+                DVec3::new(t[0], t[1], t[2]),
+            ),
             width: w as u32,
             height: h as u32,
         });
     }
     let order = |n: &str| CAMERAS.iter().position(|c| *c == n).unwrap_or(usize::MAX);
-    cameras.sort_by(|a, b| order(&a.name).cmp(&order(&b.name)).then(a.name.cmp(&b.name)));
+    cameras.sort_by(|a, b| {
+        order(&a.name)
+            .cmp(&order(&b.name))
+            .then(a.name.cmp(&b.name))
+    });
 
     let sensor_root = match &spec.sensor_root {
         Some(s) => s.clone(),
@@ -546,7 +568,13 @@ fn camera_rig(
     };
     let imgs = db.select(
         "image",
-        &["token", "ego_pose_token", "camera_token", "filename_jpg", "timestamp"],
+        &[
+            "token",
+            "ego_pose_token",
+            "camera_token",
+            "filename_jpg",
+            "timestamp",
+        ],
         "WHERE timestamp BETWEEN ?1 AND ?2 ORDER BY timestamp",
         &[
             &(t0 - FRAME_TOLERANCE_US) as &dyn rusqlite::ToSql,

@@ -71,14 +71,10 @@ pub fn project(zone: &Zone, lon_lat: DVec2) -> Result<DVec2> {
     if !(lat.abs() <= 90.0 && lon.abs() <= 360.0) || !lon.is_finite() {
         bail!("({lon}, {lat}) is not a longitude / latitude in degrees");
     }
-    Ok(transverse_mercator(
-        WGS84_A,
-        WGS84_F,
-        0.9996,
-        zone.lon0(),
-        lon,
-        lat,
-    ) + DVec2::new(500_000.0, if zone.south { 10_000_000.0 } else { 0.0 }))
+    Ok(
+        transverse_mercator(WGS84_A, WGS84_F, 0.9996, zone.lon0(), lon, lat)
+            + DVec2::new(500_000.0, if zone.south { 10_000_000.0 } else { 0.0 }),
+    )
 }
 
 /// Transverse Mercator (x, y) of (lon, lat) degrees about central meridian `lon0` on ellipsoid (a, f), scale k0.
@@ -152,10 +148,27 @@ mod tests {
         let lat = 43.0 + 38.0 / 60.0 + 33.24 / 3600.0;
         let lon = -(79.0 + 23.0 / 60.0 + 13.7 / 3600.0);
         let p = project(&z17, DVec2::new(lon, lat)).unwrap();
-        assert!((p.x - 630_084.0).abs() < 1.0 && (p.y - 4_833_438.0).abs() < 1.0, "{p}");
+        assert!(
+            (p.x - 630_084.0).abs() < 1.0 && (p.y - 4_833_438.0).abs() < 1.0,
+            "{p}"
+        );
         // Southern zones add the false northing; east / west of the meridian is symmetric.
-        let s = project(&Zone { number: 11, south: true }, DVec2::new(-116.0, -10.0)).unwrap();
-        let w = project(&Zone { number: 11, south: true }, DVec2::new(-118.0, -10.0)).unwrap();
+        let s = project(
+            &Zone {
+                number: 11,
+                south: true,
+            },
+            DVec2::new(-116.0, -10.0),
+        )
+        .unwrap();
+        let w = project(
+            &Zone {
+                number: 11,
+                south: true,
+            },
+            DVec2::new(-118.0, -10.0),
+        )
+        .unwrap();
         assert!(s.y < 10_000_000.0 && (s.y - w.y).abs() < 1e-6);
         assert!(((s.x - 500_000.0) + (w.x - 500_000.0)).abs() < 1e-6);
     }

@@ -32,7 +32,9 @@ impl Geometry {
             Geometry::Point(p) => Geometry::Point(f(*p)?),
             Geometry::LineString(l) => Geometry::LineString(ring(l)?),
             Geometry::Polygon(rs) => Geometry::Polygon(rs.iter().map(ring).collect::<Result<_>>()?),
-            Geometry::Multi(g) => Geometry::Multi(g.iter().map(|x| x.try_map(f)).collect::<Result<_>>()?),
+            Geometry::Multi(g) => {
+                Geometry::Multi(g.iter().map(|x| x.try_map(f)).collect::<Result<_>>()?)
+            }
             Geometry::Empty => Geometry::Empty,
         })
     }
@@ -149,7 +151,10 @@ impl Reader<'_> {
         let le = match self.take(1)?[0] {
             0 => false,
             1 => true,
-            o => bail!("WKB byte order {o} at byte {} (0 or 1 expected)", self.i - 1),
+            o => bail!(
+                "WKB byte order {o} at byte {} (0 or 1 expected)",
+                self.i - 1
+            ),
         };
         let raw = self.u32(le)?;
         // EWKB flags (Z 0x80000000, M 0x40000000, SRID 0x20000000) or ISO offsets (1000 Z, 2000 M, 3000 ZM).
@@ -187,7 +192,11 @@ impl Reader<'_> {
             2 => Geometry::LineString(self.points(le, dims)?),
             3 => {
                 let n = self.count(le, 4)?;
-                Geometry::Polygon((0..n).map(|_| self.points(le, dims)).collect::<Result<_>>()?)
+                Geometry::Polygon(
+                    (0..n)
+                        .map(|_| self.points(le, dims))
+                        .collect::<Result<_>>()?,
+                )
             }
             4..=7 => {
                 let n = self.count(le, 5)?;
