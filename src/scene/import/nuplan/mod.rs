@@ -157,7 +157,7 @@ fn light_of(r: &Rec) -> Result<TrafficLightStatus> {
 
 fn quat(r: &Rec) -> Result<DQuat> {
     let q = DQuat::from_xyzw(r.f64("qx")?, r.f64("qy")?, r.f64("qz")?, r.f64("qw")?);
-    if !(q.length() > 1e-6) {
+    if q.length().is_nan() || q.length() <= 1e-6 {
         bail!("{}: columns qw, qx, qy, qz: a zero quaternion", r.at());
     }
     Ok(q.normalize())
@@ -530,7 +530,7 @@ fn camera_rig(
             .and_then(|o| pickle::to_array(&o))
             .map_err(|e| anyhow!("{}: column `distortion`: pickled array: {e}", r.at()))?;
         let rot = DQuat::from_xyzw(q[1], q[2], q[3], q[0]);
-        if !(rot.length() > 1e-6) {
+        if rot.length().is_nan() || rot.length() <= 1e-6 {
             bail!("{}: column `rotation`: a zero quaternion", r.at());
         }
         let (w, h) = (r.i64("width")?, r.i64("height")?);

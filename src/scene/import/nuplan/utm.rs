@@ -68,7 +68,7 @@ impl Zone {
 /// Projects (longitude, latitude) in degrees into the zone (easting, northing) in metres.
 pub fn project(zone: &Zone, lon_lat: DVec2) -> Result<DVec2> {
     let (lon, lat) = (lon_lat.x, lon_lat.y);
-    if !(lat.abs() <= 90.0 && lon.abs() <= 360.0) || !lon.is_finite() {
+    if !(lat.abs() <= 90.0 && lon.abs() <= 360.0 && lon.is_finite()) {
         bail!("({lon}, {lat}) is not a longitude / latitude in degrees");
     }
     Ok(
