@@ -454,6 +454,20 @@ fn log_replay_uses_the_recorded_images() {
 /// Copies the fixture's DB and map into a fresh folder, applies `edit` to (db, map) connections, returns the
 /// load error.
 fn broken(name: &str, edit: impl FnOnce(&rusqlite::Connection, &rusqlite::Connection)) -> String {
+    let e = format!(
+        "{:#}",
+        edited(name, edit, nuplan::load).expect_err("a broken input must fail")
+    );
+    e
+}
+
+/// Copies the fixture's DB and map into a fresh folder, applies `edit` to (db, map) connections and returns what
+/// `load` gives on the copy (the images stay in the fixture's sensor_blobs).
+fn edited<T>(
+    name: &str,
+    edit: impl FnOnce(&rusqlite::Connection, &rusqlite::Connection),
+    load: impl FnOnce(&NuplanSpec) -> anyhow::Result<T>,
+) -> anyhow::Result<T> {
     let root = root().unwrap();
     let ex = expected(root);
     let dst =
@@ -476,16 +490,45 @@ fn broken(name: &str, edit: impl FnOnce(&rusqlite::Connection, &rusqlite::Connec
         b.execute_batch("PRAGMA foreign_keys = OFF").unwrap();
         edit(&a, &b);
     }
-    let e = format!(
-        "{:#}",
-        nuplan::load(&NuplanSpec {
-            sensor_root: Some(root.join("nuplan-v1.1/sensor_blobs")),
-            ..spec(&db, None)
-        })
-        .expect_err("a broken input must fail")
-    );
+    let r = load(&NuplanSpec {
+        sensor_root: Some(root.join("nuplan-v1.1/sensor_blobs")),
+        ..spec(&db, None)
+    });
     let _ = std::fs::remove_dir_all(&dst);
-    e
+    r
+}
+
+/// A log without camera rows (nuPlan's non-sensor splits) gets the default generated rig; id columns stored as
+/// text or reals (the devkit casts them) read as the integers.
+#[test]
+fn log_without_cameras_and_text_ids() {
+    if root().is_none() {
+        return;
+    }
+    let sc = edited(
+        "nocam",
+        |db, map| {
+            db.execute_batch("DELETE FROM image; DELETE FROM camera").unwrap();
+            map.execute_batch(
+                "UPDATE lanes_polygons SET lane_group_fid = CAST(lane_group_fid AS TEXT); \
+                 UPDATE baseline_paths SET lane_fid = CAST(lane_fid AS REAL) WHERE lane_fid IS NOT NULL",
+            )
+            .unwrap();
+        },
+        nuplan::load,
+    )
+    .unwrap();
+    assert_eq!(sc.rig.cameras.len(), 6);
+    assert!(sc.rig.frames[0].images[0].path.starts_with("builtin://"));
+    assert_eq!(sc.route.roadblock_ids, vec!["1", "2", "3"]);
+    // Without the image table at all, too.
+    let sc = edited(
+        "noimage",
+        |db, _| db.execute_batch("DROP TABLE image").unwrap(),
+        nuplan::load,
+    )
+    .unwrap();
+    assert!(sc.rig.frames[0].images[0].path.starts_with("builtin://"));
 }
 
 #[test]

@@ -69,3 +69,12 @@ def test_map_geometries_parse(fixture):
         assert (order, kind) == (1, 2)
     ex = json.loads((out / "expected.json").read_text())
     assert len(ex["steps"]) == 41
+
+
+def test_projection_published_point_and_inverse():
+    # The CN Tower (43 38' 33.24" N, 79 23' 13.7" W) is at 17T 630084 E 4833438 N (zone 17: lon0 = -81).
+    x, y = nf.tm_forward(-(79 + 23 / 60 + 13.7 / 3600), 43 + 38 / 60 + 33.24 / 3600, lon0=-81.0)
+    assert abs(x - 630084) < 1 and abs(y - 4833438) < 1
+    lon, lat = nf.tm_inverse(nf.X0 + 12.3, nf.Y0 - 4.5)
+    fx, fy = nf.tm_forward(lon, lat)
+    assert abs(fx - nf.X0 - 12.3) < 1e-8 and abs(fy - nf.Y0 + 4.5) < 1e-8
