@@ -265,7 +265,7 @@ fn round_trip_equals_the_known_scenario() {
     );
 }
 
-/// SCENARIO_TOKEN = the tagged lidar_pc at t = 4 s: the window runs 15 s from t = 2 s (150 steps).
+/// SCENARIO_TOKEN = the tagged lidar_pc at t = 4 s: the window runs 15 s from t = 1 s (150 steps).
 #[test]
 fn scenario_tag_window() {
     let Some(root) = root() else { return };
@@ -276,8 +276,8 @@ fn scenario_tag_window() {
     let log = nuplan::load_log(&spec(&db_path(root), Some(token))).unwrap();
     let sc = &log.scenario;
     assert_eq!(sc.len(), 150);
-    assert_eq!(log.t0_us, ex["t0_us"].as_i64().unwrap() + 2_000_000);
-    let e0 = &ex["steps"][20]["ego"];
+    assert_eq!(log.t0_us, ex["t0_us"].as_i64().unwrap() + 1_000_000);
+    let e0 = &ex["steps"][10]["ego"];
     assert!((sc.ego[0].rear_axle.x - f(&e0[0])).abs() < 1e-6);
     assert!(log
         .tags

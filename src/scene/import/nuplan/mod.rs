@@ -37,9 +37,10 @@ use db::{unhex, Db, Rec};
 
 /// Log step (s): every second lidar_pc.
 pub const DT: f64 = 0.1;
-/// Scenario window length (s) and start relative to the tagged lidar_pc (s).
+/// Scenario window length (s) and start relative to the tagged lidar_pc (s): the devkit's
+/// `nuplan_scenario_mapping.yaml` gives `[15.0, -3.0]` to every scenario type (subsample ratio 0.5).
 pub const WINDOW_S: f64 = 15.0;
-pub const OFFSET_S: f64 = -2.0;
+pub const OFFSET_S: f64 = -3.0;
 /// Map elements are kept within this distance of the ego path's bounding box.
 pub const MAP_MARGIN_M: f64 = 200.0;
 /// An image joins the frame of a step when it is within this time of the step.
