@@ -20,7 +20,7 @@ pub mod town;
 pub mod view;
 
 use crate::scene::camera::Camera;
-use crate::scene::import::{nuscenes, scenarionet, BuiltinSpec, DayPalette, Source};
+use crate::scene::import::{nuplan, nuscenes, scenarionet, BuiltinSpec, DayPalette, Source};
 use crate::scene::Scenario;
 use anyhow::Result;
 use glam::DMat4;
@@ -36,6 +36,7 @@ pub fn load(src: &Source) -> Result<Scenario> {
         Source::Builtin(spec) => Ok(town::generate(spec)),
         Source::File(p) => scenarionet::load_file(p),
         Source::Nuscenes(n) => nuscenes::load(n),
+        Source::Nuplan(n) => nuplan::load(n),
     }
 }
 

@@ -3,12 +3,15 @@
 //!   `crate::world::load` generates them, since their logs are driven by the simulator's IDM agents);
 //! - a ScenarioNet JSON file ([`scenarionet`]);
 //! - a directory: every `*.json` file in it, sorted by name;
-//! - `nuscenes:DATAROOT[:VERSION]:SCENE`: a scene of the official nuScenes tables ([`nuscenes`]).
+//! - `nuscenes:DATAROOT[:VERSION]:SCENE`: a scene of the official nuScenes tables ([`nuscenes`]);
+//! - `nuplan:DB[:SCENARIO_TOKEN]`: a nuPlan log DB, whole or one scenario window ([`nuplan`]).
 pub mod builtin;
+pub mod nuplan;
 pub mod nuscenes;
 pub mod scenarionet;
 
 pub use builtin::{BuiltinSpec, DayPalette, Layout};
+pub use nuplan::NuplanSpec;
 pub use nuscenes::NuscenesSpec;
 
 use super::camera::{Camera, CameraImage, CameraRig, RecordedFrame};
@@ -23,6 +26,7 @@ pub enum Source {
     Builtin(BuiltinSpec),
     File(PathBuf),
     Nuscenes(NuscenesSpec),
+    Nuplan(NuplanSpec),
 }
 
 impl Source {
@@ -35,6 +39,7 @@ impl Source {
                 .map(|s| s.to_string_lossy().into_owned())
                 .unwrap_or_default(),
             Source::Nuscenes(n) => n.scene.clone(),
+            Source::Nuplan(n) => n.name(),
         }
     }
 
@@ -42,7 +47,7 @@ impl Source {
     /// generated images and for nuScenes, whose image paths already start with the DATAROOT).
     pub fn image_dir(&self) -> Option<PathBuf> {
         match self {
-            Source::Builtin(_) | Source::Nuscenes(_) => None,
+            Source::Builtin(_) | Source::Nuscenes(_) | Source::Nuplan(_) => None,
             Source::File(p) => p.parent().map(|d| d.to_path_buf()),
         }
     }
@@ -67,6 +72,9 @@ pub fn resolve(spec: &str) -> Result<Vec<Source>> {
     if let Some(rest) = spec.strip_prefix("nuscenes:") {
         return Ok(vec![Source::Nuscenes(NuscenesSpec::parse(rest, spec)?)]);
     }
+    if let Some(rest) = spec.strip_prefix("nuplan:") {
+        return Ok(vec![Source::Nuplan(NuplanSpec::parse(rest, spec)?)]);
+    }
     let p = PathBuf::from(spec);
     if p.is_dir() {
         // an entry that cannot be read is an error, not a scenario silently left out of the CLS
@@ -87,7 +95,7 @@ pub fn resolve(spec: &str) -> Result<Vec<Source>> {
     if p.is_file() {
         return Ok(vec![Source::File(p)]);
     }
-    bail!("scenario {spec:?} is neither builtin:LAYOUT[:seed[:n[:palette]]], nuscenes:DATAROOT[:VERSION]:SCENE, an existing .json file nor a directory")
+    bail!("scenario {spec:?} is neither builtin:LAYOUT[:seed[:n[:palette]]], nuscenes:DATAROOT[:VERSION]:SCENE, nuplan:DB[:SCENARIO_TOKEN], an existing .json file nor a directory")
 }
 
 /// Ego -> global 4x4 of a rear-axle pose (nuScenes' ego frame sits at the rear axle, z = 0).
