@@ -4,6 +4,7 @@
 //! - a ScenarioNet JSON file ([`scenarionet`]);
 //! - a directory: every `*.json` file in it, sorted by name;
 //! - `nuscenes:DATAROOT[:VERSION]:SCENE`: a scene of the official nuScenes tables ([`nuscenes`]).
+pub mod bounds;
 pub mod builtin;
 pub mod nuscenes;
 pub mod scenarionet;
