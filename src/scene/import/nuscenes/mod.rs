@@ -364,7 +364,7 @@ pub fn load_log(spec: &NuscenesSpec) -> Result<NuscenesLog> {
                 }
             };
             let [w, l, h] = r.vec::<3>("size")?;
-            if !(w > 0.0 && l > 0.0 && h >= 0.0) || ![w, l, h].into_iter().all(bounds::size_ok) {
+            if !(w > 0.0 && l > 0.0 && h >= 0.0 && [w, l, h].into_iter().all(bounds::size_ok)) {
                 bail!(
                     "{}: column `size`: [width, length, height] must be positive and at most {} m, found {:?}",
                     r.at(),
