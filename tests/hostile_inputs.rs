@@ -323,6 +323,21 @@ proptest! {
     }
 }
 
+/// A subnormal sample_rate (5e-324 s: `scenario_numbers_parse_or_err_and_run` drew it) parsed, and the constant
+/// velocity planner's horizon (4 s / dt poses) then asked for an 8 GiB allocation: it is an error naming the field.
+#[test]
+fn tiny_sample_rate_is_an_error() {
+    for dt in [5e-324, 1e-9, 0.0, -0.1, 10.0] {
+        let mut v = scenario_json();
+        v["metadata"]["sample_rate"] = json!(dt);
+        let e = format!("{:#}", scenarionet::parse(&v, "p.json", None).unwrap_err());
+        assert!(e.contains("metadata.sample_rate"), "{dt}: {e}");
+    }
+    let mut v = scenario_json();
+    v["metadata"]["sample_rate"] = json!(0.05);
+    assert!(scenarionet::parse(&v, "p.json", None).is_ok());
+}
+
 // ------------------------------------------------------------------------------------------ nuScenes tables
 
 /// The tables the nuScenes importer reads.

@@ -13,6 +13,9 @@ pub const MAX_SIZE_M: f64 = 1e3;
 pub const MAX_ANGLE_RAD: f64 = 1e3;
 /// Largest camera image side accepted (pixels; as projection keyframe files).
 pub const MAX_IMAGE_SIDE_PX: u32 = 16384;
+/// Shortest log time step accepted (s): a subnormal one (5e-324 s) made a world or a simulation of a 3-step
+/// log allocate gigabytes (found by `hostile_inputs::scenario_numbers_parse_or_err_and_run`).
+pub const MIN_DT_S: f64 = 1e-3;
 /// Largest focal length or principal point coordinate accepted in camera intrinsics (pixels).
 pub const MAX_INTRINSIC_PX: f64 = 1e6;
 

@@ -189,10 +189,13 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
         Some(s) => c.f64(s, "metadata.sample_rate")?,
         None => 0.1,
     };
-    if !(dt > 0.0 && dt < 10.0) {
+    if !(dt >= super::bounds::MIN_DT_S && dt < 10.0) {
         return Err(c.err(
             "metadata.sample_rate",
-            "must be a positive time step in seconds",
+            &format!(
+                "must be a time step in seconds in {}..10, found {dt}",
+                super::bounds::MIN_DT_S
+            ),
         ));
     }
     let name = v
