@@ -189,7 +189,7 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
         Some(s) => c.f64(s, "metadata.sample_rate")?,
         None => 0.1,
     };
-    if !(dt >= super::bounds::MIN_DT_S && dt < 10.0) {
+    if !(super::bounds::MIN_DT_S..10.0).contains(&dt) {
         return Err(c.err(
             "metadata.sample_rate",
             &format!(
