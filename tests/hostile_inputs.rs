@@ -1,5 +1,6 @@
 //! Property tests over the entry points that read files and replies (issue #18): safetensors headers, model
-//! and scheduler configs, ScenarioNet scenarios, GeoJSON drivable areas, keyframe files and planner replies.
+//! and scheduler configs, ScenarioNet scenarios, GeoJSON drivable areas, nuScenes tables and map expansion (on the
+//! fixture DATAROOT; skipped when the shared data is absent), keyframe files and planner replies.
 //! Every input either parses or is an `Err`, within a time bound, never a panic. Inputs are valid documents
 //! with one value replaced by an arbitrary one (wrong types, huge and negative numbers, deep nesting), and
 //! arbitrary documents. Case counts are bounded (a minute or two in all on a CI machine).
@@ -11,12 +12,14 @@ use b2dr::nn::config::{ControlNetConfig, UNetConfig, VaeConfig};
 use b2dr::nn::weights::Weights;
 use b2dr::projection::keyframe::{drivable_area_from_geojson, KeyFrame};
 use b2dr::scene::geometry::Pose2;
-use b2dr::scene::import::scenarionet;
+use b2dr::scene::import::{nuscenes, scenarionet};
 use b2dr::sim::ego::EgoState;
 use b2dr::sim::external::parse_reply;
 use b2dr::sim::planner::trajectory_from_ego_frame;
 use proptest::prelude::*;
 use proptest::sample::Index;
+
+mod nuscenes_fixture;
 use serde_json::{json, Value};
 
 /// Longest one parse may take.
@@ -317,6 +320,157 @@ proptest! {
         let _ = bounded("geojson", || scenarionet::load_geojson_polygons(&gpath));
         let _ = bounded("geojson (projection)", || drivable_area_from_geojson(&gpath, 0.0));
         let _ = bounded("scenario + geojson", || scenarionet::load_file(&s));
+    }
+}
+
+/// A subnormal sample_rate (5e-324 s: `scenario_numbers_parse_or_err_and_run` drew it) parsed, and the constant
+/// velocity planner's horizon (4 s / dt poses) then asked for an 8 GiB allocation: it is an error naming the field.
+#[test]
+fn tiny_sample_rate_is_an_error() {
+    for dt in [5e-324, 1e-9, 0.0, -0.1, 10.0] {
+        let mut v = scenario_json();
+        v["metadata"]["sample_rate"] = json!(dt);
+        let e = format!("{:#}", scenarionet::parse(&v, "p.json", None).unwrap_err());
+        assert!(e.contains("metadata.sample_rate"), "{dt}: {e}");
+    }
+    let mut v = scenario_json();
+    v["metadata"]["sample_rate"] = json!(0.05);
+    assert!(scenarionet::parse(&v, "p.json", None).is_ok());
+}
+
+// ------------------------------------------------------------------------------------------ nuScenes tables
+
+/// The tables the nuScenes importer reads.
+const NUSCENES_TABLES: [&str; 10] = [
+    "scene",
+    "log",
+    "sample",
+    "sample_data",
+    "ego_pose",
+    "calibrated_sensor",
+    "sensor",
+    "sample_annotation",
+    "instance",
+    "category",
+];
+const NUSCENES_MAP: &str = "maps/expansion/singapore-onenorth.json";
+/// Longest one nuScenes import may take (an import takes about 0.3 s; this catches unbounded work, not speed).
+const NUSCENES_BOUND: Duration = Duration::from_secs(30);
+
+/// A private copy of the fixture DATAROOT's tables and map (`name` tells the copies of two tests apart), its
+/// documents (relative path, parsed, text) and every token of the tables.
+struct NuCopy {
+    root: PathBuf,
+    docs: Vec<(String, Value, String)>,
+    tokens: Vec<String>,
+}
+
+fn nuscenes_copy(name: &str) -> Option<NuCopy> {
+    let src = nuscenes_fixture::dataroot()?;
+    let root = tmp(&format!("nuscenes_{name}"));
+    std::fs::create_dir_all(root.join("v1.0-mini")).unwrap();
+    std::fs::create_dir_all(root.join("maps/expansion")).unwrap();
+    let mut docs = vec![];
+    let mut tokens = vec![];
+    let rels = NUSCENES_TABLES
+        .iter()
+        .map(|t| format!("v1.0-mini/{t}.json"))
+        .chain([NUSCENES_MAP.to_string()]);
+    for rel in rels {
+        let text = std::fs::read_to_string(src.join(&rel)).unwrap();
+        std::fs::write(root.join(&rel), &text).unwrap();
+        let v: Value = serde_json::from_str(&text).unwrap();
+        if let Value::Array(rows) = &v {
+            tokens.extend(
+                rows.iter()
+                    .filter_map(|r| r["token"].as_str().map(String::from)),
+            );
+        }
+        docs.push((rel, v, text));
+    }
+    Some(NuCopy { root, docs, tokens })
+}
+
+fn has_number(v: &Value) -> bool {
+    match v {
+        Value::Number(_) => true,
+        Value::Array(a) => a.iter().any(has_number),
+        Value::Object(o) => o.values().any(has_number),
+        _ => false,
+    }
+}
+
+/// Writes document `doc` of `c` mutated (`mode` 0: a value replaced by `new` or deleted, 1: a number replaced by
+/// `num`, 2: a value replaced by a token of some table), imports scene-0061 within the bound, restores the file.
+#[allow(clippy::too_many_arguments)]
+fn nuscenes_mutated_import(
+    c: &NuCopy,
+    doc: usize,
+    mode: u8,
+    at: Index,
+    new: Value,
+    num: Value,
+    delete: bool,
+    tok: Index,
+) {
+    let (rel, base, text) = &c.docs[doc];
+    let v = match mode {
+        1 if has_number(base) => mutate_number(base, at, num),
+        0 | 1 => mutate(base, at, new, delete),
+        _ => mutate(
+            base,
+            at,
+            Value::String(c.tokens[tok.index(c.tokens.len())].clone()),
+            false,
+        ),
+    };
+    let path = c.root.join(rel);
+    std::fs::write(&path, serde_json::to_string(&v).unwrap()).unwrap();
+    let spec = nuscenes_fixture::spec(&c.root);
+    let t0 = Instant::now();
+    let r = nuscenes::load(&spec);
+    let took = t0.elapsed();
+    std::fs::write(&path, text).unwrap();
+    assert!(took < NUSCENES_BOUND, "{rel} mutated: import took {took:?}");
+    if let Err(e) = r {
+        // errors say where
+        let e = format!("{e:#}");
+        assert!(
+            e.contains("nuScenes") || e.contains("map expansion") || e.contains("building the map"),
+            "{rel}: {e}"
+        );
+    }
+}
+
+proptest! {
+    #![proptest_config(config(40))]
+
+    /// Mutated nuScenes tables (one value replaced by arbitrary JSON, a nasty number or another row's token, or
+    /// deleted): the import of the scene returns Ok or Err within the bound, never panics.
+    #[test]
+    fn nuscenes_tables_import_or_err(
+        doc in 0..NUSCENES_TABLES.len(), mode in 0u8..3, at in any::<Index>(),
+        new in prop_oneof![arb_json(), nasty_number()], num in nasty_number(), delete in any::<bool>(),
+        tok in any::<Index>(),
+    ) {
+        static COPY: std::sync::OnceLock<Option<NuCopy>> = std::sync::OnceLock::new();
+        let Some(c) = COPY.get_or_init(|| nuscenes_copy("tables")) else { return Ok(()) };
+        nuscenes_mutated_import(c, doc, mode, at, new, num, delete, tok);
+    }
+}
+
+proptest! {
+    #![proptest_config(config(12))]
+
+    /// The same over the map expansion file.
+    #[test]
+    fn nuscenes_map_expansion_imports_or_err(
+        mode in 0u8..3, at in any::<Index>(), new in prop_oneof![arb_json(), nasty_number()],
+        num in nasty_number(), delete in any::<bool>(), tok in any::<Index>(),
+    ) {
+        static COPY: std::sync::OnceLock<Option<NuCopy>> = std::sync::OnceLock::new();
+        let Some(c) = COPY.get_or_init(|| nuscenes_copy("map")) else { return Ok(()) };
+        nuscenes_mutated_import(c, NUSCENES_TABLES.len(), mode, at, new, num, delete, tok);
     }
 }
 

@@ -284,6 +284,11 @@ fn sim_runs_on_a_nuscenes_scene() {
 
 /// Copies the tables into `<root>/<version>`, applies `edit` to table `name`, returns the load error.
 fn broken(root: &Path, version: &str, edit: impl FnOnce(&Path)) -> String {
+    broken_scene(root, version, "scene-0061", edit)
+}
+
+/// [`broken`] loading scene `scene` (a name or token).
+fn broken_scene(root: &Path, version: &str, scene: &str, edit: impl FnOnce(&Path)) -> String {
     let dst = root.join(version);
     let _ = std::fs::remove_dir_all(&dst);
     std::fs::create_dir_all(&dst).unwrap();
@@ -294,6 +299,7 @@ fn broken(root: &Path, version: &str, edit: impl FnOnce(&Path)) -> String {
     edit(&dst);
     let s = NuscenesSpec {
         version: version.into(),
+        scene: scene.into(),
         ..spec(root)
     };
     let e = format!(
@@ -459,6 +465,352 @@ fn malformed_tables_give_clear_errors() {
         "{e}"
     );
     let _ = std::fs::remove_dir_all(&bare);
+}
+
+fn read_table(dir: &Path, table: &str) -> Vec<serde_json::Value> {
+    serde_json::from_str(&std::fs::read_to_string(dir.join(format!("{table}.json"))).unwrap())
+        .unwrap()
+}
+
+/// The first row index of `table` for which `pred` holds.
+fn row_where(dir: &Path, table: &str, pred: impl Fn(&serde_json::Value) -> bool) -> usize {
+    read_table(dir, table).iter().position(pred).unwrap()
+}
+
+/// sample_data of the LIDAR_TOP (ego poses) and of a camera (images, calibration).
+fn lidar(r: &serde_json::Value) -> bool {
+    r["filename"].as_str().unwrap().contains("LIDAR_TOP")
+}
+fn camera(r: &serde_json::Value) -> bool {
+    r["filename"].as_str().unwrap().contains("CAM_FRONT")
+}
+/// The ego_pose row of a LIDAR_TOP sample_data in the middle of the scene.
+fn mid_lidar_pose(d: &Path) -> usize {
+    let sd = read_table(d, "sample_data");
+    let rows: Vec<&serde_json::Value> = sd.iter().filter(|r| lidar(r)).collect();
+    let tok = rows[rows.len() / 2]["ego_pose_token"].clone();
+    row_where(d, "ego_pose", |r| r["token"] == tok)
+}
+
+/// Issue #18 on the nuScenes tables: far, huge, non-finite and absurd values, paths that leave the DATAROOT and
+/// names that are paths are refused with errors naming the table, the row and the column.
+#[test]
+fn hostile_tables_are_refused() {
+    use serde_json::json;
+    let Some(root) = dataroot() else { return };
+    let cases: Vec<(&str, Edit, Vec<&str>)> = vec![
+        (
+            "far ego pose",
+            Box::new(|d: &Path| {
+                edit_row(d, "ego_pose", 2, |r| {
+                    r["translation"] = json!([1e9, 0.0, 0.0])
+                })
+            }),
+            vec![
+                "table `ego_pose`",
+                "row 2",
+                "column `translation`",
+                "beyond",
+            ],
+        ),
+        (
+            "NaN in a table (Python's json writes it)",
+            Box::new(|d: &Path| {
+                let p = d.join("ego_pose.json");
+                let t = std::fs::read_to_string(&p).unwrap();
+                let i = t
+                    .find("\"translation\": [")
+                    .or_else(|| t.find("\"translation\":["))
+                    .unwrap();
+                let j = i + t[i..].find('[').unwrap() + 1;
+                std::fs::write(&p, format!("{}NaN, {}", &t[..j], &t[j..])).unwrap();
+            }),
+            vec!["table `ego_pose`", "not valid JSON"],
+        ),
+        (
+            "huge quaternion",
+            Box::new(|d: &Path| {
+                edit_row(d, "ego_pose", 3, |r| {
+                    r["rotation"] = json!([1e300, 0, 0, 1e300])
+                })
+            }),
+            vec![
+                "table `ego_pose`",
+                "row 3",
+                "column `rotation`",
+                "not a rotation",
+            ],
+        ),
+        (
+            "ego jump (speed beyond 1000 m/s)",
+            Box::new(|d: &Path| {
+                let i = mid_lidar_pose(d);
+                edit_row(d, "ego_pose", i, |r| {
+                    r["translation"][0] = json!(r["translation"][0].as_f64().unwrap() + 1e6)
+                })
+            }),
+            vec![
+                "table `ego_pose`",
+                "column `translation`",
+                "m/s",
+                "table `sample_data`",
+            ],
+        ),
+        (
+            "far annotation",
+            Box::new(|d: &Path| {
+                edit_row(d, "sample_annotation", 7, |r| {
+                    r["translation"] = json!([0.0, -2e8, 0.0])
+                })
+            }),
+            vec![
+                "table `sample_annotation`",
+                "row 7",
+                "column `translation`",
+                "beyond",
+            ],
+        ),
+        (
+            "huge annotation",
+            Box::new(|d: &Path| {
+                edit_row(d, "sample_annotation", 8, |r| {
+                    r["size"] = json!([2.0, 1e4, 1.5])
+                })
+            }),
+            vec![
+                "table `sample_annotation`",
+                "row 8",
+                "column `size`",
+                "at most 1000 m",
+            ],
+        ),
+        (
+            "annotation jump (box velocity beyond 1000 m/s)",
+            Box::new(|d: &Path| {
+                let i = row_where(d, "sample_annotation", |r| {
+                    r["prev"] != "" && r["next"] != ""
+                });
+                edit_row(d, "sample_annotation", i, |r| {
+                    r["translation"][1] = json!(r["translation"][1].as_f64().unwrap() + 1e6)
+                })
+            }),
+            vec![
+                "table `sample_annotation`",
+                "column `translation`",
+                "box velocity",
+                "m/s",
+            ],
+        ),
+        (
+            "camera 10 km from the ego",
+            Box::new(|d: &Path| {
+                let i = row_where(d, "calibrated_sensor", |r| {
+                    r["camera_intrinsic"] != json!([])
+                });
+                edit_row(d, "calibrated_sensor", i, |r| {
+                    r["translation"] = json!([1e4, 0.0, 1.5])
+                })
+            }),
+            vec![
+                "table `calibrated_sensor`",
+                "column `translation`",
+                "beyond",
+            ],
+        ),
+        (
+            "absurd intrinsics",
+            Box::new(|d: &Path| {
+                let i = row_where(d, "calibrated_sensor", |r| {
+                    r["camera_intrinsic"] != json!([])
+                });
+                edit_row(d, "calibrated_sensor", i, |r| {
+                    r["camera_intrinsic"][0][0] = json!(1e300)
+                })
+            }),
+            vec![
+                "table `calibrated_sensor`",
+                "column `camera_intrinsic`",
+                "beyond",
+            ],
+        ),
+        (
+            "huge image",
+            Box::new(|d: &Path| {
+                let i = row_where(d, "sample_data", camera);
+                edit_row(d, "sample_data", i, |r| {
+                    r["width"] = json!(4_000_000_000u32)
+                })
+            }),
+            vec!["table `sample_data`", "`width`", "4000000000x", "1..=16384"],
+        ),
+        (
+            "image outside the DATAROOT (..)",
+            Box::new(|d: &Path| {
+                let i = row_where(d, "sample_data", camera);
+                edit_row(d, "sample_data", i, |r| {
+                    r["filename"] = json!("samples/../../../etc/passwd")
+                })
+            }),
+            vec![
+                "table `sample_data`",
+                "column `filename`",
+                "not a relative path inside",
+            ],
+        ),
+        (
+            "image outside the DATAROOT (absolute)",
+            Box::new(|d: &Path| {
+                let i = row_where(d, "sample_data", camera);
+                edit_row(d, "sample_data", i, |r| {
+                    r["filename"] = json!("/etc/passwd")
+                })
+            }),
+            vec![
+                "table `sample_data`",
+                "column `filename`",
+                "\"/etc/passwd\"",
+            ],
+        ),
+        (
+            "location that is a path",
+            Box::new(|d: &Path| edit_row(d, "log", 0, |r| r["location"] = json!("../../../tmp/x"))),
+            vec![
+                "table `log`",
+                "row 0",
+                "column `location`",
+                "not a plain name",
+            ],
+        ),
+        (
+            "channel that is a path",
+            Box::new(|d: &Path| edit_row(d, "sensor", 0, |r| r["channel"] = json!("../CAM"))),
+            vec![
+                "table `sensor`",
+                "row 0",
+                "column `channel`",
+                "not a plain name",
+            ],
+        ),
+        (
+            "far-future timestamp",
+            Box::new(|d: &Path| {
+                edit_row(d, "sample_data", 4, |r| r["timestamp"] = json!(i64::MIN))
+            }),
+            vec![
+                "table `sample_data`",
+                "row 4",
+                "column `timestamp`",
+                "beyond",
+            ],
+        ),
+        (
+            "a scene of years (10^7 steps)",
+            Box::new(|d: &Path| {
+                let n = read_table(d, "sample").len();
+                let i = row_where(d, "sample", |r| r["next"] == "");
+                assert!(n > 1);
+                edit_row(d, "sample", i, |r| {
+                    r["timestamp"] = json!(r["timestamp"].as_i64().unwrap() + 1_000_000_000_000)
+                })
+            }),
+            vec!["table `sample`", "column `timestamp`", "more than 600 s"],
+        ),
+    ];
+    for (k, (what, edit, want)) in cases.into_iter().enumerate() {
+        let t = Instant::now();
+        let e = broken(root, &format!("v9-hostile{k}"), edit);
+        for w in want {
+            assert!(e.contains(w), "{what}: {w:?} not in: {e}");
+        }
+        assert!(
+            t.elapsed().as_secs_f64() < 30.0,
+            "{what}: {:?}",
+            t.elapsed()
+        );
+        eprintln!("{what}: {e}");
+    }
+    // A scene name that is a path (selected by token).
+    let tok = read_table(&root.join("v1.0-mini"), "scene")[0]["token"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let e = broken_scene(root, "v9-hostile-scene", &tok, |d| {
+        edit_row(d, "scene", 0, |r| r["name"] = json!("../../scene"))
+    });
+    assert!(
+        e.contains("table `scene`")
+            && e.contains("column `name`")
+            && e.contains("not a plain name"),
+        "{e}"
+    );
+}
+
+/// A copy of the fixture DATAROOT's tables with the map expansion edited; returns the load error.
+fn broken_map(root: &Path, name: &str, edit: impl FnOnce(&mut serde_json::Value)) -> String {
+    let d = std::env::temp_dir().join(format!("b2dr_nuscenes_map{name}_{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(d.join("v1.0-mini")).unwrap();
+    std::fs::create_dir_all(d.join("maps/expansion")).unwrap();
+    for e in std::fs::read_dir(root.join("v1.0-mini")).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, d.join("v1.0-mini").join(p.file_name().unwrap())).unwrap();
+    }
+    let mp = "maps/expansion/singapore-onenorth.json";
+    let mut m: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(root.join(mp)).unwrap()).unwrap();
+    edit(&mut m);
+    std::fs::write(d.join(mp), serde_json::to_string(&m).unwrap()).unwrap();
+    let t = Instant::now();
+    let e = format!(
+        "{:#}",
+        nuscenes::load(&spec(&d)).expect_err("a broken map must fail")
+    );
+    assert!(t.elapsed().as_secs_f64() < 30.0, "{:?}", t.elapsed());
+    let _ = std::fs::remove_dir_all(&d);
+    e
+}
+
+/// Issue #18 on the map expansion: far nodes, absurd arcline paths (a 10^9 m piece would be sampled into
+/// 2 * 10^9 points; a 1e-300 m radius gives non-finite poses) are refused naming the layer and row.
+#[test]
+fn hostile_map_expansion_is_refused() {
+    use serde_json::json;
+    let Some(root) = dataroot() else { return };
+    let e = broken_map(root, "node", |m| m["node"][5]["x"] = json!(-3e8));
+    assert!(
+        e.contains("`node`") && e.contains("row 5") && e.contains("columns `x`, `y`"),
+        "{e}"
+    );
+    let first_lane = |m: &serde_json::Value| m["lane"][0]["token"].as_str().unwrap().to_string();
+    let e = broken_map(root, "len", |m| {
+        let t = first_lane(m);
+        m["arcline_path_3"][&t][0]["segment_length"] = json!([1e9, 0.0, 0.0]);
+    });
+    assert!(
+        e.contains("arcline_path_3") && e.contains("segment lengths"),
+        "{e}"
+    );
+    let e = broken_map(root, "radius", |m| {
+        let t = first_lane(m);
+        m["arcline_path_3"][&t][0]["radius"] = json!(1e-300);
+    });
+    assert!(e.contains("arcline_path_3") && e.contains("radius"), "{e}");
+    let e = broken_map(root, "start", |m| {
+        let t = first_lane(m);
+        m["arcline_path_3"][&t][0]["start_pose"] = json!([1e12, 0.0, 0.0]);
+    });
+    assert!(
+        e.contains("arcline_path_3") && e.contains("start_pose"),
+        "{e}"
+    );
+    let e = broken_map(root, "heading", |m| {
+        let t = first_lane(m);
+        m["arcline_path_3"][&t][0]["start_pose"][2] = json!(1e200);
+    });
+    assert!(
+        e.contains("start_pose") && e.contains("not an angle"),
+        "{e}"
+    );
 }
 
 /// Import time of scene-0061 (printed; a benchmark, not an assertion on time).

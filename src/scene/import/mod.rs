@@ -5,6 +5,7 @@
 //! - a directory: every `*.json` file in it, sorted by name;
 //! - `nuscenes:DATAROOT[:VERSION]:SCENE`: a scene of the official nuScenes tables ([`nuscenes`]);
 //! - `nuplan:DB[:SCENARIO_TOKEN]`: a nuPlan log DB, whole or one scenario window ([`nuplan`]).
+pub mod bounds;
 pub mod builtin;
 pub mod nuplan;
 pub mod nuscenes;

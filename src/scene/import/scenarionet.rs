@@ -28,13 +28,7 @@ use std::path::Path;
 /// Width given to connector polygons (nuScenes lanes are about 3-3.5 m wide).
 pub const CONNECTOR_WIDTH_M: f64 = 3.5;
 
-/// Largest coordinate accepted (metres from the map origin; UTM northings stay below 1e7): a coordinate
-/// beyond it is an error naming the field, not a map whose geometry overflows.
-pub const MAX_COORD_M: f64 = 1e8;
-/// Largest speed accepted in a logged velocity (m/s).
-pub const MAX_SPEED_MPS: f64 = 1e3;
-/// Largest object dimension accepted (m).
-pub const MAX_SIZE_M: f64 = 1e3;
+pub use super::bounds::{MAX_ANGLE_RAD, MAX_COORD_M, MAX_SIZE_M, MAX_SPEED_MPS};
 
 /// Field access with errors that name the file and the JSON path.
 struct Ctx<'a> {
@@ -188,23 +182,20 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
         .str(c.get(meta, "map", "metadata")?, "metadata.map")?
         .to_string();
     // the map name becomes a file name (`<map>.drivable_area.geojson` in maps_dir): a plain name only
-    if map_name.is_empty()
-        || map_name.starts_with('.')
-        || map_name.chars().any(|ch| matches!(ch, '/' | '\\' | '\0'))
-    {
-        return Err(c.err(
-            "metadata.map",
-            &format!("{map_name:?} is not a plain map name (no separators, NUL or leading dot)"),
-        ));
+    if let Err(why) = super::bounds::plain_name(&map_name) {
+        return Err(c.err("metadata.map", &why));
     }
     let dt = match meta.get("sample_rate") {
         Some(s) => c.f64(s, "metadata.sample_rate")?,
         None => 0.1,
     };
-    if !(dt > 0.0 && dt < 10.0) {
+    if !(super::bounds::MIN_DT_S..10.0).contains(&dt) {
         return Err(c.err(
             "metadata.sample_rate",
-            "must be a positive time step in seconds",
+            &format!(
+                "must be a time step in seconds in {}..10, found {dt}",
+                super::bounds::MIN_DT_S
+            ),
         ));
     }
     let name = v
@@ -267,7 +258,7 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
                 return Err(c.err(&pp, "non-finite position or heading at a valid step"));
             }
             c.within_world(x, y, &pp)?;
-            if h.abs() > 1e3 {
+            if !super::bounds::angle_ok(h) {
                 return Err(c.err(
                     &format!("{sp}.heading[{k}]"),
                     &format!("heading {h} rad is not an angle"),
@@ -288,7 +279,7 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
                 let dim = |a: &Value, what: &str| -> Result<f64> {
                     let path = format!("{sp}.{what}[{k}]");
                     let d = c.f64(a, &path)?;
-                    if !(d.is_finite() && d.abs() <= MAX_SIZE_M) {
+                    if !super::bounds::size_ok(d) {
                         return Err(c.err(&path, &format!("size {d} m is not in 0..={MAX_SIZE_M}")));
                     }
                     Ok(d)

@@ -6,6 +6,7 @@
 //! records point at a polygon. Only elements whose bounding box meets the region of interest are kept.
 use super::tables::{Row, Table};
 use crate::scene::geometry::{wrap_angle, Aabb, Polyline};
+use crate::scene::import::bounds;
 use crate::scene::index::PolygonSet;
 use crate::scene::map::{Crosswalk, LaneKind, LaneSpec, Map};
 use anyhow::{anyhow, bail, Context, Result};
@@ -18,6 +19,13 @@ use std::path::Path;
 pub const ARCLINE_RESOLUTION_M: f64 = 0.5;
 /// Width given to a lane whose polygon is missing (its centre line is buffered).
 pub const DEFAULT_LANE_WIDTH_M: f64 = 3.5;
+/// Longest arcline piece accepted (m; the map expansion's are tens of metres): each is sampled every
+/// [`ARCLINE_RESOLUTION_M`].
+pub const MAX_ARCLINE_PIECE_M: f64 = 1e4;
+/// Smallest arcline turning radius accepted (m).
+pub const MIN_ARCLINE_RADIUS_M: f64 = 1e-3;
+/// Most centre-line points kept for one map (the largest nuScenes map keeps well under a million).
+pub const MAX_MAP_POINTS: usize = 10_000_000;
 
 /// One arcline path: three pieces (arc, arc or straight, arc) of the given lengths, turning left, right or
 /// going straight according to `shape` (e.g. `LSR`), with one turning `radius`.
@@ -105,8 +113,20 @@ fn arcline_of(v: &Value, ctx: &str) -> Result<ArclinePath> {
         serde_json::from_value(de("radius")?).map_err(|e| anyhow!("{ctx}: `radius`: {e}"))?;
     let lengths: [f64; 3] = serde_json::from_value(de("segment_length")?)
         .map_err(|e| anyhow!("{ctx}: `segment_length`: {e}"))?;
-    if !(radius > 0.0 && lengths.iter().all(|l| *l >= 0.0 && l.is_finite())) {
-        bail!("{ctx}: needs a positive radius and non-negative lengths");
+    if !(radius >= MIN_ARCLINE_RADIUS_M
+        && lengths
+            .iter()
+            .all(|l| *l >= 0.0 && *l <= MAX_ARCLINE_PIECE_M))
+    {
+        bail!(
+            "{ctx}: needs a radius of at least {MIN_ARCLINE_RADIUS_M} m and segment lengths in 0..={MAX_ARCLINE_PIECE_M} m, found {radius} and {lengths:?}"
+        );
+    }
+    if !(bounds::coord_ok(start[0]) && bounds::coord_ok(start[1]) && bounds::angle_ok(start[2])) {
+        bail!(
+            "{ctx}: `start_pose` {start:?}: coordinates beyond {:e} m or a heading that is not an angle",
+            bounds::MAX_COORD_M
+        );
     }
     Ok(ArclinePath {
         start,
@@ -208,6 +228,13 @@ pub fn load(dataroot: &Path, location: &str, region: &Aabb) -> Result<Map> {
     for r in node_t.iter() {
         let r = r?;
         let (x, y): (f64, f64) = (r.get("x")?, r.get("y")?);
+        if !(bounds::coord_ok(x) && bounds::coord_ok(y)) {
+            bail!(
+                "{}: columns `x`, `y`: ({x}, {y}) lies beyond {:e} m of the origin",
+                r.at(),
+                bounds::MAX_COORD_M
+            );
+        }
         nodes.insert(r.str("token")?.to_string(), DVec2::new(x, y));
     }
     let poly_v = json
@@ -234,6 +261,7 @@ pub fn load(dataroot: &Path, location: &str, region: &Aabb) -> Result<Map> {
     };
 
     let mut specs: Vec<LaneSpec> = Vec::new();
+    let mut n_points = 0usize;
     for (layer, kind) in [
         ("lane", LaneKind::Lane),
         ("lane_connector", LaneKind::Connector),
@@ -247,15 +275,39 @@ pub fn load(dataroot: &Path, location: &str, region: &Aabb) -> Result<Map> {
             let paths = paths
                 .as_array()
                 .ok_or_else(|| anyhow!("{ctx}: expected an array of arcline paths"))?;
+            let paths = paths
+                .iter()
+                .enumerate()
+                .map(|(k, p)| arcline_of(p, &format!("{ctx}[{k}]")))
+                .collect::<Result<Vec<_>>>()?;
+            // Every point of a path lies within its length of its start: lanes whose paths cannot meet the
+            // region are skipped before sampling them.
+            let near = paths.iter().any(|p| {
+                let (c, l) = (DVec2::new(p.start[0], p.start[1]), p.length());
+                region.overlaps(&Aabb {
+                    min: c - DVec2::splat(l),
+                    max: c + DVec2::splat(l),
+                })
+            });
+            if !near {
+                continue;
+            }
             let (mut pts, mut hs) = (Vec::new(), Vec::new());
-            for (k, p) in paths.iter().enumerate() {
-                for q in arcline_of(p, &format!("{ctx}[{k}]"))?.discretize(ARCLINE_RESOLUTION_M)? {
+            for p in &paths {
+                for q in p.discretize(ARCLINE_RESOLUTION_M)? {
                     pts.push(DVec2::new(q[0], q[1]));
                     hs.push(q[2]);
                 }
             }
             if pts.len() < 2 || !overlaps(region, &pts) {
                 continue;
+            }
+            n_points += pts.len();
+            if n_points > MAX_MAP_POINTS {
+                bail!(
+                    "map expansion {file}: layer `{layer}` row {} (token {tok}): the lane centre lines near the scene exceed {MAX_MAP_POINTS} points",
+                    r.index
+                );
             }
             let centre = Polyline::new(pts, Some(hs));
             if centre.points.len() < 2 {

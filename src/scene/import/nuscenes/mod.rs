@@ -15,6 +15,7 @@
 //!   images (sweeps) are grouped into frames by time (one image per camera, within 60 ms). The rig's cameras
 //!   take the calibration of each channel's first image. Image paths are `DATAROOT/<filename>` (absolute when
 //!   DATAROOT is, else relative to the working directory, like the DATAROOT itself).
+use super::bounds;
 use crate::scene::camera::{Camera, CameraImage, CameraRig, RecordedFrame};
 use crate::scene::geometry::{wrap_angle, Aabb, Pose2};
 use crate::scene::{
@@ -40,6 +41,10 @@ pub const MAP_MARGIN_M: f64 = 200.0;
 pub const SWEEP_GROUP_US: i64 = 60_000;
 /// The devkit's `box_velocity` max_time_diff (s), doubled for centred differences.
 pub const BOX_VELOCITY_MAX_DT: f64 = 1.5;
+/// Longest scene accepted (s; nuScenes scenes last about 20 s): the log is sampled every [`DT`] over it.
+pub const MAX_SCENE_S: f64 = 600.0;
+/// Largest timestamp accepted (us, absolute: about the year 5100), so that differences cannot overflow.
+pub const MAX_TIMESTAMP_US: i64 = 100_000_000_000_000_000;
 
 /// `nuscenes:DATAROOT[:VERSION]:SCENE`.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -147,6 +152,10 @@ pub fn load(spec: &NuscenesSpec) -> Result<Scenario> {
 
 /// A sample_data row of the scene with what the importer needs.
 struct Sd {
+    /// "table `sample_data` row i (token ...)" for errors.
+    at: String,
+    /// The row's ego_pose, for errors.
+    ego_pose_at: String,
     channel: String,
     modality: String,
     sample: usize,
@@ -186,11 +195,16 @@ pub fn load_log(spec: &NuscenesSpec) -> Result<NuscenesLog> {
             )
         })?;
     let name = scene.str("name")?.to_string();
+    if let Err(why) = bounds::plain_name(&name) {
+        bail!("{}: column `name`: {why}", scene.at());
+    }
     let scene_token = scene.str("token")?.to_string();
-    let location = scene
-        .follow("log_token", &t.log)?
-        .str("location")?
-        .to_string();
+    let log = scene.follow("log_token", &t.log)?;
+    let location = log.str("location")?.to_string();
+    // the location names the map file (`maps/expansion/<location>.json`)
+    if let Err(why) = bounds::plain_name(&location) {
+        bail!("{}: column `location`: {why}", log.at());
+    }
     let ctx = || format!("nuScenes scene {name} ({})", dir.display());
 
     // Samples, first to last along `next`.
@@ -210,7 +224,7 @@ pub fn load_log(spec: &NuscenesSpec) -> Result<NuscenesLog> {
     }
     let sample_ts: Vec<i64> = samples
         .iter()
-        .map(|s| s.get::<i64>("timestamp"))
+        .map(|s| timestamp(s))
         .collect::<Result<_>>()?;
     if let Some(w) = sample_ts.windows(2).position(|w| w[1] <= w[0]) {
         bail!(
@@ -219,6 +233,14 @@ pub fn load_log(spec: &NuscenesSpec) -> Result<NuscenesLog> {
         );
     }
     let t0 = sample_ts[0];
+    let last = sample_ts[sample_ts.len() - 1];
+    if (last - t0) as f64 * 1e-6 > MAX_SCENE_S {
+        bail!(
+            "{}: column `timestamp`: the scene's samples span {} s, more than {MAX_SCENE_S} s",
+            samples[samples.len() - 1].at(),
+            (last - t0) as f64 * 1e-6
+        );
+    }
     let sample_idx: HashMap<&str, usize> = samples
         .iter()
         .enumerate()
@@ -235,14 +257,25 @@ pub fn load_log(spec: &NuscenesSpec) -> Result<NuscenesLog> {
         let cs = r.follow("calibrated_sensor_token", &t.calibrated_sensor)?;
         let sensor = cs.follow("sensor_token", &t.sensor)?;
         let ep = r.follow("ego_pose_token", &t.ego_pose)?;
+        let channel = sensor.str("channel")?.to_string();
+        if let Err(why) = bounds::plain_name(&channel) {
+            bail!("{}: column `channel`: {why}", sensor.at());
+        }
+        // joined to the DATAROOT: it must stay inside
+        let filename = r.str("filename")?.to_string();
+        if let Err(why) = bounds::inside_relative(&filename) {
+            bail!("{}: column `filename`: {why}", r.at());
+        }
         sds.push(Sd {
-            channel: sensor.str("channel")?.to_string(),
+            at: r.at(),
+            ego_pose_at: ep.at(),
+            channel,
             modality: sensor.str("modality")?.to_string(),
             sample: j,
             key: r.get("is_key_frame")?,
-            t: r.get("timestamp")?,
-            e2g: ep.transform()?,
-            filename: r.str("filename")?.to_string(),
+            t: timestamp(&r)?,
+            e2g: ep.transform(bounds::MAX_COORD_M)?,
+            filename,
             calib: cs.str("token")?.to_string(),
             size: (r.get("width")?, r.get("height")?),
         });
@@ -257,15 +290,30 @@ pub fn load_log(spec: &NuscenesSpec) -> Result<NuscenesLog> {
         lidar
     };
     let mut poses: Vec<(i64, DVec2, f64)> = Vec::new();
+    let mut last_at: Option<&str> = None;
     for s in pose_src {
         let p = (
             s.t,
             s.e2g.w_axis.truncate().truncate(),
             yaw_of(DQuat::from_mat4(&s.e2g)),
         );
-        if poses.last().is_none_or(|l| l.0 != p.0) {
-            poses.push(p);
+        if let Some(l) = poses.last() {
+            if l.0 == p.0 {
+                continue;
+            }
+            let v = (p.1 - l.1).length() / ((p.0 - l.0) as f64 * 1e-6);
+            if v > bounds::MAX_SPEED_MPS {
+                bail!(
+                    "{}: column `translation`: the ego moves at {v:.3e} m/s from {} (beyond {} m/s; sample_data {})",
+                    s.ego_pose_at,
+                    last_at.unwrap_or("the previous pose"),
+                    bounds::MAX_SPEED_MPS,
+                    s.at
+                );
+            }
         }
+        last_at = Some(&s.ego_pose_at);
+        poses.push(p);
     }
     if poses.is_empty() {
         bail!("{}: no sample_data (hence no ego pose) in the scene", ctx());
@@ -316,10 +364,11 @@ pub fn load_log(spec: &NuscenesSpec) -> Result<NuscenesLog> {
                 }
             };
             let [w, l, h] = r.vec::<3>("size")?;
-            if !(w > 0.0 && l > 0.0 && h >= 0.0) {
+            if !(w > 0.0 && l > 0.0 && h >= 0.0 && [w, l, h].into_iter().all(bounds::size_ok)) {
                 bail!(
-                    "{}: column `size`: [width, length, height] must be positive, found {:?}",
+                    "{}: column `size`: [width, length, height] must be positive and at most {} m, found {:?}",
                     r.at(),
+                    bounds::MAX_SIZE_M,
                     [w, l, h]
                 );
             }
@@ -328,7 +377,7 @@ pub fn load_log(spec: &NuscenesSpec) -> Result<NuscenesLog> {
                 token: r.str("token")?.to_string(),
                 instance: inst_tok,
                 category,
-                center: DVec3::from(r.vec::<3>("translation")?),
+                center: DVec3::from(r.position("translation")?),
                 size_lwh: DVec3::new(l, w, h),
                 rotation,
                 yaw: yaw_of(rotation),
@@ -374,6 +423,18 @@ pub fn load_log(spec: &NuscenesSpec) -> Result<NuscenesLog> {
         t0_us: t0,
         keyframes,
     })
+}
+
+/// Column `timestamp` (us) within [`MAX_TIMESTAMP_US`] of 0.
+fn timestamp(r: &Row) -> Result<i64> {
+    let t: i64 = r.get("timestamp")?;
+    if !(-MAX_TIMESTAMP_US..=MAX_TIMESTAMP_US).contains(&t) {
+        bail!(
+            "{}: column `timestamp`: {t} us is beyond {MAX_TIMESTAMP_US} us",
+            r.at()
+        );
+    }
+    Ok(t)
 }
 
 /// Pose at time `t` from time-sorted (t, position, yaw) samples: linear position, shortest-angle yaw; clamped
@@ -428,13 +489,13 @@ fn box_velocities(
                 match x {
                     None => Ok(Some((
                         sample_ts[j],
-                        DVec2::from_slice(&r.vec::<3>("translation")?),
+                        DVec2::from_slice(&r.position("translation")?),
                     ))),
                     Some(x) => Ok(time_of(&x)?
                         .map(|tt| {
                             Ok::<_, anyhow::Error>((
                                 tt,
-                                DVec2::from_slice(&x.vec::<3>("translation")?),
+                                DVec2::from_slice(&x.position("translation")?),
                             ))
                         })
                         .transpose()?),
@@ -455,6 +516,15 @@ fn box_velocities(
                     _ => DVec2::ZERO,
                 }
             };
+            if !(vel.x.abs() <= bounds::MAX_SPEED_MPS && vel.y.abs() <= bounds::MAX_SPEED_MPS) {
+                bail!(
+                    "{}: column `translation`: the box velocity from its prev/next annotations is ({}, {}) m/s, beyond {} m/s",
+                    r.at(),
+                    vel.x,
+                    vel.y,
+                    bounds::MAX_SPEED_MPS
+                );
+            }
             v.push(vel);
         }
         out.push(v);
@@ -547,7 +617,18 @@ fn camera_rig(
     dataroot: &std::path::Path,
 ) -> Result<CameraRig> {
     let mut cameras: Vec<Camera> = Vec::new();
+    let max_px = bounds::MAX_IMAGE_SIDE_PX;
     for s in sds.iter().filter(|s| s.modality == "camera") {
+        if s.size.0 == 0 || s.size.1 == 0 || s.size.0 > max_px || s.size.1 > max_px {
+            bail!(
+                "{}: columns `width`, `height`: image {} of {} has size {}x{} (each side in 1..={max_px})",
+                s.at,
+                s.filename,
+                s.channel,
+                s.size.0,
+                s.size.1
+            );
+        }
         if cameras.iter().any(|c| c.name == s.channel) {
             continue;
         }
@@ -562,19 +643,10 @@ fn camera_rig(
                 s.channel
             )
         })?;
-        if s.size.0 == 0 || s.size.1 == 0 {
-            bail!(
-                "nuScenes table `sample_data`: image {} of {} has size {}x{}",
-                s.filename,
-                s.channel,
-                s.size.0,
-                s.size.1
-            );
-        }
         cameras.push(Camera {
             name: s.channel.clone(),
             intrinsic,
-            cam2ego: cs.transform()?,
+            cam2ego: cs.transform(bounds::MAX_SIZE_M)?,
             width: s.size.0,
             height: s.size.1,
         });

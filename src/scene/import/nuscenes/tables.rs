@@ -1,6 +1,7 @@
 //! The nuScenes v1.0 JSON tables (nutonomy/nuscenes-devkit docs/schema_nuscenes.md) with errors that name the
 //! table, the row and the column: every file is a JSON array of objects keyed by a unique `token`; rows are
 //! decoded column by column with serde, and foreign keys are resolved through a token index.
+use crate::scene::import::bounds;
 use anyhow::{anyhow, bail, Context, Result};
 use glam::{DMat3, DMat4, DQuat, DVec3};
 use serde::de::DeserializeOwned;
@@ -194,9 +195,31 @@ impl<'a> Row<'a> {
         Ok(q / n)
     }
 
-    /// `translation` + `rotation` as a 4x4 `a2b` transform.
-    pub fn transform(&self) -> Result<DMat4> {
-        let t = self.vec::<3>("translation")?;
+    /// A 3-vector column whose entries are within `max` in absolute value (`what` names the bound in errors).
+    pub fn vec3_within(&self, col: &str, max: f64, what: &str) -> Result<[f64; 3]> {
+        let v = self.vec::<3>(col)?;
+        if v.iter().any(|x| x.abs() > max) {
+            bail!(
+                "{}: column `{col}`: {v:?} lies beyond {max:e} m ({what})",
+                self.at()
+            );
+        }
+        Ok(v)
+    }
+
+    /// A global position column (`translation` of ego_pose / sample_annotation): within
+    /// [`bounds::MAX_COORD_M`] of the map origin.
+    pub fn position(&self, col: &str) -> Result<[f64; 3]> {
+        self.vec3_within(col, bounds::MAX_COORD_M, "the largest coordinate accepted")
+    }
+
+    /// `translation` + `rotation` as a 4x4 `a2b` transform; the translation within `max_translation` m.
+    pub fn transform(&self, max_translation: f64) -> Result<DMat4> {
+        let t = self.vec3_within(
+            "translation",
+            max_translation,
+            "the largest translation accepted",
+        )?;
         Ok(DMat4::from_rotation_translation(
             self.quat("rotation")?,
             DVec3::from(t),
@@ -212,6 +235,22 @@ impl<'a> Row<'a> {
         if rows.len() != 3 || rows.iter().any(|r| r.len() != 3) {
             bail!(
                 "{}: column `{col}`: expected a 3x3 matrix, found {rows:?}",
+                self.at()
+            );
+        }
+        if rows.iter().flatten().any(|x| !x.is_finite()) {
+            bail!(
+                "{}: column `{col}`: non-finite value in {rows:?}",
+                self.at()
+            );
+        }
+        let m = bounds::MAX_INTRINSIC_PX;
+        if [rows[0][0], rows[0][1], rows[0][2], rows[1][1], rows[1][2]]
+            .iter()
+            .any(|x| x.abs() > m)
+        {
+            bail!(
+                "{}: column `{col}`: {rows:?} has a focal length, skew or principal point beyond {m:e} px",
                 self.at()
             );
         }
