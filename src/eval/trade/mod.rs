@@ -644,26 +644,14 @@ pub fn bench_trade(ctx: &Context, cfg: &TradeConfig, out: &Path) -> Result<Trade
     let mut reference: Option<Vec<Vec<f32>>> = None;
     for p in &points {
         bar.set_message(p.name.clone());
-        // the reference is measured first, against itself (its error must come out exactly 0)
-        let m = measure(ctx, &pkg, &names, p, &frames, full, cfg.seed, None)?;
-        let r = reference.get_or_insert_with(|| m.images.clone());
-        let m = if p.axis == "reference" {
-            // the second run is timed warm (the first one also paid the process's first-use costs) and its
-            // images must equal the first run's exactly
-            measure(ctx, &pkg, &names, p, &frames, full, cfg.seed, Some(r))?
-        } else {
-            let mut m = m;
-            let (mut e, mut s) = (0.0, 0.0);
-            for (fi, img) in m.images.iter().enumerate() {
-                let (a, b) = sq_err(img, prefix(&r[fi], cfg.cameras, p.cameras));
-                e += a;
-                s += b;
-            }
-            let px = (m.images.len() * p.cameras * 3 * h * w) as f64;
-            m.result.nmse_vs_reference = if s > 0.0 { e / s } else { 0.0 };
-            m.result.psnr_vs_reference = (e > 0.0).then(|| -10.0 * (e / px).log10());
-            m
-        };
+        // the reference (the first point) is rendered twice: the first run's images are the reference, the
+        // second run is timed warm and must equal them exactly
+        if reference.is_none() {
+            let first = measure(ctx, &pkg, &names, p, &frames, full, cfg.seed, None)?;
+            reference = Some(first.images);
+        }
+        let r = reference.as_deref().context("internal: no reference")?;
+        let m = measure(ctx, &pkg, &names, p, &frames, full, cfg.seed, Some(r))?;
         measured.push(m);
         bar.inc(1);
     }
