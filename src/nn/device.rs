@@ -8,7 +8,7 @@ use anyhow::{anyhow, Result};
 use super::weights::Weights;
 use crate::ops::Recorder;
 use crate::tensor::{DType, Tensor};
-use crate::vk::{Buffer, Context};
+use crate::vk::{Buffer, BufferId, Context};
 
 /// Weights of one component on the device, in one dtype.
 pub struct DeviceWeights {
@@ -56,6 +56,11 @@ impl DeviceWeights {
 /// Activation arena. `alloc` hands out a tensor on a free buffer large enough (smallest fit) or a new one;
 /// `release` returns a buffer once the recorded ops no longer read it. Reuse inside one recording is safe
 /// because the recorder inserts a barrier before a dispatch writes a buffer that earlier dispatches read.
+///
+/// Lifetimes are checked in debug builds: a released buffer is marked (`Buffer::set_released`) until `alloc`
+/// hands it out again, and the recorder refuses a dispatch that uses it in between (an op recorded after the
+/// release of a tensor it reads: the release came too early); releasing one buffer twice panics. A stale
+/// tensor read after its buffer was handed out again *and written* by the new owner is not caught.
 pub struct Workspace {
     ctx: Context,
     pub dtype: DType,
@@ -65,7 +70,7 @@ pub struct Workspace {
     total: u64,
     /// Group-norm statistics partials written together with an activation by its conv
     /// (`conv2d::stats_parts_shape`), keyed by the activation's buffer and shape; released with it.
-    parts: Vec<(*const Buffer, Vec<usize>, Tensor)>,
+    parts: Vec<(BufferId, Vec<usize>, Tensor)>,
 }
 
 impl Workspace {
@@ -103,18 +108,26 @@ impl Workspace {
                 b
             }
         };
+        buf.set_released(false);
         self.live += buf.size();
         self.peak = self.peak.max(self.live);
         // a reused buffer carries no partials of its earlier contents (release drops them; defensive)
-        self.parts.retain(|(b, _, _)| *b != Arc::as_ptr(&buf));
+        self.parts.retain(|(b, _, _)| *b != buf.id());
         Tensor::on_buffer(buf, shape, dtype)
     }
 
     /// Returns `t`'s buffer for reuse by later allocations (and the statistics partials attached to it).
     pub fn release(&mut self, t: Tensor) {
         let b = t.buffer().clone();
+        debug_assert!(
+            !b.is_released(),
+            "workspace: buffer {:?} ({:?}) released twice",
+            b.name(),
+            b.id()
+        );
+        b.set_released(true);
         self.live = self.live.saturating_sub(b.size());
-        let key = Arc::as_ptr(&b);
+        let key = b.id();
         self.free.push(b);
         let (gone, keep): (Vec<_>, Vec<_>) = std::mem::take(&mut self.parts)
             .into_iter()
@@ -128,12 +141,12 @@ impl Workspace {
     /// Attaches statistics partials that the op writing `t` produced (see `conv2d::Conv2dArgs::stats_parts`).
     pub fn attach_parts(&mut self, t: &Tensor, parts: Tensor) {
         self.parts
-            .push((Arc::as_ptr(t.buffer()), t.shape().to_vec(), parts));
+            .push((t.buffer().id(), t.shape().to_vec(), parts));
     }
 
     /// The statistics partials written with `t`, if any.
     pub fn parts_of(&self, t: &Tensor) -> Option<&Tensor> {
-        let key = Arc::as_ptr(t.buffer());
+        let key = t.buffer().id();
         self.parts
             .iter()
             .find(|(k, s, _)| *k == key && s.as_slice() == t.shape())

@@ -220,6 +220,17 @@ impl Recorder {
             "kernel {}: grid {groups:?} exceeds 65535 per dimension",
             info.name
         );
+        #[cfg(debug_assertions)]
+        for (i, b) in buffers.iter().enumerate() {
+            ensure!(
+                !b.is_released(),
+                "{label}: kernel {} uses buffer {:?} ({:?}, binding {i}) after its pool released it (a release \
+                 recorded before this last use)",
+                info.name,
+                b.name(),
+                b.id()
+            );
+        }
         let mut reads = vec![];
         let mut writes = vec![];
         for (b, ro) in buffers.iter().zip(info.bindings) {
@@ -335,6 +346,15 @@ impl Recorder {
             len <= src.size() && len <= dst.size(),
             "copy of {len} bytes exceeds a buffer"
         );
+        #[cfg(debug_assertions)]
+        for b in [src, dst] {
+            ensure!(
+                !b.is_released(),
+                "copy of {len} bytes uses buffer {:?} ({:?}) after its pool released it",
+                b.name(),
+                b.id()
+            );
+        }
         self.copy(src, 0, dst, 0, len);
         self.keep.push(src.clone());
         self.keep.push(dst.clone());

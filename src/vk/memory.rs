@@ -1,5 +1,6 @@
 //! Device buffers: a buffer owns its gpu-allocator allocation; upload/download go through the mapping when the
 //! memory is host-visible and coherent (lavapipe, integrated GPUs), else through a staging buffer.
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 
 use anyhow::{ensure, Context as _, Result};
@@ -15,10 +16,19 @@ use super::{vk_err, Context, Inner};
 /// MiB without texel views, 718 with them from 16 KiB, 724 from 4 KiB (the step's small linears gain).
 pub const TEXEL_MIN_BYTES: u64 = 4096;
 
+/// A buffer's identity, unique for the life of the process (unlike a raw pointer or a Vulkan handle, never
+/// reused after the buffer is dropped): what pools key their bookkeeping by.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct BufferId(u64);
+
 /// A storage buffer with its memory.
 pub struct Buffer {
     pub(crate) ctx: Arc<Inner>,
     pub(crate) raw: vk::Buffer,
+    id: BufferId,
+    // set by a pool (the activation workspace) while the buffer sits on its free list: debug builds refuse to
+    // record a dispatch or copy that uses it then (`Recorder::dispatch`)
+    released: AtomicBool,
     alloc: Option<Allocation>,
     size: u64,
     name: String,
@@ -95,7 +105,7 @@ impl Buffer {
             Err(e) => {
                 // SAFETY: the buffer is unused.
                 unsafe { d.destroy_buffer(raw, None) };
-                return Err(e)
+                return Err(super::alloc_err(e))
                     .with_context(|| format!("allocating {size} bytes for buffer {name:?}"));
             }
         };
@@ -103,9 +113,12 @@ impl Buffer {
         unsafe { d.bind_buffer_memory(raw, alloc.memory(), alloc.offset()) }
             .map_err(vk_err("vkBindBufferMemory"))?;
         ctx.set_name(raw, name);
+        static NEXT_ID: AtomicU64 = AtomicU64::new(0);
         Ok(Self {
             ctx: ctx.inner.clone(),
             raw,
+            id: BufferId(NEXT_ID.fetch_add(1, Ordering::Relaxed)),
+            released: AtomicBool::new(false),
             alloc: Some(alloc),
             size,
             name: name.to_string(),
@@ -152,6 +165,22 @@ impl Buffer {
 
     pub fn size(&self) -> u64 {
         self.size
+    }
+
+    pub fn id(&self) -> BufferId {
+        self.id
+    }
+
+    /// Marks the buffer as released by the pool that hands it out (`true`: its contents are dead until the
+    /// pool hands it out again, `false`). In debug builds, recording a dispatch or copy that uses a released
+    /// buffer is an error: a read after the last use that the pool was told about.
+    pub fn set_released(&self, released: bool) {
+        self.released.store(released, Ordering::Relaxed);
+    }
+
+    /// See [`Self::set_released`].
+    pub fn is_released(&self) -> bool {
+        self.released.load(Ordering::Relaxed)
     }
 
     pub fn name(&self) -> &str {

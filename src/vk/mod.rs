@@ -5,6 +5,7 @@
 //! shared device state, so the device outlives all of them, and the allocator is dropped before the device.
 mod command;
 mod device;
+mod error;
 mod image;
 mod instance;
 mod memory;
@@ -18,16 +19,13 @@ use ash::vk;
 
 pub use command::{Recorder, Recording, Timing};
 pub use device::{scheduler_pin, DeviceId, DeviceInfo, Pin, NVIDIA_VENDOR_ID};
+pub use error::VkError;
+pub(crate) use error::{alloc_err, vk_err};
 pub use image::{IMAGE_ROW_BYTES, IMAGE_ROW_TEXELS};
 pub use instance::{validation_errors, validation_requested};
-pub use memory::{Buffer, TEXEL_MIN_BYTES};
+pub use memory::{Buffer, BufferId, TEXEL_MIN_BYTES};
 
 use crate::kernels::KernelId;
-
-/// Maps a failing `vk::Result` into an error naming the Vulkan call.
-pub(crate) fn vk_err(call: &'static str) -> impl Fn(vk::Result) -> anyhow::Error {
-    move |r| anyhow::anyhow!("{call} failed: {r:?}")
-}
 
 /// Texel views unless `B2DR_TEXEL_VIEWS=0`.
 fn texel_views_env() -> bool {
