@@ -2,10 +2,19 @@
 //! the kernel registry `$OUT_DIR/kernels.rs` (ids, SPIR-V, bindings, workgroup sizes, parameter structs).
 //!
 //! Kernel file conventions:
-//! - Variants come from one source. Header lines `//! variant <name>: <wgsl snippet>` at the top of a file
-//!   declare them; for variant X the line of X is replaced *in place* by its snippet (so file:line in errors
-//!   stays exact) and the other header lines stay comments. A file without header lines has one variant named
-//!   after the file alone. Snippets hold `enable f16;`, `alias` and `const` declarations (dtype, tile sizes).
+//! - Variants come from one source. Header lines `//! variant <name> [<entry>, ...]: <wgsl snippet>` at the
+//!   top of a file declare them; for variant X the line of X is replaced *in place* by its snippet (so
+//!   file:line in errors stays exact) and the other header lines stay comments. A file without header lines
+//!   has one variant named after the file alone. Snippets hold `enable f16;`, `alias` and `const`
+//!   declarations (dtype, tile sizes). The optional `[entries]` list names the entry points compiled for that
+//!   variant (default: all).
+//! - A variant's name states its axes, `<dtype>[t|p|chk][_d<N>|_w<N>][r<N>]`: dtype `f32`/`f16`; `t` reads
+//!   some bindings through texel views, `p` reads f16 as packed pairs, `chk` writes an f16 overflow flag;
+//!   `d`/`w` the head dim (columns), `r` rows per lane. They become the typed `kernels::Variant` of every
+//!   entry, and per file a `kernels::lookup::<file>(<File>Entry, Variant) -> Option<KernelId>` const fn: the
+//!   only way launchers name a variant. A texel (`t`) variant's entry that reads no binding through a texel
+//!   view is not compiled (nothing would pick it); two entries with the same file, entry and axes fail the
+//!   build.
 //! - `kernels/common.wgsl` is appended to every kernel (shared helpers); errors in it are reported there.
 //! - Every `@compute` entry point becomes a registry entry `<file>_<variant>[_<entry>]` (entry `main` omitted).
 //! - Storage buffers are `@group(0) @binding(0..n)` (contiguous); a binding may also be a
@@ -23,12 +32,80 @@ struct Variant {
     name: String,
     snippet: String,
     line: usize,
+    /// Entry points compiled for this variant (None: all).
+    entries: Option<Vec<String>>,
+    axes: Axes,
+}
+
+/// The axes a variant's name states (see the module docs).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash)]
+struct Axes {
+    /// 0 none, 32 f32, 16 f16
+    dtype: u32,
+    texel: bool,
+    packed: bool,
+    checked: bool,
+    cols: u32,
+    rows: u32,
+}
+
+impl Axes {
+    fn parse(name: &str) -> Option<Axes> {
+        if name.is_empty() {
+            return Some(Axes {
+                rows: 1,
+                ..Axes::default()
+            });
+        }
+        let (head, tail) = name.split_once('_').unwrap_or((name, ""));
+        let (dtype, flag) = if let Some(f) = head.strip_prefix("f32") {
+            (32, f)
+        } else {
+            (16, head.strip_prefix("f16")?)
+        };
+        let mut a = Axes {
+            dtype,
+            rows: 1,
+            ..Axes::default()
+        };
+        match flag {
+            "" => {}
+            "t" => a.texel = true,
+            "p" => a.packed = true,
+            "chk" => a.checked = true,
+            _ => return None,
+        }
+        if !tail.is_empty() {
+            let t = tail.strip_prefix('d').or_else(|| tail.strip_prefix('w'))?;
+            let (cols, rows) = t.split_once('r').unwrap_or((t, "1"));
+            a.cols = cols.parse().ok()?;
+            a.rows = rows.parse().ok()?;
+        }
+        Some(a)
+    }
+
+    fn rust(&self) -> String {
+        let dtype = match self.dtype {
+            32 => "Some(crate::tensor::DType::F32)",
+            16 => "Some(crate::tensor::DType::F16)",
+            _ => "None",
+        };
+        format!(
+            "Variant {{ dtype: {dtype}, texel: {}, packed_f16: {}, overflow_flag: {}, cols: {}, rows: {} }}",
+            self.texel, self.packed, self.checked, self.cols, self.rows
+        )
+    }
+
+    fn pattern(&self) -> String {
+        self.rust()
+    }
 }
 
 struct Entry {
     id: String,
     file: String,
     variant: String,
+    axes: Axes,
     entry: String,
     spv_file: PathBuf,
     bindings: Vec<bool>, // read_only per binding
@@ -90,7 +167,7 @@ fn main() {
                         &info,
                         &out,
                         &stem,
-                        &v.name,
+                        v,
                         &vname,
                         &text,
                         &mut entries,
@@ -122,13 +199,32 @@ fn parse_variants(stem: &str, lines: &[&str]) -> Vec<Variant> {
     for (i, l) in lines.iter().enumerate() {
         let t = l.trim();
         if let Some(rest) = t.strip_prefix("//! variant ") {
-            let (name, snippet) = rest
+            let (head, snippet) = rest
                 .split_once(':')
                 .unwrap_or_else(|| panic!("{stem}.wgsl:{}: bad variant line", i + 1));
+            let (name, entries) = match head.split_once('[') {
+                Some((n, list)) => {
+                    let list = list
+                        .trim()
+                        .strip_suffix(']')
+                        .unwrap_or_else(|| panic!("{stem}.wgsl:{}: unclosed entry list", i + 1));
+                    let e = list.split(',').map(|e| e.trim().to_string()).collect();
+                    (n.trim(), Some(e))
+                }
+                None => (head.trim(), None),
+            };
+            let axes = Axes::parse(name).unwrap_or_else(|| {
+                panic!(
+                    "{stem}.wgsl:{}: variant name {name:?} does not read as <dtype>[t|p|chk][_d<N>|_w<N>][r<N>]",
+                    i + 1
+                )
+            });
             v.push(Variant {
-                name: name.trim().to_string(),
+                name: name.to_string(),
                 snippet: snippet.trim().to_string(),
                 line: i + 1,
+                entries,
+                axes,
             });
         } else if !t.starts_with("//") && !t.is_empty() {
             break;
@@ -139,6 +235,8 @@ fn parse_variants(stem: &str, lines: &[&str]) -> Vec<Variant> {
             name: String::new(),
             snippet: String::new(),
             line: 0,
+            entries: None,
+            axes: Axes::parse("").unwrap(),
         });
     }
     v
@@ -206,14 +304,28 @@ fn collect_entries(
     info: &naga::valid::ModuleInfo,
     out: &Path,
     file: &str,
-    variant: &str,
+    variant: &Variant,
     vname: &str,
     text: &str,
     entries: &mut Vec<Entry>,
     structs: &mut BTreeMap<String, (String, u32)>,
 ) -> Result<(), String> {
+    for e in variant.entries.iter().flatten() {
+        if !module.entry_points.iter().any(|ep| &ep.name == e) {
+            return Err(format!(
+                "variant {vname}: entry list names {e:?}, which the file lacks"
+            ));
+        }
+    }
     for (ei, ep) in module.entry_points.iter().enumerate() {
         if ep.stage != naga::ShaderStage::Compute {
+            continue;
+        }
+        if variant
+            .entries
+            .as_ref()
+            .is_some_and(|l| !l.contains(&ep.name))
+        {
             continue;
         }
         let fi = info.get_entry_point(ei);
@@ -281,6 +393,10 @@ fn collect_entries(
                 other => return Err(format!("{}: unsupported address space {other:?}", ep.name)),
             }
         }
+        if variant.axes.texel && !images.values().any(|&i| i) {
+            // the texel variant of an entry that reads nothing through a texel view: never picked
+            continue;
+        }
         let n = bindings.len() as u32;
         if bindings.keys().copied().ne(0..n) {
             return Err(format!(
@@ -329,7 +445,8 @@ fn collect_entries(
         entries.push(Entry {
             id,
             file: file.to_string(),
-            variant: variant.to_string(),
+            variant: variant.name.clone(),
+            axes: variant.axes,
             entry: ep.name.clone(),
             spv_file,
             bindings: bindings.values().copied().collect(),
@@ -436,11 +553,12 @@ fn generate(entries: &[Entry], structs: &BTreeMap<String, (String, u32)>) -> Str
     for e in entries {
         let _ = writeln!(
             s,
-            "    KernelInfo {{ name: {:?}, file: {:?}, variant: {:?}, entry: {:?}, spirv: include_bytes!({:?}), \
+            "    KernelInfo {{ name: {:?}, file: {:?}, variant: {:?}, axes: {}, entry: {:?}, spirv: include_bytes!({:?}), \
              bindings: &{:?}, images: &{:?}, workgroup_size: {:?}, params: {:?}, params_size: {}, f16: {}, subgroup: {}, coop_matrix: {} }},",
             e.id,
             format!("kernels/{}.wgsl", e.file),
             e.variant,
+            e.axes.rust(),
             e.entry,
             e.spv_file.display().to_string(),
             e.bindings,
@@ -453,7 +571,9 @@ fn generate(entries: &[Entry], structs: &BTreeMap<String, (String, u32)>) -> Str
             e.coop
         );
     }
-    s.push_str("];\n\npub mod params {\n    //! Kernel parameter structs mirrored from WGSL (generated; sizes/offsets asserted at compile time).\n");
+    s.push_str("];\n\n");
+    s.push_str(&lookups(entries));
+    s.push_str("\npub mod params {\n    //! Kernel parameter structs mirrored from WGSL (generated; sizes/offsets asserted at compile time).\n");
     for (code, _) in structs.values() {
         for l in code.lines() {
             let _ = writeln!(s, "    {l}");
@@ -461,4 +581,65 @@ fn generate(entries: &[Entry], structs: &BTreeMap<String, (String, u32)>) -> Str
     }
     s.push_str("}\n");
     s
+}
+
+/// Per kernel file, an enum of its entry points and a const fn from (entry, variant axes) to the kernel id;
+/// and `KernelId::with_variant` (the same entry of the same file in other axes). Duplicate keys fail.
+fn lookups(entries: &[Entry]) -> String {
+    let mut files: BTreeMap<&str, BTreeMap<&str, Vec<&Entry>>> = BTreeMap::new();
+    for e in entries {
+        files
+            .entry(e.file.as_str())
+            .or_default()
+            .entry(e.entry.as_str())
+            .or_default()
+            .push(e);
+    }
+    let mut s = String::from(
+        "/// Typed lookups of kernel variants (generated by build.rs from the variant names' axes).\npub mod lookup {\n    use super::{KernelId, Variant};\n",
+    );
+    let mut with = String::from(
+        "impl KernelId {\n    /// The same entry point of the same kernel file in the variant with axes `v`, if it is compiled.\n    pub const fn with_variant(self, v: Variant) -> Option<KernelId> {\n        match self {\n",
+    );
+    for (file, eps) in &files {
+        let ty = format!("{}Entry", camel(file));
+        let _ = writeln!(
+            s,
+            "\n    /// Entry points of `kernels/{file}.wgsl`.\n    #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]\n    pub enum {ty} {{"
+        );
+        for ep in eps.keys() {
+            let _ = writeln!(s, "        {},", camel(ep));
+        }
+        let _ = writeln!(
+            s,
+            "    }}\n\n    /// The kernel of `kernels/{file}.wgsl` entry `entry` in the variant with axes `v`, if it is compiled.\n    pub const fn {file}(entry: {ty}, v: Variant) -> Option<KernelId> {{\n        match (entry, v) {{"
+        );
+        for (ep, es) in eps {
+            let mut seen = std::collections::BTreeSet::new();
+            for e in es {
+                assert!(
+                    seen.insert(e.axes),
+                    "kernels/{file}.wgsl: entry {ep} has two variants with the axes {:?}",
+                    e.axes
+                );
+                let _ = writeln!(
+                    s,
+                    "            ({ty}::{}, {}) => Some(KernelId::{}),",
+                    camel(ep),
+                    e.axes.pattern(),
+                    camel(&e.id)
+                );
+                let _ = writeln!(
+                    with,
+                    "            KernelId::{} => lookup::{file}(lookup::{ty}::{}, v),",
+                    camel(&e.id),
+                    camel(ep)
+                );
+            }
+        }
+        s.push_str("            _ => None,\n        }\n    }\n");
+    }
+    s.push_str("}\n\n");
+    with.push_str("        }\n    }\n}\n");
+    s + &with
 }

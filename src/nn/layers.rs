@@ -2,18 +2,20 @@
 use anyhow::{Context as _, Result};
 
 use super::device::{DeviceWeights, Fwd};
+use crate::ops::conv2d::winograd::{self, Tile};
+use crate::ops::conv2d::WeightForm;
 use crate::ops::{conv2d, matmul, norm};
 use crate::tensor::{DType, Tensor};
 
 /// torch.nn.Conv2d with symmetric or explicit padding.
 pub struct Conv {
     pub w: Tensor,
-    /// The weight repacked once at load to (KH, KW, C, O) for the implicit-GEMM kernel (when it applies).
+    /// The weight repacked once at load to (KH, KW, C, O) for the packed implicit GEMM, where
+    /// `conv2d::weight_forms` lists it.
     packed: Option<Tensor>,
-    /// 3x3 stride-1 weights Winograd-transformed once at load for F(4x4) ((36, C, O) f32) and, for f32
-    /// weights, F(6x6) ((64, C, O)), on CPU devices (where `Auto` may pick the Winograd path; whether it does, and with which
-    /// tile, depends on the input size, unknown at load), when each copy stays under 16 MiB (larger ones are
-    /// transformed per call when used).
+    /// The weight Winograd-transformed once at load for F(4x4) ((36, C, O) f32) and F(6x6) ((64, C, O)),
+    /// where `conv2d::weight_forms` lists them and each copy stays under 16 MiB (larger ones are transformed
+    /// per call when used).
     wino: [Option<Tensor>; 2],
     pub b: Option<Tensor>,
     pub stride: usize,
@@ -26,48 +28,53 @@ impl Conv {
     pub fn load(dw: &DeviceWeights, name: &str, stride: usize, pad: [usize; 4]) -> Result<Self> {
         let w = dw.get(&format!("{name}.weight"))?.clone();
         let b = dw.get(&format!("{name}.bias")).ok().cloned();
+        Self::from_tensors(dw, name, w, b, stride, pad)
+    }
+
+    /// A conv on the given weight (O, C, KH, KW) and bias (O) (`name` for messages and buffer names); see
+    /// [`Self::load`].
+    pub fn from_tensors(
+        dw: &DeviceWeights,
+        name: &str,
+        w: Tensor,
+        b: Option<Tensor>,
+        stride: usize,
+        pad: [usize; 4],
+    ) -> Result<Self> {
         let s = w.shape().to_vec();
         anyhow::ensure!(
             s.len() == 4,
             "conv {name}: weight {s:?} must be (O, C, KH, KW)"
         );
-        let mut packed = None;
-        if s[2] * s[3] > 1 && s[0] % 4 == 0 {
-            let p = Tensor::empty(
-                &dw.ctx,
-                &[s[2], s[3], s[1], s[0]],
-                w.dtype(),
-                &format!("{name}.weight.packed"),
-            )?;
-            let mut rec = dw.ctx.recorder()?;
-            if conv2d::pack_weight(&mut rec, &w, &p).is_ok() {
-                rec.finish()?.submit_wait()?;
-                packed = Some(p);
-            }
-        }
-        let mut wino = [None, None];
-        use crate::ops::winograd::{transform_weight, weight_shape, Tile};
-        for (slot, t) in wino.iter_mut().zip([Tile::F4, Tile::F6]) {
-            let ush = weight_shape(&s, t);
-            // (`Auto` never runs F(6x6) on f16 storage: no copy for it)
-            let used = t == Tile::F4 || w.dtype() == DType::F32;
-            if used
-                && dw.ctx.info().is_cpu()
-                && s[2] == 3
-                && s[3] == 3
-                && stride == 1
-                && ush.iter().product::<usize>() * 4 <= 16 << 20
-            {
-                let u = Tensor::empty(
-                    &dw.ctx,
-                    &ush,
-                    DType::F32,
-                    &format!("{name}.weight.winograd{}", t.m()),
-                )?;
-                let mut rec = dw.ctx.recorder()?;
-                transform_weight(&mut rec, &w, &u)?;
-                rec.finish()?.submit_wait()?;
-                *slot = Some(u);
+        // the prepared weights the conv's strategies may read (the selection says which; whether a conv
+        // uses one, and which Winograd tile, depends on the input size, unknown here)
+        let (mut packed, mut wino) = (None, [None, None]);
+        for form in conv2d::weight_forms(dw.ctx.info(), w.dtype(), &s, stride) {
+            let (shape, dtype) = form.shape(&s, w.dtype());
+            match form {
+                WeightForm::Packed => {
+                    let p =
+                        Tensor::empty(&dw.ctx, &shape, dtype, &format!("{name}.weight.packed"))?;
+                    let mut rec = dw.ctx.recorder()?;
+                    if conv2d::pack_weight(&mut rec, &w, &p).is_ok() {
+                        rec.finish()?.submit_wait()?;
+                        packed = Some(p);
+                    }
+                }
+                // each Winograd copy only while it stays under 16 MiB (larger ones are transformed per call)
+                WeightForm::Winograd(t) if shape.iter().product::<usize>() * 4 <= 16 << 20 => {
+                    let u = Tensor::empty(
+                        &dw.ctx,
+                        &shape,
+                        dtype,
+                        &format!("{name}.weight.winograd{}", t.m()),
+                    )?;
+                    let mut rec = dw.ctx.recorder()?;
+                    winograd::transform_weight(&mut rec, &w, &u)?;
+                    rec.finish()?.submit_wait()?;
+                    wino[(t == Tile::F6) as usize] = Some(u);
+                }
+                WeightForm::Winograd(_) => {}
             }
         }
         Ok(Self {

@@ -15,6 +15,7 @@ use super::softmax::{fold_groups, softmax_scaled};
 use super::{same_dtype, Recorder, SCRATCH_ATTN_P, SCRATCH_ATTN_S};
 use crate::kernels::params::AttnParams;
 use crate::kernels::KernelId as K;
+use crate::kernels::{lookup, Variant};
 use crate::tensor::{DType, Tensor};
 
 /// lavapipe stops all loops of an invocation after 65535 back-edges; stay well below.
@@ -34,14 +35,26 @@ pub struct AttnKernel {
     pub packed: bool,
 }
 
-const fn kern(
-    id: K,
-    dtype: DType,
-    cols: usize,
-    rows: usize,
-    wide: bool,
-    packed: bool,
-) -> AttnKernel {
+/// The kernel of these axes (`kernels/attention.wgsl`, entry `wide` or `main`); a variant that is not compiled
+/// fails the build (the lookup runs in const context).
+const fn kern(dtype: DType, cols: usize, rows: usize, wide: bool, packed: bool) -> AttnKernel {
+    let entry = if wide {
+        lookup::AttentionEntry::Wide
+    } else {
+        lookup::AttentionEntry::Main
+    };
+    let v = Variant {
+        dtype: Some(dtype),
+        packed_f16: packed,
+        cols: cols as u32,
+        rows: rows as u32,
+        ..Variant::NONE
+    };
+    let Some(id) = lookup::attention(entry, v) else {
+        panic!(
+            "attention: a kernel of KERNELS is not compiled (kernels/attention.wgsl variant lines)"
+        )
+    };
     AttnKernel {
         id,
         dtype,
@@ -52,37 +65,38 @@ const fn kern(
     }
 }
 
-/// All attention kernels, in order of preference for a given head dim (the first that fits is the default).
+/// All attention kernels, in order of preference for a given head dim (the first that fits is the default):
+/// (dtype, cols, rows, wide, packed) axes, the ids from the generated lookup.
 pub const KERNELS: &[AttnKernel] = &[
-    kern(K::AttentionF32D8r8, DType::F32, 8, 8, false, false),
-    kern(K::AttentionF32D8r4, DType::F32, 8, 4, false, false),
-    kern(K::AttentionF32D8, DType::F32, 8, 1, false, false),
-    kern(K::AttentionF32D16r4, DType::F32, 16, 4, false, false),
-    kern(K::AttentionF32D32r4, DType::F32, 32, 4, false, false),
-    kern(K::AttentionF32D40r4, DType::F32, 40, 4, false, false),
-    kern(K::AttentionF32D40r2, DType::F32, 40, 2, false, false),
-    kern(K::AttentionF32D40, DType::F32, 40, 1, false, false),
-    kern(K::AttentionF32D80r2, DType::F32, 80, 2, false, false),
-    kern(K::AttentionF32D80, DType::F32, 80, 1, false, false),
-    kern(K::AttentionF32D160, DType::F32, 160, 1, false, false),
-    kern(K::AttentionF32W128Wide, DType::F32, 128, 1, true, false),
-    kern(K::AttentionF16pD8r4, DType::F16, 8, 4, false, true),
-    kern(K::AttentionF16pD16r4, DType::F16, 16, 4, false, true),
-    kern(K::AttentionF16pD32r4, DType::F16, 32, 4, false, true),
-    kern(K::AttentionF16pD40r2, DType::F16, 40, 2, false, true),
-    kern(K::AttentionF16pD40r4, DType::F16, 40, 4, false, true),
-    kern(K::AttentionF16pD80r2, DType::F16, 80, 2, false, true),
-    kern(K::AttentionF16D8r4, DType::F16, 8, 4, false, false),
-    kern(K::AttentionF16D8, DType::F16, 8, 1, false, false),
-    kern(K::AttentionF16D16r4, DType::F16, 16, 4, false, false),
-    kern(K::AttentionF16D32r4, DType::F16, 32, 4, false, false),
-    kern(K::AttentionF16D40r4, DType::F16, 40, 4, false, false),
-    kern(K::AttentionF16D40r2, DType::F16, 40, 2, false, false),
-    kern(K::AttentionF16D40, DType::F16, 40, 1, false, false),
-    kern(K::AttentionF16D80r2, DType::F16, 80, 2, false, false),
-    kern(K::AttentionF16D80, DType::F16, 80, 1, false, false),
-    kern(K::AttentionF16D160, DType::F16, 160, 1, false, false),
-    kern(K::AttentionF16W128Wide, DType::F16, 128, 1, true, false),
+    kern(DType::F32, 8, 8, false, false),
+    kern(DType::F32, 8, 4, false, false),
+    kern(DType::F32, 8, 1, false, false),
+    kern(DType::F32, 16, 4, false, false),
+    kern(DType::F32, 32, 4, false, false),
+    kern(DType::F32, 40, 4, false, false),
+    kern(DType::F32, 40, 2, false, false),
+    kern(DType::F32, 40, 1, false, false),
+    kern(DType::F32, 80, 2, false, false),
+    kern(DType::F32, 80, 1, false, false),
+    kern(DType::F32, 160, 1, false, false),
+    kern(DType::F32, 128, 1, true, false),
+    kern(DType::F16, 8, 4, false, true),
+    kern(DType::F16, 16, 4, false, true),
+    kern(DType::F16, 32, 4, false, true),
+    kern(DType::F16, 40, 2, false, true),
+    kern(DType::F16, 40, 4, false, true),
+    kern(DType::F16, 80, 2, false, true),
+    kern(DType::F16, 8, 4, false, false),
+    kern(DType::F16, 8, 1, false, false),
+    kern(DType::F16, 16, 4, false, false),
+    kern(DType::F16, 32, 4, false, false),
+    kern(DType::F16, 40, 4, false, false),
+    kern(DType::F16, 40, 2, false, false),
+    kern(DType::F16, 40, 1, false, false),
+    kern(DType::F16, 80, 2, false, false),
+    kern(DType::F16, 80, 1, false, false),
+    kern(DType::F16, 160, 1, false, false),
+    kern(DType::F16, 128, 1, true, false),
 ];
 
 impl AttnKernel {

@@ -13,6 +13,7 @@ use anyhow::{bail, ensure, Result};
 use super::{expect_shape, same_dtype, Recorder};
 use crate::kernels::params::MatmulParams;
 use crate::kernels::KernelId as K;
+use crate::kernels::{lookup, Variant};
 use crate::tensor::{DType, Tensor};
 use crate::vk::Buffer;
 
@@ -38,6 +39,43 @@ pub(crate) fn tile_shape(rec: &Recorder) -> (usize, usize) {
     (TILED_WG / sg * TILED_TM, 4 * sg)
 }
 
+/// The bias of a GEMM's epilogue (`MatmulParams::bias_mode` of matmul.wgsl).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum GemmBias {
+    None,
+    /// One value per output column (n): a linear layer's bias.
+    PerColumn,
+    /// One value per output row (m): a conv's per-channel bias when rows are channels.
+    PerRow,
+}
+
+impl GemmBias {
+    pub fn per_column(present: bool) -> Self {
+        if present {
+            GemmBias::PerColumn
+        } else {
+            GemmBias::None
+        }
+    }
+
+    pub fn per_row(present: bool) -> Self {
+        if present {
+            GemmBias::PerRow
+        } else {
+            GemmBias::None
+        }
+    }
+
+    /// The kernel's code (`bias_mode` in matmul.wgsl).
+    pub fn code(self) -> u32 {
+        match self {
+            GemmBias::None => 0,
+            GemmBias::PerColumn => 1,
+            GemmBias::PerRow => 2,
+        }
+    }
+}
+
 /// A GEMM on raw buffers: C[z] = A[z] B[z] (+ bias); used by [`matmul_ex`] and by conv2d (1x1 convs).
 #[derive(Clone, Copy, Debug)]
 pub(crate) struct Gemm {
@@ -50,8 +88,7 @@ pub(crate) struct Gemm {
     pub sb: usize,
     /// B given as (N, K).
     pub trans_b: bool,
-    /// 0 none, 1 per column (n), 2 per row (m).
-    pub bias_mode: u32,
+    pub bias: GemmBias,
     /// Add the residual buffer (laid out as C) in the epilogue.
     pub res: bool,
     pub dtype: DType,
@@ -70,63 +107,33 @@ enum Width {
     Wide4,
 }
 
-fn ids(d: DType, checked: bool, tiled: bool, trans: bool, w: Width) -> K {
+/// The kernel of a GEMM: the direct or tiled file, the entry from the layout and load width, the variant from
+/// the dtype and whether an f16 overflow flag is written (f32 never writes one).
+fn kernel(d: DType, checked: bool, tiled: bool, trans: bool, w: Width) -> Result<K> {
+    use lookup::{MatmulDirectEntry as D, MatmulEntry as E};
     use Width::*;
-    let f16 = d == DType::F16;
-    if !tiled {
-        return match (f16, checked, trans) {
-            (false, _, false) => K::MatmulDirectF32Nn,
-            (false, _, true) => K::MatmulDirectF32Nt,
-            (true, false, false) => K::MatmulDirectF16Nn,
-            (true, false, true) => K::MatmulDirectF16Nt,
-            (true, true, false) => K::MatmulDirectF16chkNn,
-            (true, true, true) => K::MatmulDirectF16chkNt,
-        };
-    }
-    // [nn, nn4, nn4a, nt, nt4, nt8, nt8a, nt8a4] per variant
-    let v = match (f16, checked) {
-        (false, _) => [
-            K::MatmulF32Nn,
-            K::MatmulF32Nn4,
-            K::MatmulF32Nn4a,
-            K::MatmulF32Nt,
-            K::MatmulF32Nt4,
-            K::MatmulF32Nt8,
-            K::MatmulF32Nt8a,
-            K::MatmulF32Nt8a4,
-        ],
-        (true, false) => [
-            K::MatmulF16Nn,
-            K::MatmulF16Nn4,
-            K::MatmulF16Nn4a,
-            K::MatmulF16Nt,
-            K::MatmulF16Nt4,
-            K::MatmulF16Nt8,
-            K::MatmulF16Nt8a,
-            K::MatmulF16Nt8a4,
-        ],
-        (true, true) => [
-            K::MatmulF16chkNn,
-            K::MatmulF16chkNn4,
-            K::MatmulF16chkNn4a,
-            K::MatmulF16chkNt,
-            K::MatmulF16chkNt4,
-            K::MatmulF16chkNt8,
-            K::MatmulF16chkNt8a,
-            K::MatmulF16chkNt8a4,
-        ],
+    let v = Variant {
+        overflow_flag: checked && d == DType::F16,
+        ..Variant::of(d)
     };
-    match (trans, w) {
-        (false, W1) => v[0],
-        (false, W4 | W8) => v[1],
-        (false, Wide) => v[2],
-        (true, W1) => v[3],
-        (true, W4) => v[4],
-        (true, W8) => v[5],
-        (true, Wide) => v[6],
-        (true, Wide4) => v[7],
-        (false, Wide4) => v[2],
-    }
+    let id = if tiled {
+        let e = match (trans, w) {
+            (false, W1) => E::Nn,
+            (false, W4 | W8) => E::Nn4,
+            (false, Wide | Wide4) => E::Nn4a,
+            (true, W1) => E::Nt,
+            (true, W4) => E::Nt4,
+            (true, W8) => E::Nt8,
+            (true, Wide) => E::Nt8a,
+            (true, Wide4) => E::Nt8a4,
+        };
+        lookup::matmul(e, v)
+    } else {
+        lookup::matmul_direct(if trans { D::Nt } else { D::Nn }, v)
+    };
+    id.ok_or_else(|| {
+        anyhow::anyhow!("matmul: no kernel compiled for {v:?} (tiled {tiled}, nt {trans})")
+    })
 }
 
 /// Whether the tiled kernels can run here (subgroup broadcast, 8 <= subgroup size <= 64 dividing 64).
@@ -140,7 +147,7 @@ pub fn tiled_supported_on(ctx: &crate::vk::Context) -> bool {
     ctx.supports(K::MatmulF32Nn) && (8..=TILED_WG).contains(&sg) && TILED_WG % sg == 0
 }
 
-/// Records one GEMM. Buffers: a, b, bias (any buffer when bias_mode == 0), c, residual (any buffer unless
+/// Records one GEMM. Buffers: a, b, bias (any buffer when `g.bias` is `None`), c, residual (any buffer unless
 /// `g.res`; may be c itself), optional overflow flag.
 pub(crate) fn gemm(
     rec: &mut Recorder,
@@ -187,7 +194,7 @@ pub(crate) fn gemm(
         g.dtype == DType::F16 || flag.is_none(),
         "{op}: an overflow flag is only meaningful for f16 outputs"
     );
-    let id = ids(g.dtype, flag.is_some(), tiled, g.trans_b, width);
+    let id = kernel(g.dtype, flag.is_some(), tiled, g.trans_b, width)?;
     // A and B through their texel views where the kernel has such a variant (CPU devices)
     let id = super::texel_variant(rec, id, &[bufs[0], bufs[1]]).unwrap_or(id);
     let p = MatmulParams {
@@ -196,7 +203,7 @@ pub(crate) fn gemm(
         k: g.k as u32,
         sa: g.sa as u32,
         sb: g.sb as u32,
-        bias_mode: g.bias_mode,
+        bias_mode: g.bias.code(),
         batch: g.batch as u32,
         res: g.res as u32,
     };
@@ -323,7 +330,7 @@ pub fn matmul_ex(rec: &mut Recorder, x: &MatmulArgs) -> Result<()> {
         sa: if a3 { m * k } else { 0 },
         sb: if b3 { k * n } else { 0 },
         trans_b: x.transpose_b,
-        bias_mode: if x.bias.is_some() { 1 } else { 0 },
+        bias: GemmBias::per_column(x.bias.is_some()),
         res: x.residual.is_some(),
         dtype: d,
         path: x.path,
@@ -453,7 +460,7 @@ pub fn linear_to_channels(
         sa: 0,
         sb: l * c,
         trans_b: true,
-        bias_mode: if bias.is_some() { 2 } else { 0 },
+        bias: GemmBias::per_row(bias.is_some()),
         res: residual.is_some(),
         dtype: d,
         path: MatmulPath::Auto,
@@ -537,7 +544,7 @@ pub fn linear_geglu(
         k: ws[1] as u32,
         sa: 0,
         sb: 0,
-        bias_mode: bias_perm.is_some() as u32,
+        bias_mode: GemmBias::per_column(bias_perm.is_some()).code(),
         batch: 1,
         res: 0,
     };

@@ -15,7 +15,8 @@ pub mod norm;
 pub mod reference;
 pub mod resample;
 pub mod softmax;
-pub mod winograd;
+/// Winograd F(4x4, 3x3) / F(6x6, 3x3), one of the conv algorithms (`conv2d/winograd.rs`).
+pub use conv2d::winograd;
 
 use anyhow::{ensure, Result};
 
@@ -48,28 +49,21 @@ pub(crate) fn grid_1d(op: &str, n: usize) -> Result<[u32; 3]> {
     Ok([x as u32, groups.div_ceil(x) as u32, 1])
 }
 
-/// The texel-view variant of a kernel (`<file>_f32t[_x]_<entry>` for `<file>_f32[_x]_<entry>`, f16 likewise): the same
-/// kernel reading some bindings through the buffers' texel views (`vk::image`; one fetch per lane per vec4 on
-/// lavapipe). Taken when it exists, reads through at least one image, the device supports it and every buffer
-/// it reads as an image (`bufs[i]` for binding i) has a texel view.
+/// The texel-view variant of a kernel (the same entry with the `texel` axis set, [`KernelId::with_variant`]):
+/// the same kernel reading some bindings through the buffers' texel views (`vk::image`; one fetch per lane
+/// per vec4 on lavapipe). Taken when it is compiled (build.rs compiles only entries that read through at least
+/// one image), the device supports it and every buffer it reads as an image (`bufs[i]` for binding i) has a
+/// texel view.
 pub(crate) fn texel_variant(
     rec: &Recorder,
     id: KernelId,
     bufs: &[&crate::vk::Buffer],
 ) -> Option<KernelId> {
-    let info = id.info();
-    // variant "f32" -> "f32t", "f32_d8r8" -> "f32t_d8r8" (f16 likewise)
-    let (dt, rest) = info.variant.split_at(info.variant.len().min(3));
-    if dt != "f32" && dt != "f16" || !(rest.is_empty() || rest.starts_with('_')) {
-        return None;
-    }
-    let stem = info
-        .file
-        .trim_start_matches("kernels/")
-        .trim_end_matches(".wgsl");
-    let from = format!("{stem}_{}", info.variant);
-    let name = info.name.replacen(&from, &format!("{stem}_{dt}t{rest}"), 1);
-    let t = KernelId::by_name(&name)?;
+    let axes = id.info().axes;
+    let t = id.with_variant(crate::kernels::Variant {
+        texel: true,
+        ..axes
+    })?;
     let images = t.info().images;
     let ok = images.contains(&true)
         && images

@@ -6,10 +6,12 @@
 //! weight: (36, C, O) is F(4x4), (64, C, O) F(6x6) ([`Tile`]).
 use anyhow::{bail, ensure, Result};
 
-use super::matmul::{gemm, Gemm, MatmulPath};
-use super::{expect_shape, Recorder, SCRATCH_WINO_M, SCRATCH_WINO_V};
+use super::{BiasMode, Conv2dArgs, Geometry};
 use crate::kernels::params::WinoParams;
 use crate::kernels::KernelId as K;
+use crate::kernels::{lookup, Variant};
+use crate::ops::matmul::{gemm, Gemm, GemmBias, MatmulPath};
+use crate::ops::{expect_shape, Recorder, SCRATCH_WINO_M, SCRATCH_WINO_V, SCRATCH_WINO_W};
 use crate::tensor::{DType, Tensor};
 
 /// Bytes of each intermediate (V or M) per slab at most. Smaller slabs keep V and M in the CPU's caches
@@ -87,109 +89,62 @@ struct Ids {
     weight: K,
 }
 
-/// `gs`: the input entries with the GroupNorm + SiLU prologue.
-fn ids(d: DType, t: Tile, gs: bool) -> Ids {
-    macro_rules! ids4 {
-        ($i:ident, $i4:ident, $i4s:ident, $o:ident, $o4:ident, $o4s:ident, $w:ident) => {
-            Ids {
-                input: K::$i,
-                input4: K::$i4,
-                input4s: K::$i4s,
-                output: K::$o,
-                output4: K::$o4,
-                output4s: K::$o4s,
-                weight: K::$w,
-            }
-        };
-    }
-    macro_rules! ids6 {
-        ($i:ident, $ip:ident, $i4s:ident, $o:ident, $op:ident, $o4s:ident, $w:ident) => {
-            Ids {
-                input: K::$i,
-                input4: K::$ip,
-                input4s: K::$i4s,
-                output: K::$o,
-                output4: K::$op,
-                output4s: K::$o4s,
-                weight: K::$w,
-            }
-        };
-    }
-    use DType::{F16, F32};
-    match (d, t, gs) {
-        (F32, Tile::F4, true) => ids4!(
-            WinogradF32InputGs,
-            WinogradF32Input4Gs,
-            WinogradF32Input4sGs,
-            WinogradF32Output,
-            WinogradF32Output4,
-            WinogradF32Output4q,
-            WinogradF32Weight
-        ),
-        (F16, Tile::F4, true) => ids4!(
-            WinogradF16InputGs,
-            WinogradF16Input4Gs,
-            WinogradF16Input4sGs,
-            WinogradF16Output,
-            WinogradF16Output4,
-            WinogradF16Output4q,
-            WinogradF16Weight
-        ),
-        (F32, Tile::F4, false) => ids4!(
-            WinogradF32Input,
-            WinogradF32Input4,
-            WinogradF32Input4s,
-            WinogradF32Output,
-            WinogradF32Output4,
-            WinogradF32Output4q,
-            WinogradF32Weight
-        ),
-        (F16, Tile::F4, false) => ids4!(
-            WinogradF16Input,
-            WinogradF16Input4,
-            WinogradF16Input4s,
-            WinogradF16Output,
-            WinogradF16Output4,
-            WinogradF16Output4q,
-            WinogradF16Weight
-        ),
-        (F32, Tile::F6, true) => ids6!(
-            WinogradF32Input6Gs,
-            WinogradF32Input6pGs,
-            WinogradF32Input6sGs,
-            WinogradF32Output6,
-            WinogradF32Output6p,
-            WinogradF32Output6q,
-            WinogradF32Weight6
-        ),
-        (F16, Tile::F6, true) => ids6!(
-            WinogradF16Input6Gs,
-            WinogradF16Input6pGs,
-            WinogradF16Input6sGs,
-            WinogradF16Output6,
-            WinogradF16Output6p,
-            WinogradF16Output6q,
-            WinogradF16Weight6
-        ),
-        (F32, Tile::F6, false) => ids6!(
-            WinogradF32Input6,
-            WinogradF32Input6p,
-            WinogradF32Input6s,
-            WinogradF32Output6,
-            WinogradF32Output6p,
-            WinogradF32Output6q,
-            WinogradF32Weight6
-        ),
-        (F16, Tile::F6, false) => ids6!(
-            WinogradF16Input6,
-            WinogradF16Input6p,
-            WinogradF16Input6s,
-            WinogradF16Output6,
-            WinogradF16Output6p,
-            WinogradF16Output6q,
-            WinogradF16Weight6
-        ),
-    }
+/// The kernels of one dtype, tile size and prologue choice (`gs`: the input entries with the GroupNorm + SiLU
+/// prologue), from the generated lookup of `kernels/winograd.wgsl`.
+fn ids(d: DType, t: Tile, gs: bool) -> Result<Ids> {
+    use lookup::WinogradEntry as E;
+    let k = |e: E| {
+        lookup::winograd(e, Variant::of(d))
+            .ok_or_else(|| anyhow::anyhow!("conv2d winograd: no {d:?} kernel {e:?} compiled"))
+    };
+    // (input, input4, input4s, output, output4, output4s, weight) entries, with or without the prologue
+    let e = match (t, gs) {
+        (Tile::F4, false) => [
+            E::Input,
+            E::Input4,
+            E::Input4s,
+            E::Output,
+            E::Output4,
+            E::Output4q,
+            E::Weight,
+        ],
+        (Tile::F4, true) => [
+            E::InputGs,
+            E::Input4Gs,
+            E::Input4sGs,
+            E::Output,
+            E::Output4,
+            E::Output4q,
+            E::Weight,
+        ],
+        (Tile::F6, false) => [
+            E::Input6,
+            E::Input6p,
+            E::Input6s,
+            E::Output6,
+            E::Output6p,
+            E::Output6q,
+            E::Weight6,
+        ],
+        (Tile::F6, true) => [
+            E::Input6Gs,
+            E::Input6pGs,
+            E::Input6sGs,
+            E::Output6,
+            E::Output6p,
+            E::Output6q,
+            E::Weight6,
+        ],
+    };
+    Ok(Ids {
+        input: k(e[0])?,
+        input4: k(e[1])?,
+        input4s: k(e[2])?,
+        output: k(e[3])?,
+        output4: k(e[4])?,
+        output4s: k(e[5])?,
+        weight: k(e[6])?,
+    })
 }
 
 /// Shape of the transformed weight of w: (O, C, 3, 3): (products, C, O), always f32.
@@ -215,9 +170,9 @@ pub fn transform_weight(rec: &mut Recorder, w: &Tensor, u: &Tensor) -> Result<()
         c: ws[1] as u32,
         ..Default::default()
     };
-    let g = super::grid_1d("conv2d winograd weight", ws[0] * ws[1])?;
+    let g = crate::ops::grid_1d("conv2d winograd weight", ws[0] * ws[1])?;
     rec.dispatch(
-        ids(w.dtype(), t, false).weight,
+        ids(w.dtype(), t, false)?.weight,
         &[w.buffer(), u.buffer()],
         bytemuck::bytes_of(&p),
         g,
@@ -225,10 +180,31 @@ pub fn transform_weight(rec: &mut Recorder, w: &Tensor, u: &Tensor) -> Result<()
     )
 }
 
+/// The conv of `a` (geometry `g`) on `tile`: with the transformed weight `a` carries for that tile, else one
+/// transformed into the recording's scratch.
+pub(super) fn conv(rec: &mut Recorder, a: &Conv2dArgs, g: &Geometry, tile: Tile) -> Result<()> {
+    let given = match tile {
+        Tile::F4 => a.wino_w,
+        Tile::F6 => a.wino_w6,
+    };
+    let tmp;
+    let u = match given {
+        Some(u) => u,
+        None => {
+            let sh = weight_shape(&g.w, tile);
+            let b = rec.scratch(SCRATCH_WINO_W, (sh.iter().product::<usize>() * 4) as u64)?;
+            tmp = Tensor::on_buffer(b, &sh, DType::F32)?;
+            transform_weight(rec, a.w, &tmp)?;
+            &tmp
+        }
+    };
+    conv3x3(rec, a, u)
+}
+
 /// out = conv3x3(x, w) (+ bias (O) or (N, O)) (+ residual) (then SiLU), stride 1, padding (top, bottom, left,
 /// right) each <= 2, with u the transformed weight ([`transform_weight`], F(4x4) or F(6x6) by its shape);
 /// everything but `w` from `a`. Shapes were checked by the caller (`conv2d_ex`).
-pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Tensor) -> Result<()> {
+fn conv3x3(rec: &mut Recorder, a: &Conv2dArgs, u: &Tensor) -> Result<()> {
     let (x, bias, residual, silu, out, pad) = (a.x, a.bias, a.residual, a.silu, a.out, a.pad);
     let (xs, os) = (x.shape(), out.shape());
     // the conv's input size (twice the stored one when x is read through a 2x upsampling)
@@ -251,7 +227,7 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
     if pairs {
         slab = (slab - slab % 2).max(2);
     }
-    let k = ids(x.dtype(), t, a.pre_gn_silu.is_some());
+    let k = ids(x.dtype(), t, a.pre_gn_silu.is_some())?;
     // the prologue's statistics (binding 2 of every input entry; x when there is no prologue)
     let ss = a.pre_gn_silu.unwrap_or(x);
     // 4-channel transforms (fewer per-lane access loops on lavapipe) where the layout allows: input
@@ -293,11 +269,7 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
     let vb = rec.scratch(SCRATCH_WINO_V, (np * slab * c * 4) as u64)?;
     let mb = rec.scratch(SCRATCH_WINO_M, (np * slab * o * 4) as u64)?;
     let bias_t = bias.unwrap_or(x);
-    let has_bias = match bias {
-        Some(b) if b.shape().len() == 2 => 2,
-        Some(_) => 1,
-        None => 0,
-    };
+    let has_bias = BiasMode::of(bias).code();
     let res_t = residual.unwrap_or(out);
     let mut t0 = 0;
     while t0 < tiles {
@@ -322,7 +294,7 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
             up: up as u32,
             stats: a.stats_parts.is_some() as u32,
         };
-        let g = super::grid_1d("conv2d winograd", nt / per_inv * in_items)?;
+        let g = crate::ops::grid_1d("conv2d winograd", nt / per_inv * in_items)?;
         // input4 also reads x through a scalar view (binding 3)
         let in_bufs: &[&std::sync::Arc<crate::vk::Buffer>] = if in4 {
             &[x.buffer(), &vb, ss.buffer(), x.buffer()]
@@ -330,7 +302,7 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
             &[x.buffer(), &vb, ss.buffer()]
         };
         let bufs: Vec<&crate::vk::Buffer> = in_bufs.iter().map(|b| b.as_ref()).collect();
-        let inp = super::texel_variant(rec, inp, &bufs).unwrap_or(inp);
+        let inp = crate::ops::texel_variant(rec, inp, &bufs).unwrap_or(inp);
         rec.dispatch(inp, in_bufs, bytemuck::bytes_of(&p), g, &in_label)?;
         // 36 (64) GEMMs: (nt, C) . (C, O) -> (nt, O)
         let gm = Gemm {
@@ -341,7 +313,7 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
             sa: nt * c,
             sb: c * o,
             trans_b: false,
-            bias_mode: 0,
+            bias: GemmBias::None,
             res: false,
             dtype: DType::F32,
             path: MatmulPath::Tiled,
@@ -353,7 +325,7 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
             [&vb, u.buffer(), &vb, &mb, &mb],
             None,
         )?;
-        let g = super::grid_1d("conv2d winograd", nt / per_inv * out_items)?;
+        let g = crate::ops::grid_1d("conv2d winograd", nt / per_inv * out_items)?;
         // m, bias, y, residual, the statistics partials (output6p): as many as the kernel binds
         let bufs = [
             &mb,
@@ -365,7 +337,7 @@ pub(crate) fn conv3x3(rec: &mut Recorder, a: &super::conv2d::Conv2dArgs, u: &Ten
         // m (and the residual) through texel views where the device has them (CPU devices: one fetch per
         // lane per vec4)
         let views: Vec<&crate::vk::Buffer> = bufs.iter().map(|b| b.as_ref()).collect();
-        let outp = super::texel_variant(rec, outp, &views).unwrap_or(outp);
+        let outp = crate::ops::texel_variant(rec, outp, &views).unwrap_or(outp);
         let nb = outp.info().bindings.len();
         rec.dispatch(outp, &bufs[..nb], bytemuck::bytes_of(&p), g, &out_label)?;
         t0 += nt;
