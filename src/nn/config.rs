@@ -76,7 +76,8 @@ pub struct ControlNetConfig {
     pub enc: EncoderConfig,
     pub conditioning_channels: usize,
     pub conditioning_embedding_out_channels: Vec<usize>,
-    /// `controlnet_conditioning_channel_order == "bgr"`: the condition's channels are flipped first.
+    /// `controlnet_conditioning_channel_order == "bgr"`: the condition's channels are flipped first (applied in
+    /// `controlnet::CondEmbedding::load`, which reverses conv_in's input channels; tests/nn_controlnet_bgr.rs).
     pub bgr_conditioning: bool,
 }
 

@@ -38,15 +38,26 @@ impl CondEmbedding {
                 1 + k % 2,
             )?);
         }
+        let cond_in = if cfg.bgr_conditioning {
+            // diffusers flips the condition's channels (`torch.flip(controlnet_cond, dims=[1])`) before the
+            // embedding: reversing conv_in's input channels once at load computes the same products
+            let name = "controlnet_cond_embedding.conv_in";
+            let w = reverse_input_channels(dw, dw.get(&format!("{name}.weight"))?)?;
+            let b = dw.get(&format!("{name}.bias")).ok().cloned();
+            Conv::from_tensors(dw, name, w, b, 1, [1; 4])?
+        } else {
+            Conv::same3(dw, "controlnet_cond_embedding.conv_in", 1)?
+        };
         Ok(Self {
             channels: cfg.conditioning_channels,
-            cond_in: Conv::same3(dw, "controlnet_cond_embedding.conv_in", 1)?,
+            cond_in,
             cond_blocks,
             cond_out: Conv::same3(dw, "controlnet_cond_embedding.conv_out", 1)?,
         })
     }
 
-    /// cond: (M, Cc, 8H, 8W) -> (M, C0, H, W).
+    /// cond: (M, Cc, 8H, 8W) -> (M, C0, H, W); with `controlnet_conditioning_channel_order: "bgr"` the
+    /// channels of cond are taken in reverse order (through conv_in's weight, reversed at load).
     pub fn forward(&self, f: &mut Fwd, cond: &Tensor) -> Result<Tensor> {
         let c = cond.shape();
         ensure!(
@@ -202,4 +213,29 @@ impl ControlNet {
         f.ws.release(silu_temb);
         self.zero.forward(f, skips, x, scale)
     }
+}
+
+/// w: (O, C, KH, KW) -> the same weight with its input channels in reverse order (a new device tensor).
+fn reverse_input_channels(dw: &DeviceWeights, w: &Tensor) -> Result<Tensor> {
+    let s = w.shape();
+    ensure!(
+        s.len() == 4,
+        "controlnet: conv_in weight {s:?} must be (O, C, KH, KW)"
+    );
+    let (c, kk) = (s[1], s[2] * s[3]);
+    // host round trip at load: exact in f32 and f16 (f16 -> f32 -> f16 is the identity)
+    let v = w.to_f32(&dw.ctx)?;
+    let mut r = vec![0f32; v.len()];
+    for (src, dst) in v.chunks(c * kk).zip(r.chunks_mut(c * kk)) {
+        for ci in 0..c {
+            dst[ci * kk..(ci + 1) * kk].copy_from_slice(&src[(c - 1 - ci) * kk..(c - ci) * kk]);
+        }
+    }
+    Tensor::from_f32(
+        &dw.ctx,
+        s,
+        w.dtype(),
+        &r,
+        "controlnet_cond_embedding.conv_in.weight.bgr",
+    )
 }
