@@ -4,7 +4,7 @@
 //! ([`crate::scene::geometry`]): one type and one test for the simulator and the score.
 use glam::DVec2;
 
-use crate::scene::geometry::{convex_intersect, OrientedBox};
+use crate::scene::geometry::{convex_intersect, segment_param, OrientedBox};
 
 /// shapely `intersects` for two oriented boxes (boundaries touching counts) via separating axes.
 pub fn boxes_intersect(a: &OrientedBox, b: &OrientedBox) -> bool {
@@ -30,15 +30,9 @@ pub fn polyline_project(line: &[DVec2], p: DVec2) -> f64 {
     let mut s0 = 0.0;
     for w in line.windows(2) {
         let (a, b) = (w[0], w[1]);
-        let ab = b - a;
-        let len2 = ab.length_squared();
-        let t = if len2 > 0.0 {
-            ((p - a).dot(ab) / len2).clamp(0.0, 1.0)
-        } else {
-            0.0
-        };
-        let d = (a + ab * t).distance(p);
-        let seg_len = len2.sqrt();
+        let t = segment_param(p, a, b);
+        let d = (a + (b - a) * t).distance(p);
+        let seg_len = (b - a).length();
         if d < best {
             best = d;
             best_s = s0 + t * seg_len;

@@ -174,17 +174,24 @@ impl OrientedBox {
     }
 }
 
-/// Distance from p to segment [a, b].
+/// Parameter t in [0, 1] of the point of segment [a, b] nearest to p, `a + (b - a) * t` (0 for a
+/// degenerate segment): the projection behind every point-segment distance and polyline projection.
 #[inline]
-pub fn point_segment_distance(p: DVec2, a: DVec2, b: DVec2) -> f64 {
+pub fn segment_param(p: DVec2, a: DVec2, b: DVec2) -> f64 {
     let ab = b - a;
     let l2 = ab.length_squared();
-    let t = if l2 > 0.0 {
+    if l2 > 0.0 {
         ((p - a).dot(ab) / l2).clamp(0.0, 1.0)
     } else {
         0.0
-    };
-    (a + ab * t - p).length()
+    }
+}
+
+/// Distance from p to segment [a, b].
+#[inline]
+pub fn point_segment_distance(p: DVec2, a: DVec2, b: DVec2) -> f64 {
+    let t = segment_param(p, a, b);
+    (a + (b - a) * t - p).length()
 }
 
 /// Whether segments [a, b] and [c, d] intersect (touching counts).
@@ -677,14 +684,8 @@ impl Polyline {
         let mut best = (0.0, f64::INFINITY);
         for i in 0..self.points.len().saturating_sub(1) {
             let (a, b) = (self.points[i], self.points[i + 1]);
-            let ab = b - a;
-            let l2 = ab.length_squared();
-            let t = if l2 > 0.0 {
-                ((p - a).dot(ab) / l2).clamp(0.0, 1.0)
-            } else {
-                0.0
-            };
-            let d = (a + ab * t - p).length();
+            let t = segment_param(p, a, b);
+            let d = (a + (b - a) * t - p).length();
             if d < best.1 {
                 best = (self.s[i] + t * (self.s[i + 1] - self.s[i]), d);
             }
