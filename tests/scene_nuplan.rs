@@ -8,6 +8,10 @@ use std::process::Command;
 use std::sync::OnceLock;
 use std::time::Instant;
 
+#[path = "common/fixture_dirs.rs"]
+mod fixture_dirs;
+use fixture_dirs::{python, remove_stale_fixtures};
+
 use b2dr::scene::import::nuplan::{self, NuplanSpec};
 use b2dr::scene::import::{resolve, Source};
 use b2dr::scene::map::LaneKind;
@@ -15,47 +19,9 @@ use b2dr::scene::TrafficLightStatus;
 use glam::{DMat3, DMat4, DQuat, DVec2, DVec3};
 use serde_json::Value;
 
-fn python() -> String {
-    if let Ok(p) = std::env::var("B2DR_PY") {
-        return p;
-    }
-    let venv = std::env::var("HOME")
-        .map(|h| PathBuf::from(h).join(".cache/b2dr-venv/bin/python"))
-        .unwrap_or_default();
-    if venv.is_file() {
-        venv.display().to_string()
-    } else {
-        "python3".into()
-    }
-}
-
-/// Fixtures of earlier test processes that have ended (`b2dr_nuplan_<name>_<pid>` whose /proc/<pid> is gone;
-/// nothing is removed where /proc does not exist): the shared fixture outlives its process.
-fn remove_stale_fixtures() {
-    if !Path::new("/proc/self").exists() {
-        return;
-    }
-    let Ok(entries) = std::fs::read_dir(std::env::temp_dir()) else {
-        return;
-    };
-    for e in entries.flatten() {
-        let name = e.file_name().to_string_lossy().into_owned();
-        let Some(pid) = name
-            .strip_prefix("b2dr_nuplan_")
-            .and_then(|r| r.rsplit('_').next())
-            .and_then(|p| p.parse::<u32>().ok())
-        else {
-            continue;
-        };
-        if pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists() {
-            let _ = std::fs::remove_dir_all(e.path());
-        }
-    }
-}
-
 /// Writes a fixture into a fresh temporary folder; None (reason printed) without Python / numpy.
 fn write_fixture(name: &str, extra: &[&str]) -> Option<PathBuf> {
-    remove_stale_fixtures();
+    remove_stale_fixtures("b2dr_nuplan_");
     let out = std::env::temp_dir().join(format!("b2dr_nuplan_{name}_{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
     let o = Command::new(python())

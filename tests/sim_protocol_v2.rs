@@ -184,7 +184,11 @@ fn hostile_planners_end_only_their_scenario() {
             &sc,
             &mut planner(&format!("--mode {mode} --images inline"), 2.0, &d),
         );
-        let f = r.failure.clone().unwrap_or_default();
+        let f = r
+            .failure
+            .as_ref()
+            .map(ToString::to_string)
+            .unwrap_or_default();
         println!("{mode}: {f} ({:.2} s)", t0.elapsed().as_secs_f64());
         assert!(f.contains(needle), "{mode}: {f}");
         assert!(

@@ -8,6 +8,7 @@ use b2dr::projection::{
     box_wireframe, channel_name, CameraProjector, KeyFrame, LayoutMasks, LayoutRenderer, MapLayer,
     ProjectionConfig, NUM_MASK_CHANNELS,
 };
+use b2dr::world::view::MASK_COLOURS;
 use glam::DVec2;
 use image::{Rgb, RgbImage};
 use serde_json::json;
@@ -59,25 +60,6 @@ fn parse_size(s: &str) -> Result<(u32, u32)> {
     }
     Ok((w, h))
 }
-
-/// Class colours for overlays: boxes first, then map classes (same order as the mask channels).
-const COLOURS: [[u8; 3]; NUM_MASK_CHANNELS] = [
-    [255, 158, 0],
-    [255, 99, 71],
-    [255, 69, 0],
-    [255, 140, 0],
-    [233, 150, 70],
-    [0, 0, 230],
-    [255, 61, 99],
-    [220, 20, 60],
-    [47, 79, 79],
-    [112, 128, 144],
-    [60, 180, 75],
-    [0, 200, 200],
-    [255, 255, 255],
-    [255, 255, 0],
-    [200, 0, 200],
-];
 
 pub fn run(args: ProjectArgs) -> Result<()> {
     let (rw, rh) = parse_size(&args.size)?;
@@ -181,7 +163,7 @@ pub fn run(args: ProjectArgs) -> Result<()> {
         blend_masks(&mut photo, &masks);
         for (cls, segs) in &wires {
             for (a, b) in segs {
-                draw_line(&mut photo, *a, *b, COLOURS[*cls]);
+                draw_line(&mut photo, *a, *b, MASK_COLOURS[*cls]);
             }
         }
         let photo = match args.overlay_width {
@@ -235,7 +217,7 @@ fn blend_masks(photo: &mut RgbImage, m: &LayoutMasks) {
             for c in (0..NUM_MASK_CHANNELS).rev() {
                 if m.channel(c)[my * m.width + mx] != 0 {
                     let a = if c >= 10 { 0.3 } else { 0.4 };
-                    for (v, col) in px.0.iter_mut().zip(COLOURS[c]) {
+                    for (v, col) in px.0.iter_mut().zip(MASK_COLOURS[c]) {
                         *v = (*v as f64 * (1.0 - a) + col as f64 * a) as u8;
                     }
                 }

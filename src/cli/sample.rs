@@ -11,7 +11,7 @@ use b2dr::nn::unet::UNet;
 use b2dr::nn::vae::VaeDecoder;
 use b2dr::nn::weights::{self, Weights};
 use b2dr::render::inputs;
-use b2dr::sampling::{ddim, unipc, NoiseSchedule};
+use b2dr::sampling::{NoiseSchedule, PredictionType, SamplerKind};
 use b2dr::tensor::DType;
 use b2dr::vk::{Context, ContextOptions};
 use rand::SeedableRng;
@@ -27,7 +27,7 @@ pub struct SampleArgs {
     pub steps: usize,
     /// unipc | ddim
     #[arg(long, default_value = "unipc")]
-    pub sampler: String,
+    pub sampler: SamplerKind,
     /// classifier-free guidance scale (<= 1 disables the unconditional pass)
     #[arg(long, default_value_t = 7.5)]
     pub guidance: f64,
@@ -181,11 +181,7 @@ pub fn run(device: Option<String>, a: SampleArgs) -> Result<()> {
     let vdw = DeviceWeights::upload(&ctx, &vw, "", DType::F32)?;
     let vae = VaeDecoder::load(&vdw, &vc)?;
     let sched = NoiseSchedule::sd15();
-    let plan = match a.sampler.as_str() {
-        "unipc" => unipc::plan(&sched, &Default::default(), a.steps)?,
-        "ddim" => ddim::plan(&sched, &Default::default(), a.steps)?,
-        s => bail!("--sampler {s:?}: expected unipc or ddim"),
-    };
+    let plan = a.sampler.plan(&sched, PredictionType::Epsilon, a.steps)?;
     let shape = PipelineShape {
         batch: 1,
         latent: (h, w),

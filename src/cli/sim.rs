@@ -17,10 +17,9 @@ use anyhow::{bail, Context, Result};
 use b2dr::eval::batch::{self, write_atomic, Shard};
 use b2dr::metrics::ScoreParams;
 use b2dr::scene::import::{resolve, Source};
-use b2dr::sim::{self, AgentMode, SimConfig};
+use b2dr::sim::{self, AgentMode, Controller, PlannerSpec, SimConfig};
 use clap::Args;
 use serde_json::{json, Value};
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -33,14 +32,14 @@ pub struct SimArgs {
     pub scenario: String,
     /// Planner: expert, cv, idm or cmd:<command line> (see docs/planner_protocol.md).
     #[arg(long, default_value = "expert")]
-    pub planner: String,
+    pub planner: PlannerSpec,
     /// Other traffic: idm (reactive, R-CLS), replay (log replay, CLS-NR) or none.
     #[arg(long, default_value = "idm")]
-    pub agents: String,
+    pub agents: AgentMode,
     /// Ego controller: lqr (LQR tracker + kinematic bicycle, the benchmark's) or perfect (the ego is placed on
     /// the planned trajectory; a diagnostic, like nuPlan's perfect_tracking).
     #[arg(long, default_value = "lqr")]
-    pub controller: String,
+    pub controller: Controller,
     /// Output directory.
     #[arg(long)]
     pub out: PathBuf,
@@ -67,22 +66,13 @@ pub struct SimArgs {
 fn run_one(src: &Source, args: &SimArgs, cfg: &SimConfig, dir: &Path) -> Result<Value> {
     let t0 = Instant::now();
     let sc = b2dr::world::load(src)?;
-    let mut planner =
-        sim::planner_from_spec(&args.planner, Duration::from_secs_f64(args.planner_timeout))?;
+    let mut planner = args
+        .planner
+        .build(Duration::from_secs_f64(args.planner_timeout))?;
     let r = sim::run(&sc, planner.as_mut(), cfg);
     let sim_ms = t0.elapsed().as_secs_f64() * 1e3;
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    let trace_path = dir.join("trace.jsonl");
-    let mut w = std::io::BufWriter::new(
-        std::fs::File::create(&trace_path)
-            .with_context(|| format!("creating {}", trace_path.display()))?,
-    );
-    for s in &r.steps {
-        serde_json::to_writer(&mut w, s)?;
-        w.write_all(b"\n")?;
-    }
-    w.flush()
-        .with_context(|| format!("writing {}", trace_path.display()))?;
+    r.write_trace(&dir.join("trace.jsonl"))?;
     sim::bev::write_frames(&sc, &r, dir, args.bev_every, &sim::bev::BevView::default())?;
     let (score, metrics, metrics_error) =
         match sim::score::score_run(&sc, &r, &ScoreParams::default()) {
@@ -110,19 +100,20 @@ fn run_one(src: &Source, args: &SimArgs, cfg: &SimConfig, dir: &Path) -> Result<
 }
 
 pub fn run(args: SimArgs) -> Result<()> {
-    let agents: AgentMode = args.agents.parse()?;
+    let agents = args.agents;
     if args.steps == 0 {
         bail!("--steps must be at least 1");
     }
     if !(args.planner_timeout > 0.0 && args.planner_timeout <= 86400.0) {
         bail!("--planner-timeout must be in (0, 86400] seconds");
     }
-    // Validate the planner spec before doing any work.
-    sim::planner_from_spec(&args.planner, Duration::from_secs_f64(args.planner_timeout))?;
+    // Build the planner once before doing any work (an external command line that cannot start fails here).
+    args.planner
+        .build(Duration::from_secs_f64(args.planner_timeout))?;
     let sources = batch::select(resolve(&args.scenario)?, args.shard)?;
     let cfg = SimConfig {
         agents,
-        controller: args.controller.parse()?,
+        controller: args.controller,
         steps: args.steps,
         ..SimConfig::default()
     };

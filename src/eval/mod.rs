@@ -3,6 +3,7 @@
 //! simulator's [`crate::sim::sensors::Sensors`] trait. This layer sits above sim, world and render; the
 //! simulator itself never touches the GPU.
 pub mod batch;
+pub mod chart;
 pub mod compare;
 pub mod fidelity;
 pub mod planner_data;

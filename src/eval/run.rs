@@ -13,7 +13,6 @@
 //!
 //! Scenarios run in folder-name order; `RunConfig::shard` runs every N-th of them (`--shard K/N`), and
 //! `b2dr merge` combines shard folders (`super::batch`, shared with `b2dr sim`).
-use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
@@ -237,29 +236,12 @@ fn run_one(
         &sc,
         p.as_mut(),
         &sim_cfg,
-        &|sc, k| {
-            let t = (k as f64 * sc.dt * 1e6).round() as i64;
-            sc.rig
-                .frames
-                .iter()
-                .find(|f| f.timestamp_us == t)
-                .map(|f| f.images.clone())
-                .unwrap_or_default()
-        },
+        &sim::closed_loop::images_at,
         sensors,
         &mut write_frames,
     );
     let wall_ms = t0.elapsed().as_secs_f64() * 1e3;
-    let trace_path = dir.join("trace.jsonl");
-    let mut w = std::io::BufWriter::new(
-        std::fs::File::create(&trace_path)
-            .with_context(|| format!("creating {}", trace_path.display()))?,
-    );
-    for s in &r.steps {
-        serde_json::to_writer(&mut w, s)?;
-        w.write_all(b"\n")?;
-    }
-    w.flush()?;
+    r.write_trace(&dir.join("trace.jsonl"))?;
     let mut mosaics = vec![];
     for (k, frames) in &kept {
         let m = mosaic(&sc, &r, *k, frames);

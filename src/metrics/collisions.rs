@@ -4,8 +4,9 @@
 //!
 //! Spatial pruning: an axis-aligned bounds test runs before every exact (separating-axis) box test; it never
 //! changes a result, it only skips pairs that cannot touch.
-use super::geometry::{boxes_intersect, segment_intersects_convex, OrientedBox};
+use super::geometry::{boxes_intersect, segment_intersects_convex};
 use super::input::{EgoDims, EgoStep, MapQuery, ObjectClass, ObjectState};
+use crate::scene::geometry::{Aabb, OrientedBox, Pose2};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeSet;
 
@@ -68,10 +69,13 @@ pub fn is_behind(ego: &EgoStep, p: glam::DVec2) -> bool {
     relative_angle(ego, p) > 150f64.to_radians()
 }
 
-fn aabb_overlap(a: (glam::DVec2, glam::DVec2), b: (glam::DVec2, glam::DVec2)) -> bool {
+fn aabb_overlap(a: Aabb, b: Aabb) -> bool {
     // Slightly inflated so the exact test decides every touching case.
-    let eps = 1e-9 * (1.0 + a.1.abs().max_element().max(b.1.abs().max_element()));
-    a.0.x <= b.1.x + eps && b.0.x <= a.1.x + eps && a.0.y <= b.1.y + eps && b.0.y <= a.1.y + eps
+    let eps = 1e-9 * (1.0 + a.max.abs().max_element().max(b.max.abs().max_element()));
+    a.min.x <= b.max.x + eps
+        && b.min.x <= a.max.x + eps
+        && a.min.y <= b.max.y + eps
+        && b.min.y <= a.max.y + eps
 }
 
 /// `in_collision` with an AABB pre-test.
@@ -295,14 +299,14 @@ pub fn time_to_collision(
             continue;
         }
         let ego_box = e.footprint(dims);
-        let mut ego_pose = ego_box.center;
+        let mut ego_pose = ego_box.center.pos();
         let ego_d = glam::DVec2::new(
             e.heading.cos() * speed * p.time_step_size,
             e.heading.sin() * speed * p.time_step_size,
         );
         // Broad phase (_get_relevant_tracks): boxes stretched over the horizon must overlap.
         let half = p.time_horizon / p.time_step_size / 2.0;
-        let ego_long = OrientedBox::new(
+        let ego_long = OrientedBox::at(
             glam::DVec2::new(half * ego_d.x + ego_pose.x, half * ego_d.y + ego_pose.y),
             e.heading,
             elongated_length(ego_box.length, ego_d.x, ego_d.y, p),
@@ -311,7 +315,7 @@ pub fn time_to_collision(
         let relevant: Vec<usize> = (0..poses.len())
             .filter(|&i| {
                 let d = dxy[i];
-                let long = OrientedBox::new(
+                let long = OrientedBox::at(
                     glam::DVec2::new(half * d.x + poses[i].0.x, half * d.y + poses[i].0.y),
                     poses[i].1,
                     elongated_length(boxes[i].length, d.x, d.y, p),
@@ -326,7 +330,7 @@ pub fn time_to_collision(
         'outer: for &t in &times {
             ego_pose += ego_d;
             let ego_proj = OrientedBox {
-                center: ego_pose,
+                center: Pose2::new(ego_pose.x, ego_pose.y, ego_box.center.heading),
                 ..ego_box
             };
             for (i, pose) in poses.iter_mut().enumerate() {
@@ -334,7 +338,7 @@ pub fn time_to_collision(
             }
             for &i in &relevant {
                 let tb = OrientedBox {
-                    center: poses[i].0,
+                    center: Pose2::new(poses[i].0.x, poses[i].0.y, boxes[i].center.heading),
                     ..boxes[i]
                 };
                 if in_collision(&ego_proj, &tb) {

@@ -1,67 +1,10 @@
-//! Planar geometry the metrics need, standing in for shapely: oriented boxes (nuPlan `OrientedBox`), convex
-//! overlap tests (`in_collision` = shapely `intersects`, touching counts), point-in-polygon, point-to-polygon
-//! distance and polyline projection (shapely `LineString.project`).
+//! Planar geometry only the metrics need, standing in for shapely: box and segment overlap (`in_collision` =
+//! shapely `intersects`, touching counts) and polyline projection (shapely `LineString.project`). The box
+//! type, point-in-polygon (with its boundary rule) and point-to-polygon distance are the scene's
+//! ([`crate::scene::geometry`]): one type and one test for the simulator and the score.
 use glam::DVec2;
 
-use crate::scene::geometry as sg;
-/// shapely `polygon.distance(Point)`: 0 inside (the boundary included: its distance is 0 anyway), else the
-/// distance to the boundary; infinite for an empty polygon.
-pub use sg::point_polygon_distance as dist_point_polygon;
-/// Distance from a point to the segment [a, b].
-pub use sg::point_segment_distance as dist_point_segment;
-/// Intersection test for two convex polygons (any winding), touching counts; false if either is empty.
-pub use sg::{convex_intersect, wrap_angle};
-
-/// An oriented rectangle given by its centre (nuPlan `OrientedBox`).
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct OrientedBox {
-    pub center: DVec2,
-    pub heading: f64,
-    pub length: f64,
-    pub width: f64,
-}
-
-impl OrientedBox {
-    pub fn new(center: DVec2, heading: f64, length: f64, width: f64) -> Self {
-        OrientedBox {
-            center,
-            heading,
-            length,
-            width,
-        }
-    }
-
-    /// Unit vector along the heading.
-    pub fn forward(&self) -> DVec2 {
-        DVec2::new(self.heading.cos(), self.heading.sin())
-    }
-
-    /// Corners in nuPlan's order: front-left, rear-left, rear-right, front-right
-    /// [common/actor_state/oriented_box.py `all_corners`].
-    pub fn corners(&self) -> [DVec2; 4] {
-        let f = self.forward();
-        let l = DVec2::new(-f.y, f.x);
-        let hl = self.length / 2.0;
-        let hw = self.width / 2.0;
-        let c = self.center;
-        [
-            c + f * hl + l * hw,
-            c - f * hl + l * hw,
-            c - f * hl - l * hw,
-            c + f * hl - l * hw,
-        ]
-    }
-
-    /// Axis-aligned bounds (min, max).
-    pub fn aabb(&self) -> (DVec2, DVec2) {
-        let f = self.forward();
-        let ext = DVec2::new(
-            (f.x * self.length / 2.0).abs() + (f.y * self.width / 2.0).abs(),
-            (f.y * self.length / 2.0).abs() + (f.x * self.width / 2.0).abs(),
-        );
-        (self.center - ext, self.center + ext)
-    }
-}
+use crate::scene::geometry::{convex_intersect, segment_param, OrientedBox};
 
 /// shapely `intersects` for two oriented boxes (boundaries touching counts) via separating axes.
 pub fn boxes_intersect(a: &OrientedBox, b: &OrientedBox) -> bool {
@@ -72,15 +15,6 @@ pub fn boxes_intersect(a: &OrientedBox, b: &OrientedBox) -> bool {
 /// polygon, so the separating-axis test applies (the segment's own normal is one of the axes).
 pub fn segment_intersects_convex(p: DVec2, q: DVec2, poly: &[DVec2]) -> bool {
     convex_intersect(&[p, q], poly)
-}
-
-/// Point in a simple polygon (even-odd rule); points on the boundary count as inside (the scene module's ray
-/// cast leaves them either way).
-pub fn point_in_polygon(p: DVec2, poly: &[DVec2]) -> bool {
-    let n = poly.len();
-    n >= 3
-        && ((0..n).any(|i| dist_point_segment(p, poly[i], poly[(i + 1) % n]) == 0.0)
-            || sg::point_in_polygon(p, poly))
 }
 
 /// Length of a polyline.
@@ -96,15 +30,9 @@ pub fn polyline_project(line: &[DVec2], p: DVec2) -> f64 {
     let mut s0 = 0.0;
     for w in line.windows(2) {
         let (a, b) = (w[0], w[1]);
-        let ab = b - a;
-        let len2 = ab.length_squared();
-        let t = if len2 > 0.0 {
-            ((p - a).dot(ab) / len2).clamp(0.0, 1.0)
-        } else {
-            0.0
-        };
-        let d = (a + ab * t).distance(p);
-        let seg_len = len2.sqrt();
+        let t = segment_param(p, a, b);
+        let d = (a + (b - a) * t).distance(p);
+        let seg_len = (b - a).length();
         if d < best {
             best = d;
             best_s = s0 + t * seg_len;
@@ -117,24 +45,25 @@ pub fn polyline_project(line: &[DVec2], p: DVec2) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::scene::geometry::{point_in_polygon, point_polygon_distance, wrap_angle};
 
     #[test]
     fn corners_order_and_touching() {
-        let b = OrientedBox::new(DVec2::ZERO, 0.0, 4.0, 2.0);
+        let b = OrientedBox::at(DVec2::ZERO, 0.0, 4.0, 2.0);
         let c = b.corners();
         assert_eq!(c[0], DVec2::new(2.0, 1.0)); // front-left
         assert_eq!(c[1], DVec2::new(-2.0, 1.0)); // rear-left
         assert_eq!(c[2], DVec2::new(-2.0, -1.0)); // rear-right
         assert_eq!(c[3], DVec2::new(2.0, -1.0)); // front-right
                                                  // Touching along an edge intersects (shapely semantics); a hair apart does not.
-        let t = OrientedBox::new(DVec2::new(4.0, 0.0), 0.0, 4.0, 2.0);
+        let t = OrientedBox::at(DVec2::new(4.0, 0.0), 0.0, 4.0, 2.0);
         assert!(boxes_intersect(&b, &t));
-        let f = OrientedBox::new(DVec2::new(4.0 + 1e-9, 0.0), 0.0, 4.0, 2.0);
+        let f = OrientedBox::at(DVec2::new(4.0 + 1e-9, 0.0), 0.0, 4.0, 2.0);
         assert!(!boxes_intersect(&b, &f));
         // Rotated box whose corner pokes into b.
-        let r = OrientedBox::new(DVec2::new(3.3, 0.0), std::f64::consts::FRAC_PI_4, 2.0, 2.0);
+        let r = OrientedBox::at(DVec2::new(3.3, 0.0), std::f64::consts::FRAC_PI_4, 2.0, 2.0);
         assert!(boxes_intersect(&b, &r));
-        let r2 = OrientedBox::new(DVec2::new(3.5, 0.0), std::f64::consts::FRAC_PI_4, 2.0, 2.0);
+        let r2 = OrientedBox::at(DVec2::new(3.5, 0.0), std::f64::consts::FRAC_PI_4, 2.0, 2.0);
         assert!(!boxes_intersect(&b, &r2)); // 3.5 - sqrt(2) = 2.086 > 2
     }
 
@@ -149,8 +78,8 @@ mod tests {
         assert!(point_in_polygon(DVec2::new(1.0, 1.0), &sq));
         assert!(point_in_polygon(DVec2::new(2.0, 1.0), &sq));
         assert!(!point_in_polygon(DVec2::new(3.0, 1.0), &sq));
-        assert_eq!(dist_point_polygon(DVec2::new(1.0, 1.0), &sq), 0.0);
-        assert!((dist_point_polygon(DVec2::new(5.0, 6.0), &sq) - 5.0).abs() < 1e-12);
+        assert_eq!(point_polygon_distance(DVec2::new(1.0, 1.0), &sq), 0.0);
+        assert!((point_polygon_distance(DVec2::new(5.0, 6.0), &sq) - 5.0).abs() < 1e-12);
         let line = [
             DVec2::new(0.0, 0.0),
             DVec2::new(10.0, 0.0),

@@ -10,11 +10,12 @@
 //! - headings are not required to be wrapped; the metrics wrap/unwrap where nuPlan does.
 //!
 //! This interface is meant to stay stable; additions go at the end of structs with `#[serde(default)]`.
+use crate::scene::geometry::OrientedBox;
+use crate::scene::pacifica;
 use glam::DVec2;
 use serde::{Deserialize, Serialize};
 
-/// Ego box geometry relative to the rear axle. Defaults: nuPlan's Pacifica
-/// [common/actor_state/vehicle_parameters.py `get_pacifica_parameters`].
+/// Ego box geometry relative to the rear axle. Defaults: nuPlan's Pacifica ([`crate::scene::pacifica`]).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct EgoDims {
     /// Box width (m).
@@ -36,13 +37,13 @@ impl Default for EgoDims {
 }
 
 impl EgoDims {
-    /// nuPlan's Chrysler Pacifica.
+    /// nuPlan's Chrysler Pacifica ([`crate::scene::pacifica`]).
     pub const PACIFICA: EgoDims = EgoDims {
-        width: 2.297,
-        front_length: 4.049,
-        rear_length: 1.127,
-        wheel_base: 3.089,
-        cog_position_from_rear_axle: 1.461,
+        width: pacifica::WIDTH,
+        front_length: pacifica::FRONT_LENGTH,
+        rear_length: pacifica::REAR_LENGTH,
+        wheel_base: pacifica::WHEEL_BASE,
+        cog_position_from_rear_axle: pacifica::REAR_AXLE_TO_CENTER,
     };
 
     /// Box length = front_length + rear_length.
@@ -82,35 +83,8 @@ pub struct EgoStep {
     pub yaw_acceleration: f64,
 }
 
-/// nuPlan `TrackedObjectType` (the classes that matter for the score).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum ObjectClass {
-    Vehicle,
-    Pedestrian,
-    Bicycle,
-    TrafficCone,
-    Barrier,
-    CzoneSign,
-    GenericObject,
-}
-
-impl ObjectClass {
-    /// Vulnerable road users: pedestrian and bicycle.
-    pub fn is_vru(self) -> bool {
-        matches!(self, ObjectClass::Pedestrian | ObjectClass::Bicycle)
-    }
-    /// Static objects (cone, barrier, construction sign, generic object).
-    pub fn is_static(self) -> bool {
-        matches!(
-            self,
-            ObjectClass::TrafficCone
-                | ObjectClass::Barrier
-                | ObjectClass::CzoneSign
-                | ObjectClass::GenericObject
-        )
-    }
-}
+/// The object class of a trace: the scene's one class enum (nuPlan `TrackedObjectType`).
+pub use crate::scene::ObjectClass;
 
 /// One observed object at one step (nuPlan `Agent` / `StaticObject`).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -210,25 +184,15 @@ impl EgoStep {
     }
 
     /// Ego footprint (nuPlan `car_footprint.oriented_box`).
-    pub fn footprint(&self, dims: &EgoDims) -> crate::metrics::geometry::OrientedBox {
-        crate::metrics::geometry::OrientedBox::new(
-            self.center(dims),
-            self.heading,
-            dims.length(),
-            dims.width,
-        )
+    pub fn footprint(&self, dims: &EgoDims) -> OrientedBox {
+        OrientedBox::at(self.center(dims), self.heading, dims.length(), dims.width)
     }
 }
 
 impl ObjectState {
     /// Oriented box of the object.
-    pub fn footprint(&self) -> crate::metrics::geometry::OrientedBox {
-        crate::metrics::geometry::OrientedBox::new(
-            self.center,
-            self.heading,
-            self.length,
-            self.width,
-        )
+    pub fn footprint(&self) -> OrientedBox {
+        OrientedBox::at(self.center, self.heading, self.length, self.width)
     }
 
     /// nuPlan `velocity.magnitude()` for agents, 0 for static objects.

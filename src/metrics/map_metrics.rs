@@ -2,9 +2,10 @@
 //! ego_progress_along_expert_route and ego_is_making_progress. Ports of nuPlan's
 //! [evaluation_metrics/common/{drivable_area_compliance, driving_direction_compliance, speed_limit_compliance,
 //! ego_progress_along_expert_route, ego_is_making_progress}.py].
-use super::geometry::{dist_point_polygon, polyline_project};
+use super::geometry::polyline_project;
 use super::input::{EgoStep, MapQuery};
 use super::route::{per_frame_progress, roadblock_pairs, route_simplified, CornerObjs, RouteObjs};
+use crate::scene::geometry::point_polygon_distance;
 use glam::DVec2;
 use serde::{Deserialize, Serialize};
 
@@ -39,7 +40,8 @@ pub fn drivable_area_compliance(
                     let d = center
                         .iter()
                         .filter_map(|id| {
-                            map.lane(*id).map(|l| dist_point_polygon(cs[i], l.polygon))
+                            map.lane(*id)
+                                .map(|l| point_polygon_distance(cs[i], l.polygon))
                         })
                         .fold(f64::INFINITY, f64::min);
                     if d < max_violation_threshold {

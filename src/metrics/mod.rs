@@ -12,6 +12,12 @@
 //!
 //! and returns every value in a serde-serialisable [`score::ScenarioScore`]; [`score::aggregate`] gives CLS.
 //! Everything is deterministic: no hashing, no threads, fixed iteration orders.
+//!
+//! Geometry: the boxes the score tests ([`collisions::in_collision`], the TTC projection) are the crate's
+//! one box type, [`crate::scene::geometry::OrientedBox`] (built by [`input::EgoStep::footprint`] and
+//! [`input::ObjectState::footprint`]); lane, roadblock and drivable-area membership uses
+//! [`crate::scene::geometry::point_in_polygon`], whose doc states its boundary rule and where it differs from
+//! nuPlan's shapely calls. [`geometry`] holds only the shapely stand-ins the metrics alone need.
 pub mod collisions;
 pub mod comfort;
 pub mod geometry;

@@ -2,8 +2,9 @@
 //! [planning/metrics/utils/route_extractor.py] and of the shared part of
 //! [evaluation_metrics/common/ego_lane_change.py] (`timestamps_in_common_or_connected_route_objs`), plus the
 //! per-frame progress along the expert route [evaluation_metrics/common/ego_progress_along_expert_route.py].
-use super::geometry::{point_in_polygon, polyline_length, polyline_project};
+use super::geometry::{polyline_length, polyline_project};
 use super::input::{LaneId, MapQuery};
+use crate::scene::geometry::{point_in_polygon, point_polygon_distance};
 use glam::DVec2;
 use std::collections::BTreeSet;
 
@@ -110,9 +111,8 @@ pub fn get_route(map: &dyn MapQuery, poses: &[DVec2]) -> Vec<RouteObjs> {
                 let proximal: RouteObjs = prev
                     .into_iter()
                     .filter(|o| {
-                        map.lane(*o).is_some_and(|l| {
-                            super::geometry::dist_point_polygon(p, l.polygon) < 5.0
-                        })
+                        map.lane(*o)
+                            .is_some_and(|l| point_polygon_distance(p, l.polygon) < 5.0)
                     })
                     .collect();
                 if !proximal.is_empty() {

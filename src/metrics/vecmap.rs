@@ -1,7 +1,7 @@
 //! A small in-memory [`MapQuery`] implementation (linear scans over polygons), for tests and small synthetic
 //! scenarios. Serde-serialisable so fixtures can carry their map.
-use super::geometry::{dist_point_polygon, point_in_polygon};
 use super::input::{LaneId, LaneView, MapQuery};
+use crate::scene::geometry::{point_in_polygon, point_polygon_distance};
 use glam::DVec2;
 use serde::{Deserialize, Serialize};
 
@@ -121,7 +121,7 @@ impl MapQuery for VecMap {
     fn distance_to_drivable_area(&self, p: DVec2) -> f64 {
         self.drivable_areas
             .iter()
-            .map(|a| dist_point_polygon(p, a))
+            .map(|a| point_polygon_distance(p, a))
             .fold(f64::INFINITY, f64::min)
     }
 

@@ -10,7 +10,7 @@ use super::inputs;
 use super::package::DeviceModel;
 use crate::projection::keyframe::drivable_area_from_geojson;
 use crate::projection::{KeyFrame, MapLayer, ProjectionConfig};
-use crate::sampling::{ddim, unipc, NoiseSchedule, PredictionType, SamplerPlan};
+use crate::sampling::{NoiseSchedule, PredictionType, SamplerKind, SamplerPlan};
 use crate::tensor::DType;
 use crate::vk::Context;
 
@@ -47,26 +47,8 @@ pub fn sampler_plan(name: &str, steps: usize, prediction: PredictionType) -> Res
         (1..=1000).contains(&steps),
         "--steps {steps} must be in 1..=1000"
     );
-    let s = NoiseSchedule::sd15();
-    match name {
-        "unipc" => unipc::plan(
-            &s,
-            &unipc::UniPcConfig {
-                prediction_type: prediction,
-                ..Default::default()
-            },
-            steps,
-        ),
-        "ddim" => ddim::plan(
-            &s,
-            &ddim::DdimConfig {
-                prediction_type: prediction,
-                ..Default::default()
-            },
-            steps,
-        ),
-        other => bail!("--sampler {other:?}: expected unipc or ddim"),
-    }
+    let kind: SamplerKind = name.parse()?;
+    kind.plan(&NoiseSchedule::sd15(), prediction, steps)
 }
 
 /// Renders the job's frame; returns the report written to `out/render.json`.

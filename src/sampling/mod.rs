@@ -54,6 +54,67 @@ impl PredictionType {
     }
 }
 
+/// The sampler families (`--sampler`, a model package's `sampler`): parsed once where the name is read,
+/// written back by `Display` / serde as the same lowercase name.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SamplerKind {
+    /// UniPC (diffusers `UniPCMultistepScheduler`, the renderer's default).
+    Unipc,
+    /// DDIM (diffusers `DDIMScheduler`).
+    Ddim,
+}
+
+impl std::str::FromStr for SamplerKind {
+    type Err = anyhow::Error;
+    fn from_str(s: &str) -> Result<Self> {
+        Ok(match s {
+            "unipc" => Self::Unipc,
+            "ddim" => Self::Ddim,
+            other => bail!("--sampler {other:?}: expected unipc or ddim"),
+        })
+    }
+}
+
+impl std::fmt::Display for SamplerKind {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Self::Unipc => "unipc",
+            Self::Ddim => "ddim",
+        })
+    }
+}
+
+impl SamplerKind {
+    /// The host plan of `steps` steps on schedule `s` for a model that predicts `prediction` (the other
+    /// settings: each sampler's `Default`).
+    pub fn plan(
+        self,
+        s: &NoiseSchedule,
+        prediction: PredictionType,
+        steps: usize,
+    ) -> Result<SamplerPlan> {
+        match self {
+            Self::Unipc => unipc::plan(
+                s,
+                &unipc::UniPcConfig {
+                    prediction_type: prediction,
+                    ..Default::default()
+                },
+                steps,
+            ),
+            Self::Ddim => ddim::plan(
+                s,
+                &ddim::DdimConfig {
+                    prediction_type: prediction,
+                    ..Default::default()
+                },
+                steps,
+            ),
+        }
+    }
+}
+
 /// A sampler buffer, all of the latent's shape `(N, C, H, W)`.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, Hash)]
 pub enum Buf {

@@ -125,11 +125,17 @@ impl Aabb {
     }
 }
 
-/// An oriented box: centre, heading (of the length axis), length and width.
+/// An oriented rectangle given by its centre pose (nuPlan `OrientedBox`): the one box type of the crate.
+/// Scene tracks, the simulated agents and the ego, the planner's view and the closed-loop score
+/// ([`crate::metrics::collisions::in_collision`]) all use it; the camera-space 3D box of the projection
+/// module ([`crate::projection::Box3d`]) is a different concept (it has a height and a class).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct OrientedBox {
+    /// Box centre and heading of the length axis.
     pub center: Pose2,
+    /// Extent along the heading (m).
     pub length: f64,
+    /// Extent across the heading (m).
     pub width: f64,
 }
 
@@ -141,26 +147,51 @@ impl OrientedBox {
             width,
         }
     }
-    /// Corners counter-clockwise: front-left, rear-left, rear-right, front-right.
+    /// Box with the given centre point and heading.
+    pub fn at(center: DVec2, heading: f64, length: f64, width: f64) -> Self {
+        Self::new(Pose2::new(center.x, center.y, heading), length, width)
+    }
+    /// Corners counter-clockwise in nuPlan's order: front-left, rear-left, rear-right, front-right
+    /// [common/actor_state/oriented_box.py `all_corners`].
     pub fn corners(&self) -> [DVec2; 4] {
         let c = self.center.pos();
         let f = self.center.dir() * (self.length / 2.0);
         let l = self.center.dir().perp() * (self.width / 2.0);
         [c + f + l, c - f + l, c - f - l, c + f - l]
     }
+    /// Axis-aligned bounds.
+    pub fn aabb(&self) -> Aabb {
+        let f = self.center.dir();
+        let ext = DVec2::new(
+            (f.x * self.length / 2.0).abs() + (f.y * self.width / 2.0).abs(),
+            (f.y * self.length / 2.0).abs() + (f.x * self.width / 2.0).abs(),
+        );
+        let c = self.center.pos();
+        Aabb {
+            min: c - ext,
+            max: c + ext,
+        }
+    }
+}
+
+/// Parameter t in [0, 1] of the point of segment [a, b] nearest to p, `a + (b - a) * t` (0 for a
+/// degenerate segment): the projection behind every point-segment distance and polyline projection.
+#[inline]
+pub fn segment_param(p: DVec2, a: DVec2, b: DVec2) -> f64 {
+    let ab = b - a;
+    let l2 = ab.length_squared();
+    if l2 > 0.0 {
+        ((p - a).dot(ab) / l2).clamp(0.0, 1.0)
+    } else {
+        0.0
+    }
 }
 
 /// Distance from p to segment [a, b].
 #[inline]
 pub fn point_segment_distance(p: DVec2, a: DVec2, b: DVec2) -> f64 {
-    let ab = b - a;
-    let l2 = ab.length_squared();
-    let t = if l2 > 0.0 {
-        ((p - a).dot(ab) / l2).clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    (a + ab * t - p).length()
+    let t = segment_param(p, a, b);
+    (a + (b - a) * t - p).length()
 }
 
 /// Whether segments [a, b] and [c, d] intersect (touching counts).
@@ -182,17 +213,39 @@ pub fn segments_intersect(a: DVec2, b: DVec2, c: DVec2, d: DVec2) -> bool {
     on(c, d, a, d1) || on(c, d, b, d2) || on(a, b, c, d3) || on(a, b, d, d4)
 }
 
-/// Point in a simple polygon (even-odd ray casting; boundary points may go either way).
+/// Whether the horizontal ray from `p` towards +x crosses the edge [a, b] (half-open in y, so a vertex on
+/// the ray counts once): the crossing rule of [`point_in_polygon`] and [`crate::scene::index::PolygonSet`].
+#[inline]
+pub(crate) fn ray_crosses(p: DVec2, a: DVec2, b: DVec2) -> bool {
+    (a.y > p.y) != (b.y > p.y) && p.x < (b.x - a.x) * (p.y - a.y) / (b.y - a.y) + a.x
+}
+
+/// Point in polygon, the one test every map query, metric and raster fill uses.
+///
+/// Boundary rule: CLOSED, a point on an edge (its distance to the edge computes to exactly 0) is inside,
+/// i.e. shapely `polygon.intersects(point)` / `covers`. Interior: even-odd ray crossings, as GEOS's
+/// `RayCrossingCounter` counts them, so self-intersecting rings answer like shapely. (The geo crate's
+/// `coord_pos_relative_to_ring` counts a winding number instead: inside a self-overlapping ring's doubly
+/// wound part it says inside where GEOS and this function say outside; that is why the score keeps this
+/// function rather than geo's.)
+///
+/// nuPlan's map queries (`get_all_map_objects`, `is_in_layer`: the lanes, roadblocks, intersections and
+/// drivable area its metrics read) call shapely `contains`, which EXCLUDES the boundary. The closed-loop
+/// score here follows the closed rule ([`crate::metrics::MapQuery::lanes_at`] documents it); the two agree
+/// everywhere but exactly on an edge (test `point_in_polygon_rules`). An empty or
+/// degenerate polygon (fewer than 3 vertices) contains nothing.
 pub fn point_in_polygon(p: DVec2, poly: &[DVec2]) -> bool {
     let n = poly.len();
     if n < 3 {
         return false;
     }
+    if (0..n).any(|i| point_segment_distance(p, poly[i], poly[(i + 1) % n]) == 0.0) {
+        return true;
+    }
     let mut inside = false;
     let mut j = n - 1;
     for i in 0..n {
-        let (a, b) = (poly[i], poly[j]);
-        if (a.y > p.y) != (b.y > p.y) && p.x < (b.x - a.x) * (p.y - a.y) / (b.y - a.y) + a.x {
+        if ray_crosses(p, poly[i], poly[j]) {
             inside = !inside;
         }
         j = i;
@@ -210,7 +263,8 @@ pub fn point_ring_distance(p: DVec2, ring: &[DVec2]) -> f64 {
     d
 }
 
-/// Distance from p to a filled polygon (0 when inside).
+/// shapely `polygon.distance(point)`: 0 inside or on the boundary, else the distance to the boundary;
+/// infinite for an empty polygon.
 pub fn point_polygon_distance(p: DVec2, poly: &[DVec2]) -> f64 {
     if point_in_polygon(p, poly) {
         0.0
@@ -267,15 +321,6 @@ pub fn convex_distance(a: &[DVec2], b: &[DVec2]) -> f64 {
     d
 }
 
-/// Distance from p to a convex polygon (0 inside).
-pub fn point_convex_distance(p: DVec2, poly: &[DVec2]) -> f64 {
-    if point_in_polygon(p, poly) {
-        0.0
-    } else {
-        point_ring_distance(p, poly)
-    }
-}
-
 /// Menger curvature of three points: 4 * area / (|ab| |bc| |ca|), signed (positive = left turn).
 pub fn menger_curvature(a: DVec2, b: DVec2, c: DVec2) -> f64 {
     let area2 = (b - a).perp_dot(c - a);
@@ -310,7 +355,7 @@ impl Part {
         match (self, o) {
             (Part::Quad(a), Part::Quad(b)) => convex_distance(a, b),
             (Part::Quad(a), Part::Disc(c, r)) | (Part::Disc(c, r), Part::Quad(a)) => {
-                (point_convex_distance(*c, a) - r).max(0.0)
+                (point_polygon_distance(*c, a) - r).max(0.0)
             }
             (Part::Disc(c1, r1), Part::Disc(c2, r2)) => ((*c1 - *c2).length() - r1 - r2).max(0.0),
         }
@@ -639,14 +684,8 @@ impl Polyline {
         let mut best = (0.0, f64::INFINITY);
         for i in 0..self.points.len().saturating_sub(1) {
             let (a, b) = (self.points[i], self.points[i + 1]);
-            let ab = b - a;
-            let l2 = ab.length_squared();
-            let t = if l2 > 0.0 {
-                ((p - a).dot(ab) / l2).clamp(0.0, 1.0)
-            } else {
-                0.0
-            };
-            let d = (a + ab * t - p).length();
+            let t = segment_param(p, a, b);
+            let d = (a + (b - a) * t - p).length();
             if d < best.1 {
                 best = (self.s[i] + t * (self.s[i + 1] - self.s[i]), d);
             }
@@ -693,6 +732,55 @@ mod tests {
         assert!((wrap_angle(3.0 * PI / 2.0) + PI / 2.0).abs() < 1e-12);
         assert_eq!(wrap_angle(PI), -PI);
         assert!((angle_diff(0.1, -0.1) - 0.2).abs() < 1e-12);
+    }
+
+    /// The boundary and crossing rules [`point_in_polygon`] documents.
+    #[test]
+    fn point_in_polygon_rules() {
+        let sq = [
+            DVec2::new(0.0, 0.0),
+            DVec2::new(2.0, 0.0),
+            DVec2::new(2.0, 2.0),
+            DVec2::new(0.0, 2.0),
+        ];
+        // closed: edges and vertices are inside (shapely `contains` would say false for both)
+        for p in [
+            (1.0, 1.0),
+            (2.0, 1.0),
+            (1.0, 0.0),
+            (0.0, 0.0),
+            (2.0, 2.0),
+            (0.0, 1.3),
+        ] {
+            assert!(point_in_polygon(DVec2::new(p.0, p.1), &sq), "{p:?}");
+        }
+        for p in [
+            (2.0 + 1e-12, 1.0),
+            (-1e-12, 0.5),
+            (1.0, 2.0 + 1e-12),
+            (3.0, 3.0),
+        ] {
+            assert!(!point_in_polygon(DVec2::new(p.0, p.1), &sq), "{p:?}");
+        }
+        // winding order does not matter
+        let rev: Vec<DVec2> = sq.iter().rev().copied().collect();
+        assert!(point_in_polygon(DVec2::new(1.0, 1.0), &rev));
+        assert!(point_in_polygon(DVec2::new(2.0, 1.0), &rev));
+        // a pentagram (self-intersecting): its centre is crossed twice, so even-odd (GEOS) says outside,
+        // where a winding-number rule (geo) would say inside; a tip is inside either way
+        let star: Vec<DVec2> = (0..5)
+            .map(|k| {
+                let a = std::f64::consts::FRAC_PI_2 + k as f64 * 4.0 * PI / 5.0;
+                DVec2::new(a.cos(), a.sin()) * 10.0
+            })
+            .collect();
+        assert!(!point_in_polygon(DVec2::ZERO, &star));
+        assert!(point_in_polygon(DVec2::new(0.0, 8.0), &star));
+        // fewer than 3 vertices: nothing is inside, not even the vertices
+        assert!(!point_in_polygon(DVec2::ZERO, &[DVec2::ZERO, DVec2::X]));
+        // the distance follows: 0 on the boundary
+        assert_eq!(point_polygon_distance(DVec2::new(2.0, 1.0), &sq), 0.0);
+        assert_eq!(point_polygon_distance(DVec2::new(3.0, 1.0), &sq), 1.0);
     }
 
     #[test]

@@ -1,65 +1,64 @@
-//! Spatial indices: a uniform grid of bounding boxes (map elements) and an indexed polygon set (drivable
-//! area) answering point containment and point distance without scanning every edge.
-use super::geometry::{point_segment_distance, Aabb};
+//! Spatial indices: an R-tree of bounding boxes (map elements) and an indexed polygon set (drivable area)
+//! answering point containment and point distance without scanning every edge.
+#[cfg(doc)]
+use super::geometry::point_in_polygon;
+use super::geometry::{point_segment_distance, ray_crosses, Aabb};
 use glam::DVec2;
-use std::cell::RefCell;
-use std::collections::HashMap;
+use rstar::primitives::{GeomWithData, Rectangle};
+use rstar::{RTree, AABB};
 
-/// Most cells one item is stored in; a larger (or non-finite) box goes to the list every query scans, so a
-/// far-flung or huge item (a 1e5 m edge, a 1e308 coordinate) costs one entry, not a walk over its cells.
-pub const MAX_ITEM_CELLS: u64 = 1 << 14;
-
-/// Uniform grid over item bounding boxes. An item is stored in every cell its box touches (at most
-/// [`MAX_ITEM_CELLS`]; larger items are kept in a list every query visits); queries deduplicate with a
-/// per-query stamp, so a query costs the cells it touches plus their items, and never more than a scan of
-/// every item (a query box larger than that scans the items instead of the cells). Callback order is
-/// unspecified.
-#[derive(Clone, Debug)]
-pub struct GridIndex {
-    cell: f64,
-    cells: HashMap<(i32, i32), Vec<u32>>,
-    /// Items too large (or not finite) to store per cell.
-    large: Vec<u32>,
+/// Bounding boxes in an R-tree (rstar, bulk-loaded): a query visits the tree nodes whose envelopes meet the
+/// query box, whatever the coordinates (no cell size to tune, no walk over the cells of a huge or far-flung
+/// box). Boxes with a non-finite coordinate are kept beside the tree and tested on every query; empty boxes
+/// ([`Aabb::EMPTY`]) are never reported. Overlap is closed (touching boxes overlap), like [`Aabb::overlaps`].
+/// Callback order is unspecified; every matching item is reported once.
+#[derive(Clone, Debug, Default)]
+pub struct BoxIndex {
+    tree: RTree<GeomWithData<Rectangle<[f64; 2]>, u32>>,
+    /// Items with a NaN or infinite coordinate (rstar's envelope arithmetic wants finite numbers).
+    unbounded: Vec<u32>,
     boxes: Vec<Aabb>,
-    stamp: RefCell<(u32, Vec<u32>)>,
 }
 
-impl GridIndex {
-    pub fn new(cell: f64) -> Self {
-        Self {
-            cell,
-            cells: HashMap::new(),
-            large: Vec::new(),
-            boxes: Vec::new(),
-            stamp: RefCell::new((0, Vec::new())),
+impl BoxIndex {
+    /// Indexes `boxes`; item ids are their positions in the sequence.
+    pub fn new(boxes: impl IntoIterator<Item = Aabb>) -> Self {
+        let mut s = Self::default();
+        let mut items = Vec::new();
+        for b in boxes {
+            let id = s.boxes.len() as u32;
+            s.boxes.push(b);
+            match Self::rect(&b) {
+                Some(Some(r)) => items.push(GeomWithData::new(r, id)),
+                Some(None) => s.unbounded.push(id),
+                None => {}
+            }
+        }
+        s.tree = RTree::bulk_load(items);
+        s
+    }
+    /// The tree rectangle of a box: None for an empty box (never reported), Some(None) for a box with a
+    /// non-finite coordinate (kept beside the tree).
+    fn rect(b: &Aabb) -> Option<Option<Rectangle<[f64; 2]>>> {
+        if b.is_empty() {
+            None
+        } else if b.min.is_finite() && b.max.is_finite() {
+            Some(Some(Rectangle::from_corners(
+                b.min.to_array(),
+                b.max.to_array(),
+            )))
+        } else {
+            Some(None)
         }
     }
-    #[inline]
-    fn key(&self, v: f64) -> i32 {
-        (v / self.cell).floor().clamp(-1e9, 1e9) as i32
-    }
-    /// Number of cells a box touches (saturating; non-finite boxes count as unbounded).
-    fn cell_count(&self, b: &Aabb) -> u64 {
-        let finite = b.min.is_finite() && b.max.is_finite();
-        if !finite {
-            return u64::MAX;
-        }
-        let nx = (self.key(b.max.x) as i64 - self.key(b.min.x) as i64 + 1).max(0) as u64;
-        let ny = (self.key(b.max.y) as i64 - self.key(b.min.y) as i64 + 1).max(0) as u64;
-        nx.saturating_mul(ny)
-    }
-    /// Inserts an item (ids are assigned densely in insertion order) and returns its id.
+    /// Adds one item (the next id) and returns its id.
     pub fn insert(&mut self, b: Aabb) -> u32 {
         let id = self.boxes.len() as u32;
         self.boxes.push(b);
-        if !b.is_empty() && self.cell_count(&b) > MAX_ITEM_CELLS {
-            self.large.push(id);
-        } else if !b.is_empty() {
-            for ix in self.key(b.min.x)..=self.key(b.max.x) {
-                for iy in self.key(b.min.y)..=self.key(b.max.y) {
-                    self.cells.entry((ix, iy)).or_default().push(id);
-                }
-            }
+        match Self::rect(&b) {
+            Some(Some(r)) => self.tree.insert(GeomWithData::new(r, id)),
+            Some(None) => self.unbounded.push(id),
+            None => {}
         }
         id
     }
@@ -71,37 +70,16 @@ impl GridIndex {
     }
     /// Calls `f` once for each item whose box overlaps `q`.
     pub fn query(&self, q: &Aabb, mut f: impl FnMut(u32)) {
-        let mut st = self.stamp.borrow_mut();
-        st.0 = st.0.wrapping_add(1);
-        if st.0 == 0 {
-            st.1.iter_mut().for_each(|v| *v = 0);
-            st.0 = 1;
-        }
-        let n = self.boxes.len();
-        if st.1.len() < n {
-            st.1.resize(n, 0);
-        }
-        let cur = st.0;
-        let mut visit = |id: u32| {
-            let i = id as usize;
-            if st.1[i] != cur {
-                st.1[i] = cur;
-                if self.boxes[i].overlaps(q) {
-                    f(id);
-                }
-            }
-        };
-        if self.cell_count(q) > (n as u64).saturating_mul(4).saturating_add(64) {
-            // a query box larger than the index: scanning every item is cheaper than walking its cells
-            (0..n as u32).for_each(visit);
+        if q.is_empty() || q.min.is_nan() || q.max.is_nan() {
             return;
         }
-        self.large.iter().for_each(|&id| visit(id));
-        for ix in self.key(q.min.x)..=self.key(q.max.x) {
-            for iy in self.key(q.min.y)..=self.key(q.max.y) {
-                if let Some(v) = self.cells.get(&(ix, iy)) {
-                    v.iter().for_each(|&id| visit(id));
-                }
+        let env = AABB::from_corners(q.min.to_array(), q.max.to_array());
+        for it in self.tree.locate_in_envelope_intersecting(env) {
+            f(it.data);
+        }
+        for &id in &self.unbounded {
+            if self.boxes[id as usize].overlaps(q) {
+                f(id);
             }
         }
     }
@@ -115,7 +93,7 @@ impl GridIndex {
 pub const MAX_BANDS: usize = 1 << 16;
 
 /// A set of polygons with holes (e.g. a GeoJSON MultiPolygon) with an edge index: containment counts ray
-/// crossings among the edges of the point's horizontal band only; distance searches the edge grid.
+/// crossings among the edges of the point's horizontal band only; distance searches the edge R-tree.
 #[derive(Clone, Debug, Default)]
 pub struct PolygonSet {
     /// Every ring (outer rings and holes) as closed vertex lists; even-odd over all rings gives containment.
@@ -125,7 +103,7 @@ pub struct PolygonSet {
     band: f64,
     y0: f64,
     bands: Vec<Vec<u32>>,
-    grid: Option<GridIndex>,
+    edge_tree: Option<BoxIndex>,
 }
 
 impl PolygonSet {
@@ -150,7 +128,7 @@ impl PolygonSet {
             band,
             y0: 0.0,
             bands: Vec::new(),
-            grid: None,
+            edge_tree: None,
         };
         if s.edges.is_empty() {
             return s;
@@ -161,22 +139,23 @@ impl PolygonSet {
         let band = s.band;
         let nb = ((((bb.max.y - bb.min.y) / band).floor() as usize) + 1).min(MAX_BANDS);
         s.bands = vec![Vec::new(); nb];
-        let mut grid = GridIndex::new(8.0);
         for (i, (a, b)) in s.edges.iter().enumerate() {
             let lo = ((a.y.min(b.y) - s.y0) / band).floor().max(0.0) as usize;
             let hi = (((a.y.max(b.y) - s.y0) / band).floor() as usize).min(nb - 1);
             for k in lo..=hi {
                 s.bands[k].push(i as u32);
             }
-            grid.insert(Aabb::from_points(&[*a, *b]));
         }
-        s.grid = Some(grid);
+        s.edge_tree = Some(BoxIndex::new(
+            s.edges.iter().map(|(a, b)| Aabb::from_points(&[*a, *b])),
+        ));
         s
     }
     pub fn is_empty(&self) -> bool {
         self.edges.is_empty()
     }
-    /// Even-odd containment over all rings.
+    /// Containment with [`point_in_polygon`]'s rules over all rings: closed (a point on any ring's edge is
+    /// inside), even-odd crossings (a point inside a hole is outside).
     pub fn contains(&self, p: DVec2) -> bool {
         if self.edges.is_empty() {
             return false;
@@ -185,18 +164,26 @@ impl PolygonSet {
         if k < 0.0 || k as usize >= self.bands.len() {
             return false;
         }
-        let mut inside = false;
-        for &e in &self.bands[k as usize] {
-            let (a, b) = self.edges[e as usize];
-            if (a.y > p.y) != (b.y > p.y) && p.x < (b.x - a.x) * (p.y - a.y) / (b.y - a.y) + a.x {
-                inside = !inside;
-            }
+        // every edge whose y range holds p.y is in p's band
+        let band = &self.bands[k as usize];
+        let edge = |e: &u32| self.edges[*e as usize];
+        if band
+            .iter()
+            .map(edge)
+            .any(|(a, b)| point_segment_distance(p, a, b) == 0.0)
+        {
+            return true;
         }
-        inside
+        band.iter()
+            .map(edge)
+            .filter(|&(a, b)| ray_crosses(p, a, b))
+            .count()
+            % 2
+            == 1
     }
     /// Distance from p to the nearest boundary edge, searching up to `max_dist` (returns INFINITY beyond).
     pub fn boundary_distance(&self, p: DVec2, max_dist: f64) -> f64 {
-        let Some(grid) = &self.grid else {
+        let Some(tree) = &self.edge_tree else {
             return f64::INFINITY;
         };
         let mut d = f64::INFINITY;
@@ -204,7 +191,7 @@ impl PolygonSet {
             min: p - DVec2::splat(max_dist),
             max: p + DVec2::splat(max_dist),
         };
-        grid.query(&q, |i| {
+        tree.query(&q, |i| {
             let (a, b) = self.edges[i as usize];
             d = d.min(point_segment_distance(p, a, b));
         });
@@ -228,29 +215,31 @@ impl PolygonSet {
 mod tests {
     use super::*;
 
+    fn aabb(x0: f64, y0: f64, x1: f64, y1: f64) -> Aabb {
+        Aabb {
+            min: DVec2::new(x0, y0),
+            max: DVec2::new(x1, y1),
+        }
+    }
+
     #[test]
-    fn grid_query_dedups_and_filters() {
-        let mut g = GridIndex::new(1.0);
-        let a = g.insert(Aabb {
-            min: DVec2::new(0.0, 0.0),
-            max: DVec2::new(3.0, 3.0),
-        });
-        let b = g.insert(Aabb {
-            min: DVec2::new(5.0, 5.0),
-            max: DVec2::new(6.0, 6.0),
-        });
+    fn index_query_reports_each_overlap_once() {
+        let g = BoxIndex::new([
+            aabb(0.0, 0.0, 3.0, 3.0),
+            aabb(5.0, 5.0, 6.0, 6.0),
+            Aabb::EMPTY,
+        ]);
+        let (a, b) = (0, 1);
         let mut hits = vec![];
-        g.query(
-            &Aabb {
-                min: DVec2::new(-1.0, -1.0),
-                max: DVec2::new(10.0, 10.0),
-            },
-            |i| hits.push(i),
-        );
+        g.query(&aabb(-1.0, -1.0, 10.0, 10.0), |i| hits.push(i));
         hits.sort();
         assert_eq!(hits, vec![a, b]);
         hits.clear();
         g.query_point(DVec2::new(2.5, 2.5), |i| hits.push(i));
+        assert_eq!(hits, vec![a]);
+        // closed overlap: touching counts
+        hits.clear();
+        g.query_point(DVec2::new(3.0, 0.0), |i| hits.push(i));
         assert_eq!(hits, vec![a]);
     }
 
@@ -269,6 +258,11 @@ mod tests {
             DVec2::new(5.0, 15.0),
         ];
         let s = PolygonSet::new(vec![outer, hole]);
+        // closed rule (point_in_polygon's): both rings' edges belong to the set
+        assert!(s.contains(DVec2::new(0.0, 10.0)));
+        assert!(s.contains(DVec2::new(5.0, 10.0)));
+        assert!(s.contains(DVec2::new(20.0, 20.0)));
+        assert!(!s.contains(DVec2::new(5.0 + 1e-9, 10.0)));
         assert!(s.contains(DVec2::new(2.0, 10.0)));
         assert!(!s.contains(DVec2::new(10.0, 10.0)));
         assert!(!s.contains(DVec2::new(25.0, 10.0)));
@@ -277,39 +271,33 @@ mod tests {
         assert_eq!(s.distance(DVec2::new(100.0, 10.0), 5.0), f64::INFINITY);
     }
 
-    /// Far-away and huge items (a 1e5 m box at 1 m cells: 1e10 cells; a 1e308 coordinate) are stored in
-    /// bounded time and still found; a query box larger than the index scans the items instead of its cells.
+    /// Far-away, huge and non-finite items (a 1e5 m box, a 1e308 coordinate, an infinite one) are indexed in
+    /// bounded time and still found; a NaN query finds nothing.
     #[test]
-    fn grid_bounds_work_for_huge_and_far_boxes() {
+    fn index_bounds_work_for_huge_and_far_boxes() {
         let t0 = std::time::Instant::now();
-        let mut g = GridIndex::new(1.0);
-        let small = g.insert(Aabb {
-            min: DVec2::new(0.0, 0.0),
-            max: DVec2::new(1.0, 1.0),
-        });
-        let huge = g.insert(Aabb {
-            min: DVec2::new(-1e5, -1e5),
-            max: DVec2::new(1e5, 1e5),
-        });
-        let far = g.insert(Aabb {
-            min: DVec2::new(-1e308, 0.0),
-            max: DVec2::new(1e308, 1.0),
-        });
+        let g = BoxIndex::new([
+            aabb(0.0, 0.0, 1.0, 1.0),
+            aabb(-1e5, -1e5, 1e5, 1e5),
+            aabb(-1e308, 0.0, 1e308, 1.0),
+            aabb(f64::NEG_INFINITY, 0.0, 0.0, f64::INFINITY),
+        ]);
+        let (small, huge, far, inf) = (0, 1, 2, 3);
         let mut hits = vec![];
         g.query_point(DVec2::new(0.5, 0.5), |i| hits.push(i));
         hits.sort();
         assert_eq!(hits, vec![small, huge, far]);
         hits.clear();
-        g.query_point(DVec2::new(5e4, -5e4), |i| hits.push(i));
-        assert_eq!(hits, vec![huge]);
-        hits.clear();
-        let everything = Aabb {
-            min: DVec2::splat(-1e300),
-            max: DVec2::splat(1e300),
-        };
-        g.query(&everything, |i| hits.push(i));
+        g.query_point(DVec2::new(-5e4, 5e4), |i| hits.push(i));
         hits.sort();
-        assert_eq!(hits, vec![small, huge, far]);
+        assert_eq!(hits, vec![huge, inf]);
+        hits.clear();
+        g.query(&aabb(-1e300, -1e300, 1e300, 1e300), |i| hits.push(i));
+        hits.sort();
+        assert_eq!(hits, vec![small, huge, far, inf]);
+        hits.clear();
+        g.query_point(DVec2::new(f64::NAN, 0.5), |i| hits.push(i));
+        assert!(hits.is_empty());
         assert!(t0.elapsed().as_secs_f64() < 2.0, "{:?}", t0.elapsed());
     }
 

@@ -1,8 +1,8 @@
 //! The map: lanes and lane connectors (centre lines, polygons, speed limits, successor/predecessor links),
 //! roadblocks (groups of parallel lanes, the unit of a route), stop lines, crosswalks, intersections and the
-//! drivable area. Every point/area query goes through a [`GridIndex`]; nothing scans all elements per query.
+//! drivable area. Every point/area query goes through a [`BoxIndex`]; nothing scans all elements per query.
 use super::geometry::{angle_diff, point_in_polygon, point_polygon_distance, Aabb, Polyline};
-use super::index::{GridIndex, PolygonSet};
+use super::index::{BoxIndex, PolygonSet};
 use glam::DVec2;
 use std::collections::HashMap;
 
@@ -83,8 +83,8 @@ pub struct Map {
     /// The drivable area; when empty the union of lane polygons is used.
     pub drivable: PolygonSet,
     lane_by_id: HashMap<String, usize>,
-    lane_grid: GridIndex,
-    intersection_grid: GridIndex,
+    lane_tree: BoxIndex,
+    intersection_tree: BoxIndex,
 }
 
 /// Tolerances of lane-link inference: end of one lane within 1 m of the start of the next, headings within 30 deg.
@@ -178,10 +178,7 @@ impl Map {
                 aabb,
             });
         }
-        let mut lane_grid = GridIndex::new(10.0);
-        for l in &lanes {
-            lane_grid.insert(l.aabb);
-        }
+        let lane_tree = BoxIndex::new(lanes.iter().map(|l| l.aabb));
         if infer_links {
             let links = infer_lane_links(&lanes);
             for (a, b) in links {
@@ -199,10 +196,7 @@ impl Map {
                 }
             }
         }
-        let mut intersection_grid = GridIndex::new(20.0);
-        for p in &intersections {
-            intersection_grid.insert(Aabb::from_points(p));
-        }
+        let intersection_tree = BoxIndex::new(intersections.iter().map(|p| Aabb::from_points(p)));
         Ok(Map {
             name: name.to_string(),
             lanes,
@@ -212,8 +206,8 @@ impl Map {
             intersections,
             drivable,
             lane_by_id,
-            lane_grid,
-            intersection_grid,
+            lane_tree,
+            intersection_tree,
         })
     }
 
@@ -231,7 +225,7 @@ impl Map {
 
     /// Like [`Map::lanes_at`] without allocating (callback order is unspecified).
     pub fn for_lanes_at(&self, p: DVec2, kind: Option<LaneKind>, mut f: impl FnMut(usize)) {
-        self.lane_grid.query_point(p, |i| {
+        self.lane_tree.query_point(p, |i| {
             let l = &self.lanes[i as usize];
             if kind.is_none_or(|k| k == l.kind) && point_in_polygon(p, &l.polygon) {
                 f(i as usize)
@@ -241,7 +235,7 @@ impl Map {
 
     /// Lanes whose bounding box overlaps `q`.
     pub fn lanes_in(&self, q: &Aabb, f: impl FnMut(u32)) {
-        self.lane_grid.query(q, f)
+        self.lane_tree.query(q, f)
     }
 
     /// nuPlan `is_in_layer(point, INTERSECTION)`; without intersection outlines: on any connector.
@@ -252,7 +246,7 @@ impl Map {
             return hit;
         }
         let mut hit = false;
-        self.intersection_grid.query_point(p, |i| {
+        self.intersection_tree.query_point(p, |i| {
             hit |= point_in_polygon(p, &self.intersections[i as usize])
         });
         hit
@@ -279,7 +273,7 @@ impl Map {
             min: p - DVec2::splat(max_dist),
             max: p + DVec2::splat(max_dist),
         };
-        self.lane_grid.query(&q, |i| {
+        self.lane_tree.query(&q, |i| {
             d = d.min(point_polygon_distance(p, &self.lanes[i as usize].polygon))
         });
         if d <= max_dist {
@@ -310,7 +304,7 @@ impl Map {
             min: p - DVec2::splat(max_dist),
             max: p + DVec2::splat(max_dist),
         };
-        self.lane_grid.query(&q, |i| {
+        self.lane_tree.query(&q, |i| {
             let i = i as usize;
             let (s, d) = self.lanes[i].centre.project(p);
             let dh = angle_diff(self.lanes[i].centre.pose_at(s).heading, heading).abs();
@@ -331,13 +325,12 @@ impl Map {
 }
 
 /// Infers successor links: lane a -> b when b starts within [`LINK_MAX_GAP_M`] of a's end and the headings
-/// there differ by at most [`LINK_MAX_HEADING_RAD`]. Uses a grid over start points. Returns (a, b) pairs sorted.
+/// there differ by at most [`LINK_MAX_HEADING_RAD`]. Uses an R-tree over start points. Returns (a, b) pairs sorted.
 pub fn infer_lane_links(lanes: &[Lane]) -> Vec<(usize, usize)> {
-    let mut starts = GridIndex::new(5.0);
-    for l in lanes {
+    let starts = BoxIndex::new(lanes.iter().map(|l| {
         let p = l.centre.first();
-        starts.insert(Aabb { min: p, max: p });
-    }
+        Aabb { min: p, max: p }
+    }));
     let mut out = Vec::new();
     for (a, la) in lanes.iter().enumerate() {
         let end = la.centre.last();

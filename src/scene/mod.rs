@@ -18,8 +18,14 @@ use glam::DVec2;
 pub use camera::{Camera, CameraImage, CameraRig, ImageRef, RecordedFrame};
 pub use map::{Lane, LaneKind, Map};
 
-/// Object classes (nuPlan's TrackedObjectType, with bicycles for ScenarioNet's CYCLIST).
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, serde::Serialize, serde::Deserialize)]
+/// Object classes (nuPlan's TrackedObjectType, with bicycles for ScenarioNet's CYCLIST): the one class enum
+/// of the crate. The score reads it directly (`metrics::ObjectState::class`); consumers with their own class
+/// sets map it with an exhaustive `match`, so a new class fails to compile until it is mapped:
+/// `projection::scene::box_class` (nuScenes detection classes), `world::objects::semantic_class` (the
+/// renderer's palette), `sim::bev` (colours).
+#[derive(
+    Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, serde::Serialize, serde::Deserialize,
+)]
 #[serde(rename_all = "snake_case")]
 pub enum ObjectClass {
     Vehicle,
@@ -44,6 +50,27 @@ impl ObjectClass {
     /// `open_loop_detections_types`): everything but vehicles (simulated) and bicycles (dropped: quirk).
     pub fn replayed_in_reactive_mode(self) -> bool {
         !matches!(self, ObjectClass::Vehicle | ObjectClass::Bicycle)
+    }
+    /// Vulnerable road users: pedestrian and bicycle (the collision score's VRU group).
+    pub fn is_vru(self) -> bool {
+        match self {
+            ObjectClass::Pedestrian | ObjectClass::Bicycle => true,
+            ObjectClass::Vehicle
+            | ObjectClass::TrafficCone
+            | ObjectClass::Barrier
+            | ObjectClass::CzoneSign
+            | ObjectClass::GenericObject => false,
+        }
+    }
+    /// Static objects (cone, barrier, construction sign, generic object): the collision score's object group.
+    pub fn is_static(self) -> bool {
+        match self {
+            ObjectClass::TrafficCone
+            | ObjectClass::Barrier
+            | ObjectClass::CzoneSign
+            | ObjectClass::GenericObject => true,
+            ObjectClass::Vehicle | ObjectClass::Pedestrian | ObjectClass::Bicycle => false,
+        }
     }
 }
 
@@ -88,6 +115,24 @@ impl Track {
     }
 }
 
+/// nuPlan's ego, the Chrysler Pacifica [common/actor_state/vehicle_parameters.py `get_pacifica_parameters`]:
+/// the one set of ego numbers. [`VehicleParameters::PACIFICA`] (the simulator) and
+/// [`crate::metrics::EgoDims::PACIFICA`] (the score) are both built from these constants.
+pub mod pacifica {
+    /// Box width (m): nuPlan's `1.1485 * 2.0`.
+    pub const WIDTH: f64 = 2.297;
+    /// Rear axle to front bumper (m).
+    pub const FRONT_LENGTH: f64 = 4.049;
+    /// Rear axle to rear bumper (m).
+    pub const REAR_LENGTH: f64 = 1.127;
+    /// Box length (m): front + rear length.
+    pub const LENGTH: f64 = 5.176;
+    /// Rear axle to box centre along the heading (m): LENGTH / 2 - REAR_LENGTH.
+    pub const REAR_AXLE_TO_CENTER: f64 = 1.461;
+    pub const WHEEL_BASE: f64 = 3.089;
+    pub const HEIGHT: f64 = 1.777;
+}
+
 /// Vehicle geometry (nuPlan `VehicleParameters`); the reference point is the rear axle.
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize)]
 pub struct VehicleParameters {
@@ -100,13 +145,13 @@ pub struct VehicleParameters {
 }
 
 impl VehicleParameters {
-    /// nuPlan's Pacifica (`get_pacifica_parameters`).
+    /// nuPlan's Pacifica ([`pacifica`]).
     pub const PACIFICA: VehicleParameters = VehicleParameters {
-        width: 2.297,
-        length: 5.176,
-        height: 1.777,
-        wheel_base: 3.089,
-        rear_axle_to_center: 1.461,
+        width: pacifica::WIDTH,
+        length: pacifica::LENGTH,
+        height: pacifica::HEIGHT,
+        wheel_base: pacifica::WHEEL_BASE,
+        rear_axle_to_center: pacifica::REAR_AXLE_TO_CENTER,
     };
     /// Box centre pose of a rear-axle pose.
     pub fn center_of(&self, rear_axle: &Pose2) -> Pose2 {
@@ -118,6 +163,19 @@ impl VehicleParameters {
     }
     pub fn footprint(&self, rear_axle: &Pose2) -> OrientedBox {
         OrientedBox::new(self.center_of(rear_axle), self.length, self.width)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::pacifica::*;
+
+    /// The derived Pacifica numbers agree with the ones they derive from (to the printed millimetre).
+    #[test]
+    fn pacifica_is_consistent() {
+        assert!((LENGTH - (FRONT_LENGTH + REAR_LENGTH)).abs() < 1e-12);
+        assert!((REAR_AXLE_TO_CENTER - (LENGTH / 2.0 - REAR_LENGTH)).abs() < 1e-12);
+        assert_eq!(WIDTH, 1.1485 * 2.0);
     }
 }
 

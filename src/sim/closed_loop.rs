@@ -2,6 +2,7 @@
 //! (LQR + bicycle), then the agents, which see the ego before it moved and the lights/objects of the next step.
 use super::agents::{EgoObservation, IdmManager, LeaderRef};
 use super::ego::{BicycleModel, EgoState};
+use super::failure::SimFailure;
 use super::idm::IdmParams;
 use super::lqr::{LqrParams, LqrTracker, TrackerCommand};
 use super::planner::{ObjectView, Planner, PlannerInput};
@@ -158,13 +159,30 @@ pub struct SimResult {
     pub planner: String,
     pub agent_mode: AgentMode,
     pub steps: Vec<StepRecord>,
-    /// Why the scenario ended early (planner crash, timeout, invalid trajectory).
-    pub failure: Option<String>,
+    /// Why the scenario ended early (planner crash, timeout, invalid trajectory, renderer error).
+    pub failure: Option<SimFailure>,
     /// IDM agents built at step 0.
     pub idm_agents: usize,
     /// Wall time per planner step (not part of the trace).
     #[serde(skip)]
     pub timing: Vec<StepTiming>,
+}
+
+impl SimResult {
+    /// Writes the trace: one JSON line per step record (`<scenario>/trace.jsonl` of `b2dr sim` and `b2dr run`).
+    pub fn write_trace(&self, path: &std::path::Path) -> anyhow::Result<()> {
+        use anyhow::Context as _;
+        use std::io::Write as _;
+        let f =
+            std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))?;
+        let mut w = std::io::BufWriter::new(f);
+        for s in &self.steps {
+            serde_json::to_writer(&mut w, s)?;
+            w.write_all(b"\n")?;
+        }
+        w.flush()
+            .with_context(|| format!("writing {}", path.display()))
+    }
 }
 
 fn replay_objects(
@@ -230,7 +248,7 @@ fn objects_at(
 }
 
 /// Images recorded at step k (a frame whose timestamp matches), empty otherwise.
-fn images_at(sc: &Scenario, k: usize) -> Vec<CameraImage> {
+pub fn images_at(sc: &Scenario, k: usize) -> Vec<CameraImage> {
     let t_us = (k as f64 * sc.dt * 1e6).round() as i64;
     sc.rig
         .frames
@@ -295,7 +313,7 @@ fn plan_step(
     sensors: Option<&mut dyn Sensors>,
     on_frames: &mut dyn FnMut(usize, &[CameraFrame]) -> anyhow::Result<()>,
     timing: &mut StepTiming,
-) -> anyhow::Result<Trajectory> {
+) -> Result<Trajectory, SimFailure> {
     let k = rec.step;
     let views: Vec<ObjectView> = rec
         .agents
@@ -318,9 +336,11 @@ fn plan_step(
                 ego_center: rec.ego_center,
                 agents: &rec.agents,
             };
-            let f = s
-                .observe(&state)
-                .map_err(|e| e.context(format!("step {k}: renderer {} failed", s.name())))?;
+            let f = s.observe(&state).map_err(|e| SimFailure::Renderer {
+                step: k,
+                renderer: s.name().to_string(),
+                error: format!("{e:#}"),
+            })?;
             timing.sensors = s
                 .last_times()
                 .into_iter()
@@ -331,7 +351,10 @@ fn plan_step(
         None => vec![],
     };
     timing.sensors_ms = t0.elapsed().as_secs_f64() * 1e3;
-    on_frames(k, &frames).map_err(|e| e.context(format!("step {k}: writing the frames")))?;
+    on_frames(k, &frames).map_err(|e| SimFailure::Frames {
+        step: k,
+        error: format!("{e:#}"),
+    })?;
     let imgs = images(c.sc, k);
     let input = PlannerInput {
         scenario: c.sc,
@@ -344,9 +367,10 @@ fn plan_step(
         command: navigation_command(c.sc, &st.ego.rear_axle),
     };
     let t1 = std::time::Instant::now();
-    let t = planner
-        .plan(&input)
-        .map_err(|e| e.context(format!("step {k}")))?;
+    let t = planner.plan(&input).map_err(|e| SimFailure::Planner {
+        step: k,
+        error: format!("{e:#}"),
+    })?;
     timing.planner_ms = t1.elapsed().as_secs_f64() * 1e3;
     rec.plan = Some(
         t.poses
@@ -438,12 +462,17 @@ pub fn run_with_sensors(
     };
     if let Some(s) = sensors.as_deref_mut() {
         if let Err(e) = s.reset(sc) {
-            result.failure = Some(format!("renderer {} failed to start: {e:#}", s.name()));
+            result.failure = Some(SimFailure::RendererStart {
+                renderer: s.name().to_string(),
+                error: format!("{e:#}"),
+            });
             return result;
         }
     }
     if let Err(e) = planner.start(sc) {
-        result.failure = Some(format!("planner failed to start: {e:#}"));
+        result.failure = Some(SimFailure::PlannerStart {
+            error: format!("{e:#}"),
+        });
         return result;
     }
     let agents = objects_at(sc, cfg.agents, 0, idm.as_ref());
@@ -487,7 +516,7 @@ pub fn run_with_sensors(
             ) {
                 Ok(t) => st.traj = Some(t),
                 Err(e) => {
-                    result.failure = Some(format!("{e:#}"));
+                    result.failure = Some(e);
                     result.steps.push(rec);
                     result.timing.push(timing);
                     planner.finish();

@@ -8,6 +8,7 @@ pub mod bev;
 pub mod closed_loop;
 pub mod ego;
 pub mod external;
+pub mod failure;
 pub mod idm;
 pub mod lqr;
 pub mod planner;
@@ -16,18 +17,84 @@ pub mod sensors;
 pub mod trajectory;
 
 pub use closed_loop::{run, AgentMode, Controller, SimConfig, SimResult, StepRecord};
+pub use failure::SimFailure;
 pub use planner::{ConstantVelocityPlanner, ExpertPlanner, IdmPlanner, Planner, PlannerInput};
 
 use anyhow::{bail, Result};
 use std::time::Duration;
 
-/// Builds a planner from its command-line name: `expert`, `cv`, `idm` or `cmd:<command line>`.
+/// A planner named on the command line: `expert`, `cv`, `idm` or `cmd:<command line>` (an external process
+/// speaking docs/planner_protocol.md). Parsed once where arguments are parsed; its `Display` gives the name
+/// back (config.json, reports).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum PlannerSpec {
+    /// The logged expert.
+    Expert,
+    /// Constant velocity along the heading.
+    ConstantVelocity,
+    /// nuPlan's IDM planner.
+    Idm,
+    /// An external planner process started with this command line.
+    Command(String),
+}
+
+impl std::str::FromStr for PlannerSpec {
+    type Err = anyhow::Error;
+    fn from_str(spec: &str) -> Result<Self> {
+        Ok(match spec {
+            "expert" => PlannerSpec::Expert,
+            "cv" => PlannerSpec::ConstantVelocity,
+            "idm" => PlannerSpec::Idm,
+            s if s.starts_with("cmd:") => PlannerSpec::Command(s[4..].to_string()),
+            _ => bail!("unknown planner {spec:?}: expected expert, cv, idm or cmd:<command line>"),
+        })
+    }
+}
+
+impl std::fmt::Display for PlannerSpec {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            PlannerSpec::Expert => f.write_str("expert"),
+            PlannerSpec::ConstantVelocity => f.write_str("cv"),
+            PlannerSpec::Idm => f.write_str("idm"),
+            PlannerSpec::Command(c) => write!(f, "cmd:{c}"),
+        }
+    }
+}
+
+impl serde::Serialize for PlannerSpec {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        s.collect_str(self)
+    }
+}
+
+impl PlannerSpec {
+    /// The planner (an external one is given `timeout` per call).
+    pub fn build(&self, timeout: Duration) -> Result<Box<dyn Planner>> {
+        Ok(match self {
+            PlannerSpec::Expert => Box::new(ExpertPlanner),
+            PlannerSpec::ConstantVelocity => Box::new(ConstantVelocityPlanner),
+            PlannerSpec::Idm => Box::new(IdmPlanner::default()),
+            PlannerSpec::Command(c) => Box::new(external::ExternalPlanner::new(c, timeout)?),
+        })
+    }
+}
+
+/// Builds a planner from its command-line name ([`PlannerSpec`]).
 pub fn planner_from_spec(spec: &str, timeout: Duration) -> Result<Box<dyn Planner>> {
-    Ok(match spec {
-        "expert" => Box::new(ExpertPlanner),
-        "cv" => Box::new(ConstantVelocityPlanner),
-        "idm" => Box::new(IdmPlanner::default()),
-        s if s.starts_with("cmd:") => Box::new(external::ExternalPlanner::new(&s[4..], timeout)?),
-        _ => bail!("unknown planner {spec:?}: expected expert, cv, idm or cmd:<command line>"),
-    })
+    spec.parse::<PlannerSpec>()?.build(timeout)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::PlannerSpec;
+
+    #[test]
+    fn planner_spec_round_trips() {
+        for s in ["expert", "cv", "idm", "cmd:python3 -u p.py --x 1"] {
+            assert_eq!(s.parse::<PlannerSpec>().unwrap().to_string(), s);
+        }
+        let e = "magic".parse::<PlannerSpec>().unwrap_err().to_string();
+        assert!(e.contains("unknown planner"), "{e}");
+    }
 }

@@ -6,12 +6,12 @@
 use super::closed_loop::SimResult;
 use super::ego::EgoState;
 use crate::metrics::{
-    score_scenario, EgoDims, EgoStep, LaneId, LaneView, MapQuery, ObjectClass as MClass,
-    ObjectState as MObject, ScenarioScore, ScenarioTrace, ScoreParams,
+    score_scenario, EgoDims, EgoStep, LaneId, LaneView, MapQuery, ObjectState as MObject,
+    ScenarioScore, ScenarioTrace, ScoreParams,
 };
 use crate::scene::geometry::point_in_polygon;
 use crate::scene::map::{LaneKind, Map};
-use crate::scene::{ObjectClass, Scenario};
+use crate::scene::Scenario;
 use glam::DVec2;
 
 /// The scenario map as the metrics query it (successor/predecessor id lists precomputed).
@@ -92,18 +92,6 @@ impl MapQuery for MetricsMap<'_> {
     }
 }
 
-fn class(c: ObjectClass) -> MClass {
-    match c {
-        ObjectClass::Vehicle => MClass::Vehicle,
-        ObjectClass::Pedestrian => MClass::Pedestrian,
-        ObjectClass::Bicycle => MClass::Bicycle,
-        ObjectClass::TrafficCone => MClass::TrafficCone,
-        ObjectClass::Barrier => MClass::Barrier,
-        ObjectClass::CzoneSign => MClass::CzoneSign,
-        ObjectClass::GenericObject => MClass::GenericObject,
-    }
-}
-
 fn ego_step(e: &EgoState) -> EgoStep {
     EgoStep {
         time_s: e.time_s,
@@ -129,7 +117,7 @@ pub fn trace_of(sc: &Scenario, r: &SimResult) -> ScenarioTrace {
                 .iter()
                 .map(|a| MObject {
                     track_id: a.track as u64,
-                    class: class(a.class),
+                    class: a.class,
                     center: a.bbox.center.pos(),
                     heading: a.bbox.center.heading,
                     length: a.bbox.length,

@@ -329,7 +329,7 @@ fn roadside(map: &Map, lines: &[RoadLine], pal: &Palette, seed: u64) -> Vec<Soli
     // footprints placed so far, indexed: the overlap test of a new lot looks at its neighbours only (a scan
     // of every earlier footprint made placement quadratic in the road length)
     let mut footprints: Vec<[DVec2; 4]> = Vec::new();
-    let mut footprint_index = crate::scene::index::GridIndex::new(32.0);
+    let mut footprint_index = crate::scene::index::BoxIndex::default();
     for l in lines.iter().filter(|l| l.kind == LineKind::RoadEdge) {
         if out.len() >= MAX_SOLIDS {
             break;

@@ -1,6 +1,9 @@
 //! The nuScenes test fixture: a nuScenes-mini-style DATAROOT written at test time from the shared scene-0061 data
 //! by `python/b2dr_ref/nuscenes_fixture.py` (plain Python; `B2DR_PY`, the test virtualenv or `python3`).
 #![allow(dead_code)]
+#[path = "../common/fixture_dirs.rs"]
+mod fixture_dirs;
+
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::OnceLock;
@@ -22,25 +25,13 @@ pub fn shared() -> Option<PathBuf> {
     found
 }
 
-pub fn python() -> String {
-    if let Ok(p) = std::env::var("B2DR_PY") {
-        return p;
-    }
-    let venv = std::env::var("HOME")
-        .map(|h| PathBuf::from(h).join(".cache/b2dr-venv/bin/python"))
-        .unwrap_or_default();
-    if venv.is_file() {
-        venv.display().to_string()
-    } else {
-        "python3".into()
-    }
-}
+pub use fixture_dirs::python;
 
 /// Writes a fixture DATAROOT (`extra`: more arguments of the writer); None (with the reason printed) when the
 /// shared data or Python is absent.
 pub fn write_fixture(name: &str, extra: &[&str]) -> Option<PathBuf> {
     let shared = shared()?;
-    remove_stale_fixtures();
+    fixture_dirs::remove_stale_fixtures("b2dr_nuscenes_");
     let out = std::env::temp_dir().join(format!("b2dr_nuscenes_{name}_{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
     let o = Command::new(python())
@@ -63,30 +54,6 @@ pub fn write_fixture(name: &str, extra: &[&str]) -> Option<PathBuf> {
         Err(e) => {
             eprintln!("skipping: no Python to write the fixture ({e})");
             None
-        }
-    }
-}
-
-/// Fixtures of earlier test processes that have ended (`b2dr_nuscenes_<name>_<pid>` whose /proc/<pid> is gone;
-/// nothing is removed where /proc does not exist): the fixture outlives its process, since tests share it.
-fn remove_stale_fixtures() {
-    if !Path::new("/proc/self").exists() {
-        return;
-    }
-    let Ok(entries) = std::fs::read_dir(std::env::temp_dir()) else {
-        return;
-    };
-    for e in entries.flatten() {
-        let name = e.file_name().to_string_lossy().into_owned();
-        let Some(pid) = name
-            .strip_prefix("b2dr_nuscenes_")
-            .and_then(|r| r.rsplit('_').next())
-            .and_then(|p| p.parse::<u32>().ok())
-        else {
-            continue;
-        };
-        if pid != std::process::id() && !Path::new(&format!("/proc/{pid}")).exists() {
-            let _ = std::fs::remove_dir_all(e.path());
         }
     }
 }

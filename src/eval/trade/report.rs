@@ -3,10 +3,11 @@
 use std::fmt::Write as _;
 use std::path::Path;
 
-use anyhow::{anyhow, Context as _, Result};
+use anyhow::{Context as _, Result};
 use plotters::prelude::*;
 
 use super::{PointResult, TradeResults};
+use crate::eval::chart::{draw, finite_bounds, Axes, Layout};
 
 /// Which of `(time, error)` points lie on the Pareto front (no other point is at most as slow and at most as
 /// wrong, and strictly better in one); non-finite points never do.
@@ -156,91 +157,72 @@ fn scatter(
     y_label: &str,
     pts: &[(String, f64, f64, bool, bool)],
 ) -> Result<()> {
-    crate::eval::fidelity::plot::register_font();
     let ok: Vec<_> = pts
         .iter()
         .filter(|p| p.1.is_finite() && p.2.is_finite())
         .collect();
-    let (mut x0, mut x1, mut y0, mut y1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-    for p in &ok {
-        x0 = x0.min(p.1);
-        x1 = x1.max(p.1);
-        y0 = y0.min(p.2);
-        y1 = y1.max(p.2);
-    }
-    if ok.is_empty() {
-        (x0, x1, y0, y1) = (0.0, 1.0, 0.0, 1.0);
-    }
+    let (x0, x1, y0, y1) = finite_bounds(ok.iter().map(|p| (p.1, p.2)));
     let xpad = ((x1 - x0) * 0.08).max(1.0);
     let ypad = ((y1 - y0) * 0.1).max(0.5);
-    let e = |e: &dyn std::fmt::Display| anyhow!("plot {}: {e}", path.display());
-    let root = BitMapBackend::new(path, (900, 560)).into_drawing_area();
-    root.fill(&WHITE).map_err(|x| e(&x))?;
-    let mut chart = ChartBuilder::on(&root)
-        .caption(title, ("sans-serif", 17))
-        .margin(14)
-        .x_label_area_size(42)
-        .y_label_area_size(60)
-        .build_cartesian_2d((x0 - xpad)..(x1 + xpad * 3.0), (y0 - ypad)..(y1 + ypad))
-        .map_err(|x| e(&x))?;
-    chart
-        .configure_mesh()
-        .x_desc("wall time per frame, ms")
-        .y_desc(y_label)
-        .label_style(("sans-serif", 13))
-        .draw()
-        .map_err(|x| e(&x))?;
-    let mut front: Vec<(f64, f64)> = ok.iter().filter(|p| p.3).map(|p| (p.1, p.2)).collect();
-    front.sort_by(|a, b| a.0.total_cmp(&b.0));
-    chart
-        .draw_series(LineSeries::new(
-            front,
-            RGBColor(40, 120, 40).stroke_width(2),
-        ))
-        .map_err(|x| e(&x))?
-        .label("Pareto front")
-        .legend(|(x, y)| {
-            PathElement::new(
-                vec![(x, y), (x + 20, y)],
-                RGBColor(40, 120, 40).stroke_width(2),
-            )
-        });
-    for p in &ok {
-        let c = if p.3 {
-            RGBColor(40, 120, 40)
-        } else {
-            RGBColor(60, 60, 160)
-        };
+    let layout = Layout {
+        size: (900, 560),
+        caption: 17,
+        margin: 14,
+        x_label_area: 42,
+        y_label_area: 60,
+    };
+    let axes = Axes {
+        title,
+        x_label: "wall time per frame, ms",
+        y_label,
+        x: (x0 - xpad)..(x1 + xpad * 3.0),
+        y: (y0 - ypad)..(y1 + ypad),
+        legend: SeriesLabelPosition::LowerRight,
+    };
+    draw(path, &layout, axes, |chart, e| {
+        let mut front: Vec<(f64, f64)> = ok.iter().filter(|p| p.3).map(|p| (p.1, p.2)).collect();
+        front.sort_by(|a, b| a.0.total_cmp(&b.0));
         chart
-            .draw_series(std::iter::once(Circle::new((p.1, p.2), 4, c.filled())))
-            .map_err(|x| e(&x))?;
-        if p.4 {
+            .draw_series(LineSeries::new(
+                front,
+                RGBColor(40, 120, 40).stroke_width(2),
+            ))
+            .map_err(|x| e(&x))?
+            .label("Pareto front")
+            .legend(|(x, y)| {
+                PathElement::new(
+                    vec![(x, y), (x + 20, y)],
+                    RGBColor(40, 120, 40).stroke_width(2),
+                )
+            });
+        for p in &ok {
+            let c = if p.3 {
+                RGBColor(40, 120, 40)
+            } else {
+                RGBColor(60, 60, 160)
+            };
             chart
-                .draw_series(std::iter::once(Circle::new(
+                .draw_series(std::iter::once(Circle::new((p.1, p.2), 4, c.filled())))
+                .map_err(|x| e(&x))?;
+            if p.4 {
+                chart
+                    .draw_series(std::iter::once(Circle::new(
+                        (p.1, p.2),
+                        9,
+                        RED.stroke_width(2),
+                    )))
+                    .map_err(|x| e(&x))?;
+            }
+            chart
+                .draw_series(std::iter::once(Text::new(
+                    p.0.clone(),
                     (p.1, p.2),
-                    9,
-                    RED.stroke_width(2),
+                    ("sans-serif", 12).into_font().color(&BLACK),
                 )))
                 .map_err(|x| e(&x))?;
         }
-        chart
-            .draw_series(std::iter::once(Text::new(
-                p.0.clone(),
-                (p.1, p.2),
-                ("sans-serif", 12).into_font().color(&BLACK),
-            )))
-            .map_err(|x| e(&x))?;
-    }
-    chart
-        .configure_series_labels()
-        .label_font(("sans-serif", 13))
-        .background_style(WHITE.mix(0.85))
-        .border_style(BLACK)
-        .position(SeriesLabelPosition::LowerRight)
-        .draw()
-        .map_err(|x| e(&x))?;
-    root.present().map_err(|x| e(&x))?;
-    Ok(())
+        Ok(())
+    })
 }
 
 /// The model's name without the folder it came from (plot titles).
