@@ -689,3 +689,147 @@ fn import_speed() {
         if cfg!(debug_assertions) { "debug" } else { "release" }
     );
 }
+
+/// A GeoPackage LineString blob (little endian, no envelope) through `pts`.
+fn gpkg_line(pts: &[(f64, f64)]) -> Vec<u8> {
+    let mut b = b"GP\x00\x01".to_vec();
+    b.extend(0i32.to_le_bytes());
+    b.push(1);
+    b.extend(2u32.to_le_bytes());
+    b.extend((pts.len() as u32).to_le_bytes());
+    for (x, y) in pts {
+        b.extend(x.to_le_bytes());
+        b.extend(y.to_le_bytes());
+    }
+    b
+}
+
+/// Hostile and careless values (issue #18) are refused by the bounds every importer applies
+/// (`src/scene/import/bounds.rs`), each error naming the file, the table, the row and the column.
+#[test]
+fn hostile_values_are_refused() {
+    if root().is_none() {
+        return;
+    }
+    let check = |e: &str, parts: &[&str]| {
+        for p in parts {
+            assert!(e.contains(p), "error {e:?} lacks {p:?}");
+        }
+        eprintln!("{e}");
+    };
+    let cases: Vec<(&str, &str, &[&str])> = vec![
+        (
+            "UPDATE ego_pose SET x = 1e12 WHERE rowid = 5",
+            "",
+            &["table `ego_pose` row token ", "column `x`", "beyond 1e8"],
+        ),
+        (
+            "UPDATE ego_pose SET vy = -1e7 WHERE rowid = 5",
+            "",
+            &["table `ego_pose` row token ", "column `vy`", "m/s"],
+        ),
+        (
+            "UPDATE ego_pose SET qw = 1e300, qx = 1e300 WHERE rowid = 1",
+            "",
+            &[
+                "table `ego_pose` row token ",
+                "qw, qx, qy, qz",
+                "not a rotation",
+            ],
+        ),
+        (
+            "UPDATE lidar_box SET y = -3e9 WHERE rowid = 3",
+            "",
+            &["table `lidar_box` row token ", "column `y`"],
+        ),
+        (
+            "UPDATE lidar_box SET yaw = 1e9 WHERE rowid = 3",
+            "",
+            &["table `lidar_box` row token ", "column `yaw`", "rad"],
+        ),
+        (
+            "UPDATE track SET width = 1e5 WHERE rowid = 1",
+            "",
+            &["table `track` row token ", "width", "1000 m"],
+        ),
+        (
+            "UPDATE lidar_pc SET timestamp = 9223372036854775807 WHERE rowid = 9",
+            "",
+            &["table `lidar_pc` row token ", "column `timestamp`"],
+        ),
+        (
+            "UPDATE log SET location = '../../etc'",
+            "",
+            &["table `log` row token ", "column `location`", "plain name"],
+        ),
+        (
+            "UPDATE camera SET width = 1000000 WHERE channel = 'CAM_R1'",
+            "",
+            &["table `camera` row token ", "width, height", "16384"],
+        ),
+        (
+            "UPDATE camera SET channel = 'a/b' WHERE channel = 'CAM_R1'",
+            "",
+            &["table `camera` row token ", "column `channel`"],
+        ),
+        (
+            // LONG_BINPUT 0xffffffff: the memo would be sized from a 4-byte field
+            "UPDATE camera SET rotation = X'80045d72ffffffff2e' WHERE channel = 'CAM_F0'",
+            "",
+            &[
+                "table `camera` row token ",
+                "column `rotation`",
+                "memo key 4294967295",
+            ],
+        ),
+        (
+            "UPDATE image SET filename_jpg = '../../../etc/passwd' WHERE rowid = 4",
+            "",
+            &[
+                "table `image` row token ",
+                "column `filename_jpg`",
+                "relative path",
+            ],
+        ),
+        (
+            "",
+            "UPDATE lanes_polygons SET speed_limit_mps = -4 WHERE fid = 12",
+            &[
+                "map.gpkg",
+                "table `lanes_polygons` row fid 12",
+                "speed_limit_mps",
+            ],
+        ),
+    ];
+    for (i, (db_sql, map_sql, parts)) in cases.into_iter().enumerate() {
+        let e = broken(&format!("hostile{i}"), |db, map| {
+            if !db_sql.is_empty() {
+                db.execute_batch(db_sql).unwrap();
+            }
+            if !map_sql.is_empty() {
+                map.execute_batch(map_sql).unwrap();
+            }
+        });
+        check(&e, parts);
+    }
+    // A map geometry with a point beyond the coordinate bound (and one that is NaN).
+    for (k, bad) in [(1e12, 0.0), (f64::NAN, 1.0)].into_iter().enumerate() {
+        let e = broken(&format!("hostile_geom{k}"), |_, map| {
+            let (x0, y0) = (664_400.0, 3_996_800.0);
+            map.execute(
+                "UPDATE baseline_paths SET geom = ?1 WHERE fid = 1011",
+                [gpkg_line(&[(x0, y0), bad])],
+            )
+            .unwrap();
+        });
+        check(
+            &e,
+            &[
+                "map.gpkg",
+                "table `baseline_paths` row fid 1011",
+                "column `geom`",
+                "not finite or lies beyond",
+            ],
+        );
+    }
+}

@@ -960,3 +960,81 @@ fn camera_sweeps_become_frames() {
     assert!((img.timestamp_us - 250_000).abs() < 42_000);
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// Makes a FIFO at `p` (`mkfifo`); false when that fails.
+fn mkfifo(p: &Path) -> bool {
+    Command::new("mkfifo")
+        .arg(p)
+        .status()
+        .is_ok_and(|s| s.success())
+}
+
+/// Symbolic links in a DATAROOT (issue #18; docs/nuscenes.md "Symbolic links"): links that point outside the
+/// DATAROOT are followed (the tables folder, the maps and the images of this copy all live in the fixture's
+/// DATAROOT), while a link (or a file) that is not a regular file once followed (a FIFO here: reading it would
+/// block) is an error naming the table, or the sample_data row and its filename, and fails fast.
+#[test]
+fn symlinks_in_the_dataroot() {
+    let Some(root) = dataroot() else { return };
+    let dst = std::env::temp_dir().join(format!("b2dr_nuscenes_links_{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dst);
+    std::fs::create_dir_all(&dst).unwrap();
+    for d in ["v1.0-mini", "maps", "samples"] {
+        std::os::unix::fs::symlink(root.join(d), dst.join(d)).unwrap();
+    }
+    let log = nuscenes::load_log(&spec(&dst)).unwrap();
+    let img = &log.scenario.rig.frames[0].images[0];
+    assert!(img.path.starts_with(dst.to_str().unwrap()), "{}", img.path);
+    assert!(Path::new(&img.path).is_file(), "{}", img.path);
+    let want = nuscenes::load(&spec(root)).unwrap();
+    assert_eq!(log.scenario.ego.len(), want.ego.len());
+    assert_eq!(log.scenario.tracks.len(), want.tracks.len());
+
+    // A table that is a link to a FIFO outside the DATAROOT.
+    let fifo = std::env::temp_dir().join(format!("b2dr_nuscenes_fifo_{}", std::process::id()));
+    let _ = std::fs::remove_file(&fifo);
+    if !mkfifo(&fifo) {
+        eprintln!("skipping the FIFO part: mkfifo failed");
+        let _ = std::fs::remove_dir_all(&dst);
+        return;
+    }
+    std::fs::remove_file(dst.join("v1.0-mini")).unwrap();
+    std::fs::create_dir_all(dst.join("v1.0-mini")).unwrap();
+    for e in std::fs::read_dir(root.join("v1.0-mini")).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, dst.join("v1.0-mini").join(p.file_name().unwrap())).unwrap();
+    }
+    let ego = dst.join("v1.0-mini/ego_pose.json");
+    std::fs::remove_file(&ego).unwrap();
+    std::os::unix::fs::symlink(&fifo, &ego).unwrap();
+    let t0 = Instant::now();
+    let e = format!("{:#}", nuscenes::load(&spec(&dst)).unwrap_err());
+    assert!(
+        e.contains("table `ego_pose`") && e.contains("not a regular file"),
+        "{e}"
+    );
+    std::fs::remove_file(&ego).unwrap();
+    std::fs::copy(root.join("v1.0-mini/ego_pose.json"), &ego).unwrap();
+
+    // An image that is a link to the FIFO.
+    std::fs::remove_file(dst.join("samples")).unwrap();
+    let cams = dst.join("samples/CAM_FRONT");
+    std::fs::create_dir_all(&cams).unwrap();
+    let first = std::fs::read_dir(root.join("samples/CAM_FRONT"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .min()
+        .unwrap();
+    std::os::unix::fs::symlink(&fifo, cams.join(&first)).unwrap();
+    let e = format!("{:#}", nuscenes::load(&spec(&dst)).unwrap_err());
+    assert!(
+        e.contains("table `sample_data`")
+            && e.contains("column `filename`")
+            && e.contains(first.to_str().unwrap())
+            && e.contains("not a regular file"),
+        "{e}"
+    );
+    assert!(t0.elapsed() < std::time::Duration::from_secs(30));
+    let _ = std::fs::remove_dir_all(&dst);
+    let _ = std::fs::remove_file(&fifo);
+}

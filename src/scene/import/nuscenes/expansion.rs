@@ -205,8 +205,8 @@ pub fn load(dataroot: &Path, location: &str, region: &Aabb) -> Result<Map> {
         .join("expansion")
         .join(format!("{location}.json"));
     let file = path.display().to_string();
-    let text = std::fs::read_to_string(&path).with_context(|| {
-        format!("nuScenes map expansion of {location:?}: reading {file} (the map expansion pack is needed for lanes)")
+    let text = bounds::read_table_text(&path).map_err(|why| {
+        anyhow!("nuScenes map expansion of {location:?}: {why} (the map expansion pack is needed for lanes)")
     })?;
     let v: Value = serde_json::from_str(&text)
         .with_context(|| format!("map expansion {file}: not valid JSON"))?;
