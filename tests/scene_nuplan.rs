@@ -315,7 +315,8 @@ fn map_gives_route_and_drivable_area() {
     assert_eq!(m.roadblocks[l11.roadblock].id, "1");
     assert_eq!(m.roadblocks[l11.roadblock].lanes.len(), 2);
     assert_eq!(m.roadblocks[c21.roadblock].id, "2");
-    assert_eq!(sc.route.roadblock_ids, vec!["1", "2", "3"]);
+    // the route of the log's two scenes ("1 2 3", "3 7"; 7 lies beyond the map), the lanes the ego drives
+    assert_eq!(sc.route.roadblock_ids, vec!["1", "2", "3", "7"]);
     assert_eq!(sc.route.lane_ids, vec!["11", "21", "31"]);
     assert_eq!(m.crosswalks.len(), 1);
     assert_eq!(m.intersections.len(), 1);
@@ -371,7 +372,8 @@ fn lonlat_map_is_projected_to_utm() {
         worst = worst.max(p.distance(*q));
     }
     assert!(worst < 1e-6, "{worst} m");
-    assert_eq!(b.route.roadblock_ids, vec!["1"]); // 4 s: the ego stays in lane group 1
+    assert_eq!(b.route.roadblock_ids, vec!["1", "2", "3", "7"]); // the scenes' routes
+    assert_eq!(b.route.lane_ids, vec!["11"]); // 4 s: the ego stays in lane 11
     eprintln!("lon / lat map projected to UTM: largest difference {worst:.2e} m");
     let _ = std::fs::remove_dir_all(&ll);
 }
@@ -520,7 +522,7 @@ fn log_without_cameras_and_text_ids() {
     .unwrap();
     assert_eq!(sc.rig.cameras.len(), 6);
     assert!(sc.rig.frames[0].images[0].path.starts_with("builtin://"));
-    assert_eq!(sc.route.roadblock_ids, vec!["1", "2", "3"]);
+    assert_eq!(sc.route.roadblock_ids, vec!["1", "2", "3", "7"]);
     // Without the image table at all, too.
     let sc = edited(
         "noimage",
@@ -832,4 +834,82 @@ fn hostile_values_are_refused() {
             ],
         );
     }
+}
+
+/// The route and mission goal come from the `scene` rows as the devkit reads them (issue #17): a scenario
+/// token's lidar_pc -> its scene's space-separated `roadblock_ids` and `goal_ego_pose_token`; the whole log
+/// concatenates its scenes' routes. Without a `scene` table, or with NULL `roadblock_ids`, the roadblocks the
+/// logged ego drives through; hostile ids and a dangling goal are errors naming the scene row.
+#[test]
+fn route_and_goal_come_from_the_scene_table() {
+    let Some(root) = root() else { return };
+    let ex = expected(root);
+    let db = db_path(root);
+    let scenes = ex["scenes"].as_array().unwrap();
+    let goal = |k: usize| -> [f64; 3] {
+        let g = &scenes[k]["goal"];
+        [f(&g[0]), f(&g[1]), f(&g[2])]
+    };
+    let same = |p: Option<b2dr::scene::geometry::Pose2>, g: [f64; 3]| {
+        let p = p.expect("a goal");
+        assert!(
+            (p.x - g[0]).abs() < 1e-6
+                && (p.y - g[1]).abs() < 1e-6
+                && (p.heading - g[2]).abs() < 1e-9,
+            "{p:?} vs {g:?}"
+        );
+    };
+    let whole = nuplan::load_log(&spec(&db, None)).unwrap();
+    assert_eq!(whole.scenario.route.roadblock_ids, vec!["1", "2", "3", "7"]);
+    same(whole.goal, goal(1));
+    // the second scene's first lidar_pc: its scene only (the ego drives 1, 2, 3 in that window)
+    let second = scenes[1]["first_lidar_pc"].as_str().unwrap();
+    let w = nuplan::load_log(&spec(&db, Some(second))).unwrap();
+    assert_eq!(w.scenario.route.roadblock_ids, vec!["3", "7"]);
+    assert_eq!(w.scenario.route.lane_ids, vec!["11", "21", "31"]);
+    same(w.goal, goal(1));
+    // a tag in the first scene
+    let tag = ex["scenario_tags"][0]["lidar_pc"].as_str().unwrap();
+    let w = nuplan::load_log(&spec(&db, Some(tag))).unwrap();
+    assert_eq!(w.scenario.route.roadblock_ids, vec!["1", "2", "3"]);
+    same(w.goal, goal(0));
+    // no scene table / no roadblock ids: the roadblocks the logged ego drives through
+    let noscene = edited(
+        "noscene",
+        |db, _| db.execute_batch("DROP TABLE scene").unwrap(),
+        nuplan::load_log,
+    )
+    .unwrap();
+    assert_eq!(noscene.scenario.route.roadblock_ids, vec!["1", "2", "3"]);
+    assert!(noscene.goal.is_none());
+    let null = edited(
+        "nullroute",
+        |db, _| {
+            db.execute_batch("UPDATE scene SET roadblock_ids = NULL")
+                .unwrap()
+        },
+        nuplan::load,
+    )
+    .unwrap();
+    assert_eq!(null.route.roadblock_ids, vec!["1", "2", "3"]);
+    // hostile: 20000 ids, a dangling goal
+    let e = broken("manyids", |db, _| {
+        let ids: Vec<String> = (0..20_000).map(|i| i.to_string()).collect();
+        db.execute("UPDATE scene SET roadblock_ids = ?1", [ids.join(" ")])
+            .unwrap();
+    });
+    assert!(
+        e.contains("table `scene` row token ") && e.contains("column `roadblock_ids`"),
+        "{e}"
+    );
+    let e = broken("goal", |db, _| {
+        db.execute_batch("UPDATE scene SET goal_ego_pose_token = X'00000000000000ff'")
+            .unwrap()
+    });
+    assert!(
+        e.contains("table `scene` row token ")
+            && e.contains("column `goal_ego_pose_token`")
+            && e.contains("dangling"),
+        "{e}"
+    );
 }

@@ -1038,3 +1038,113 @@ fn symlinks_in_the_dataroot() {
     let _ = std::fs::remove_dir_all(&dst);
     let _ = std::fs::remove_file(&fifo);
 }
+
+/// Dividers (`road_divider`, `lane_divider`: their `line` geometry) and stop lines (`stop_line` polygons as
+/// convex quadrilaterals) of the map expansion come into the scene map (issue #17): exactly the fixture's
+/// records that meet the region, with their points.
+#[test]
+fn dividers_and_stop_lines_come_from_the_map_expansion() {
+    use b2dr::scene::geometry::Aabb;
+    use b2dr::scene::map::MapLineKind;
+    use glam::DVec2;
+    use std::collections::HashMap;
+    let Some(root) = dataroot() else { return };
+    let sc = nuscenes::load(&spec(root)).unwrap();
+    assert!(!sc.map.lines.is_empty() && !sc.map.stop_lines.is_empty());
+    let region = Aabb::from_points(&sc.ego.iter().map(|e| e.rear_axle.pos()).collect::<Vec<_>>())
+        .expand(200.0);
+    let map = nuscenes::expansion::load(root, "singapore-onenorth", &region).unwrap();
+    let file: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(root.join("maps/expansion/singapore-onenorth.json")).unwrap(),
+    )
+    .unwrap();
+    let nodes: HashMap<&str, DVec2> = file["node"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|n| {
+            (
+                n["token"].as_str().unwrap(),
+                DVec2::new(n["x"].as_f64().unwrap(), n["y"].as_f64().unwrap()),
+            )
+        })
+        .collect();
+    let pts = |toks: &serde_json::Value| -> Vec<DVec2> {
+        toks.as_array()
+            .unwrap()
+            .iter()
+            .map(|t| nodes[t.as_str().unwrap()])
+            .collect()
+    };
+    let lines: HashMap<&str, Vec<DVec2>> = file["line"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| (l["token"].as_str().unwrap(), pts(&l["node_tokens"])))
+        .collect();
+    let polys: HashMap<&str, Vec<DVec2>> = file["polygon"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| {
+            (
+                p["token"].as_str().unwrap(),
+                pts(&p["exterior_node_tokens"]),
+            )
+        })
+        .collect();
+    let meets = |p: &[DVec2]| region.overlaps(&Aabb::from_points(p));
+    let mut want = vec![];
+    for (layer, kind) in [
+        ("road_divider", MapLineKind::RoadDivider),
+        ("lane_divider", MapLineKind::LaneDivider),
+    ] {
+        for r in file[layer].as_array().unwrap() {
+            let p = &lines[r["line_token"].as_str().unwrap()];
+            if meets(p) {
+                want.push((r["token"].as_str().unwrap().to_string(), kind, p.clone()));
+            }
+        }
+    }
+    assert!(want.iter().any(|w| w.1 == MapLineKind::RoadDivider));
+    assert!(want.iter().any(|w| w.1 == MapLineKind::LaneDivider));
+    let got: Vec<_> = map
+        .lines
+        .iter()
+        .map(|l| (l.id.clone(), l.kind, l.points.clone()))
+        .collect();
+    assert_eq!(got, want);
+    let want_stop: Vec<(String, Vec<DVec2>)> = file["stop_line"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| {
+            (
+                r["token"].as_str().unwrap().to_string(),
+                polys[r["polygon_token"].as_str().unwrap()].clone(),
+            )
+        })
+        .filter(|(_, p)| meets(p))
+        .collect();
+    assert!(!want_stop.is_empty());
+    let got_stop: Vec<(String, Vec<DVec2>)> = map
+        .stop_lines
+        .iter()
+        .map(|s| (s.id.clone(), s.polygon.to_vec()))
+        .collect();
+    assert_eq!(got_stop, want_stop);
+    // a stop line polygon that is not a quadrilateral: the rectangle along its longest edge enclosing it
+    let q = nuscenes::expansion::quadrilateral(&[
+        DVec2::new(0.0, 0.0),
+        DVec2::new(4.0, 0.0),
+        DVec2::new(4.0, 1.0),
+        DVec2::new(2.0, 1.5),
+        DVec2::new(0.0, 1.0),
+    ])
+    .unwrap();
+    let near = |a: DVec2, b: DVec2| a.distance(b) < 1e-12;
+    assert!(
+        near(q[0], DVec2::new(0.0, 0.0)) && near(q[2], DVec2::new(4.0, 1.5)),
+        "{q:?}"
+    );
+}

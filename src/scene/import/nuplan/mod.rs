@@ -16,7 +16,9 @@
 //!   distortion is read and checked but not applied); `image` rows within the window become recorded images
 //!   (own timestamp and ego pose), grouped into one frame per step (the image of each camera nearest the step
 //!   time, within [`FRAME_TOLERANCE_US`]). Without cameras the rig is the default generated one.
-//! - Route: the lane groups the logged ego drives through (as for nuScenes).
+//! - Route: the `roadblock_ids` of the scenario's `scene` rows, as the devkit's `get_route_roadblock_ids`
+//!   ([`scene_route`]; lane ids: the lanes the logged ego drives); the lane groups the logged ego drives
+//!   through when no scene gives roadblocks. Mission goal: `scene.goal_ego_pose_token` ([`NuplanLog::goal`]).
 use crate::scene::camera::{Camera, CameraImage, CameraRig, RecordedFrame};
 use crate::scene::geometry::{Aabb, Pose2};
 use crate::scene::{
@@ -269,6 +271,8 @@ pub struct NuplanLog {
     /// scenario_tag rows in the window: (lidar_pc token, type).
     pub tags: Vec<(String, String)>,
     pub map_path: PathBuf,
+    /// The mission goal (`scene.goal_ego_pose_token`, rear axle), when the scene names one ([`scene_route`]).
+    pub goal: Option<Pose2>,
 }
 
 /// Loads one scenario.
@@ -499,7 +503,8 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
     }
 
     let ego_params = VehicleParameters::PACIFICA;
-    let route = super::scenarionet::route_from_ego(&map, &ego, &ego_params);
+    let driven = super::scenarionet::route_from_ego(&map, &ego, &ego_params);
+    let (route, goal) = scene_route(&db, spec, t0, t_last, driven)?;
     let name = spec.name();
     let rig = camera_rig(&db, spec, &log, &sel, &eps, t0, t_last)?
         .unwrap_or_else(|| super::default_rig(&name, &ego, DT));
@@ -522,7 +527,100 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
         lidar_pc: pc_tokens,
         tags,
         map_path,
+        goal,
     })
+}
+
+/// Most route roadblock ids accepted from the `scene` rows of one scenario, and the longest id.
+pub const MAX_ROUTE_ROADBLOCKS: usize = 10_000;
+pub const MAX_ROADBLOCK_ID_CHARS: usize = 64;
+
+/// The route and mission goal as the devkit reads them (`get_roadblock_ids_for_lidarpc_token_from_db`,
+/// `get_mission_goal_for_sensor_data_token_from_db`): the `scene` of a lidar_pc (`lidar_pc.scene_token`) gives
+/// the route roadblock ids (`roadblock_ids`, space separated) and the goal (`goal_ego_pose_token`). With a
+/// scenario token, the scene of that lidar_pc; for the whole log, the scenes of its steps in time order
+/// (their routes concatenated, a repeated id kept once where two meet; the goal of the last). Lane ids stay those
+/// the logged ego drives (`driven`), as do the roadblocks when no scene gives any (no `scene` table, NULL or
+/// empty `roadblock_ids`).
+fn scene_route(
+    db: &Db,
+    spec: &NuplanSpec,
+    t0: i64,
+    t_last: i64,
+    driven: crate::scene::Route,
+) -> Result<(crate::scene::Route, Option<Pose2>)> {
+    if !db.has_table("scene")? {
+        return Ok((driven, None));
+    }
+    let pcs = db.select(
+        "lidar_pc",
+        &["token", "scene_token"],
+        "WHERE timestamp BETWEEN ?1 AND ?2 ORDER BY timestamp",
+        &[&t0 as &dyn rusqlite::ToSql, &t_last],
+    )?;
+    let mut scene_of: Vec<(String, &Rec)> = Vec::new();
+    for r in &pcs {
+        if spec
+            .token
+            .as_deref()
+            .is_some_and(|t| r.token("token").ok().as_deref() != Some(t))
+        {
+            continue;
+        }
+        let s = r.token("scene_token")?;
+        if scene_of.last().map(|x| &x.0) != Some(&s) {
+            scene_of.push((s, r));
+        }
+    }
+    let toks: Vec<String> = scene_of.iter().map(|x| x.0.clone()).collect();
+    let scenes = by_token(
+        db,
+        "scene",
+        &["token", "roadblock_ids", "goal_ego_pose_token"],
+        &toks,
+    )?;
+    let mut ids: Vec<String> = Vec::new();
+    let mut goal_tok = None;
+    for (_, pc) in &scene_of {
+        let sc = follow(pc, "scene_token", "scene", &scenes)?;
+        for id in sc.opt_text("roadblock_ids")?.unwrap_or("").split(' ') {
+            let id = id.trim();
+            if id.is_empty() || ids.last().is_some_and(|l| l == id) {
+                continue;
+            }
+            if ids.len() >= MAX_ROUTE_ROADBLOCKS || id.chars().count() > MAX_ROADBLOCK_ID_CHARS {
+                bail!(
+                    "{}: column `roadblock_ids`: more than {MAX_ROUTE_ROADBLOCKS} roadblock ids in the scenario, or \
+                     one longer than {MAX_ROADBLOCK_ID_CHARS} characters",
+                    sc.at()
+                );
+            }
+            ids.push(id.to_string());
+        }
+        goal_tok = sc.opt_token("goal_ego_pose_token")?.map(|t| (t, sc));
+    }
+    let goal = match goal_tok {
+        None => None,
+        Some((t, sc)) => {
+            let eps = by_token(
+                db,
+                "ego_pose",
+                &["token", "x", "y", "qw", "qx", "qy", "qz"],
+                std::slice::from_ref(&t),
+            )?;
+            let e = follow(sc, "goal_ego_pose_token", "ego_pose", &eps)?;
+            Some(Pose2::new(e.coord("x")?, e.coord("y")?, yaw_of(quat(e)?)))
+        }
+    };
+    let route = if ids.is_empty() {
+        driven
+    } else {
+        crate::scene::Route {
+            roadblock_ids: ids,
+            lane_ids: driven.lane_ids,
+        }
+    };
+    Ok((route, goal))
 }
 
 fn ego2global_of(e: &Rec) -> Result<DMat4> {
