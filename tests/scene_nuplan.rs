@@ -913,3 +913,49 @@ fn route_and_goal_come_from_the_scene_table() {
         "{e}"
     );
 }
+
+/// `config.json` fingerprints the log DB and its map (for `--resume`, issue #18); a log that cannot be read is
+/// recorded as unreadable and fails on its own (score 0, counted in `failures`), not the whole batch.
+#[test]
+fn inputs_are_fingerprinted_and_a_missing_log_fails_alone() {
+    let Some(root) = root() else { return };
+    let out = std::env::temp_dir().join(format!("b2dr_nuplan_inputs_{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let db = db_path(root);
+    let missing = root.join("missing.db");
+    let scenario = format!("nuplan:{},nuplan:{}", db.display(), missing.display());
+    let o = b2dr()
+        .args(["sim", "--scenario", &scenario, "--planner", "cv"])
+        .args([
+            "--agents",
+            "none",
+            "--steps",
+            "5",
+            "--bev-every",
+            "0",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let s: Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(s["failures"].as_u64(), Some(1), "{s}");
+    let cfg: Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("config.json")).unwrap()).unwrap();
+    let inputs = cfg["input_files"].as_object().unwrap();
+    let d = &inputs[&db.display().to_string()];
+    assert_eq!(
+        d["size"].as_u64(),
+        Some(std::fs::metadata(&db).unwrap().len())
+    );
+    assert!(inputs.keys().any(|k| k.ends_with("map.gpkg")), "{cfg}");
+    assert!(
+        inputs[&missing.display().to_string()]["unreadable"]
+            .as_str()
+            .is_some_and(|e| e.contains("no such file")),
+        "{cfg}"
+    );
+    let _ = std::fs::remove_dir_all(&out);
+}

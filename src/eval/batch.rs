@@ -184,15 +184,27 @@ pub fn planner_files(planner: &str) -> Vec<PathBuf> {
 /// `config` with [`INPUTS_KEY`]: the fingerprint ([`file_fingerprint`]) of every file the scenarios are read
 /// from (a ScenarioNet file; a nuScenes scene's tables and map expansion; a nuPlan log DB and its map) and of
 /// every file the planner command names ([`planner_files`]), by path, so that `--resume` refuses a folder whose
-/// inputs changed since (naming the file). Built-in scenarios read no file; images are not hashed.
+/// inputs changed since (naming the file). Built-in scenarios read no file; images are not hashed. A file that
+/// cannot be read is recorded as such (`"unreadable"`: its scenario fails on its own, scoring 0, as before),
+/// so that it becoming readable is a change too.
 pub fn with_inputs(mut config: Value, sources: &[Source], planner: &str) -> Result<Value> {
     let mut files: Vec<(String, PathBuf)> = vec![];
+    let mut inputs = Map::new();
     for s in sources {
         let paths = match s {
             Source::Builtin(_) => vec![],
             Source::File(p) => vec![p.clone()],
             Source::Nuscenes(n) => n.input_files(),
-            Source::Nuplan(n) => n.input_files()?,
+            Source::Nuplan(n) => match n.input_files() {
+                Ok(v) => v,
+                Err(e) => {
+                    inputs.insert(
+                        n.db.display().to_string(),
+                        json!({"role": "scenario", "unreadable": format!("{e:#}")}),
+                    );
+                    vec![]
+                }
+            },
         };
         files.extend(paths.into_iter().map(|p| ("scenario".to_string(), p)));
     }
@@ -201,13 +213,13 @@ pub fn with_inputs(mut config: Value, sources: &[Source], planner: &str) -> Resu
             .into_iter()
             .map(|p| ("planner".to_string(), p)),
     );
-    let mut inputs = Map::new();
     for (role, p) in files {
         let key = p.display().to_string();
         if inputs.contains_key(&key) {
             continue;
         }
-        let mut fp = file_fingerprint(&p)?;
+        let mut fp =
+            file_fingerprint(&p).unwrap_or_else(|e| json!({"unreadable": format!("{e:#}")}));
         fp["role"] = json!(role);
         inputs.insert(key, fp);
     }
@@ -228,13 +240,13 @@ fn inputs_difference(old: &Value, new: &Value) -> Option<String> {
             .and_then(Value::as_object)
             .unwrap_or(&empty),
     );
-    let what = |v: &Value| {
-        format!(
-            "{} file, {} bytes, fnv1a64x4 {}",
-            v["role"].as_str().unwrap_or("input"),
+    let what = |v: &Value| match v["unreadable"].as_str() {
+        Some(why) => format!("unreadable: {why}"),
+        None => format!(
+            "{} bytes, fnv1a64x4 {}",
             v["size"],
             v["fnv1a64x4"].as_str().unwrap_or("?")
-        )
+        ),
     };
     let mut out = vec![];
     for (k, v) in b {
@@ -246,12 +258,20 @@ fn inputs_difference(old: &Value, new: &Value) -> Option<String> {
                 what(o),
                 what(v)
             )),
-            None => out.push(format!("{k} ({}) was not an input of the run", what(v))),
+            None => out.push(format!(
+                "the {} {k} ({}) was not an input of the run",
+                v["role"].as_str().unwrap_or("input"),
+                what(v)
+            )),
         }
     }
     for (k, o) in a {
         if !b.contains_key(k) {
-            out.push(format!("{k} ({}) is no longer an input", what(o)));
+            out.push(format!(
+                "the {} {k} ({}) is no longer an input",
+                o["role"].as_str().unwrap_or("input"),
+                what(o)
+            ));
         }
     }
     (!out.is_empty()).then(|| out.join("; "))
