@@ -1,6 +1,7 @@
 //! Property tests over the entry points that read files and replies (issue #18): safetensors headers, model
 //! and scheduler configs, ScenarioNet scenarios, GeoJSON drivable areas, nuScenes tables and map expansion (on the
-//! fixture DATAROOT; skipped when the shared data is absent), keyframe files and planner replies.
+//! fixture DATAROOT; skipped when the shared data is absent), nuPlan log DBs and GeoPackage maps (on the fixture
+//! written by python/b2dr_ref/nuplan_fixture.py; skipped without Python / numpy), keyframe files and planner replies.
 //! Every input either parses or is an `Err`, within a time bound, never a panic. Inputs are valid documents
 //! with one value replaced by an arbitrary one (wrong types, huge and negative numbers, deep nesting), and
 //! arbitrary documents. Case counts are bounded (a minute or two in all on a CI machine).
@@ -19,15 +20,20 @@ use b2dr::sim::planner::trajectory_from_ego_frame;
 use proptest::prelude::*;
 use proptest::sample::Index;
 
+mod nuplan_fixture;
 mod nuscenes_fixture;
 use serde_json::{json, Value};
 
 /// Longest one parse may take.
 const BOUND: Duration = Duration::from_secs(5);
 
+/// `cases` per property, or `$PROPTEST_CASES` when set (long local fuzz runs: every property then runs that many).
 fn config(cases: u32) -> ProptestConfig {
     ProptestConfig {
-        cases,
+        cases: std::env::var("PROPTEST_CASES")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(cases),
         failure_persistence: None,
         ..ProptestConfig::default()
     }
@@ -471,6 +477,319 @@ proptest! {
         static COPY: std::sync::OnceLock<Option<NuCopy>> = std::sync::OnceLock::new();
         let Some(c) = COPY.get_or_init(|| nuscenes_copy("map")) else { return Ok(()) };
         nuscenes_mutated_import(c, NUSCENES_TABLES.len(), mode, at, new, num, delete, tok);
+    }
+}
+
+// -------------------------------------------------------------------------------------- nuPlan DB and GPKG
+
+/// Longest one nuPlan import (with a 3-step simulation of what imports) may take: an import takes about 0.05 s.
+const NUPLAN_BOUND: Duration = Duration::from_secs(30);
+
+/// The fixture's log DB and map copied into a private folder, with their pristine bytes (restored after every
+/// case).
+struct NpCopy {
+    fx: nuplan_fixture::Fixture,
+    db_bytes: Vec<u8>,
+    map_bytes: Vec<u8>,
+}
+
+fn nuplan_copy() -> Option<NpCopy> {
+    let fx = nuplan_fixture::write_fixture(&tmp("nuplan"), &["--seconds", "4"])?;
+    Some(NpCopy {
+        db_bytes: std::fs::read(&fx.db).unwrap(),
+        map_bytes: std::fs::read(&fx.map).unwrap(),
+        fx,
+    })
+}
+
+/// A value written into one cell: wrong types, NaN / infinities / absurd magnitudes, text, random or corrupted
+/// blobs (WKB geometries and pickles: bytes flipped, a 4-byte count made huge, truncated, arbitrary).
+#[derive(Clone, Debug)]
+enum Cell {
+    Null,
+    Int(i64),
+    Real(f64),
+    /// The cell's own number times a factor (absurd coordinates, sizes, speeds, timestamps).
+    Scale(f64),
+    Text(String),
+    Blob(Vec<u8>),
+    /// The cell's own blob with bytes replaced at (position, byte).
+    Flip(Vec<(Index, u8)>),
+    /// The cell's own blob with a little-endian u32 (a WKB / pickle count or length) written at a position.
+    Count(Index, u32),
+    /// The cell's own blob cut at a position.
+    Cut(Index),
+}
+
+fn arb_cell() -> impl Strategy<Value = Cell> {
+    prop_oneof![
+        Just(Cell::Null),
+        prop_oneof![
+            Just(0i64),
+            Just(-1),
+            Just(i64::MIN),
+            Just(i64::MAX),
+            Just(1 << 53),
+            any::<i64>()
+        ]
+        .prop_map(Cell::Int),
+        prop_oneof![
+            Just(f64::NAN),
+            Just(f64::INFINITY),
+            Just(f64::NEG_INFINITY),
+            Just(1e300),
+            Just(-1e300),
+            Just(5e-324),
+            Just(-0.0),
+            Just(1e9),
+            any::<f64>()
+        ]
+        .prop_map(Cell::Real),
+        prop_oneof![
+            Just(1e6),
+            Just(1e12),
+            Just(-1e20),
+            Just(0.0),
+            Just(1e-12),
+            Just(f64::MAX)
+        ]
+        .prop_map(Cell::Scale),
+        prop_oneof![
+            "[a-z0-9 ./,]{0,12}".prop_map(|s| s),
+            Just("NaN".to_string()),
+            Just("../../etc/passwd".to_string()),
+            Just("/abs".to_string()),
+            Just("1e999".to_string()),
+        ]
+        .prop_map(Cell::Text),
+        prop::collection::vec(any::<u8>(), 0..64).prop_map(Cell::Blob),
+        prop::collection::vec((any::<Index>(), any::<u8>()), 1..6).prop_map(Cell::Flip),
+        (
+            any::<Index>(),
+            prop_oneof![
+                Just(u32::MAX),
+                Just(1 << 31),
+                Just(1 << 24),
+                Just(0x7fff_ffff),
+                any::<u32>()
+            ]
+        )
+            .prop_map(|(i, n)| Cell::Count(i, n)),
+        any::<Index>().prop_map(Cell::Cut),
+    ]
+}
+
+/// One change to the DB or the map.
+#[derive(Clone, Debug)]
+enum NpEdit {
+    /// A cell of (file, table, row, column) replaced.
+    Set(bool, Index, Index, Index, Cell),
+    DropTable(bool, Index),
+    RenameTable(bool, Index),
+    RenameColumn(bool, Index, Index),
+    /// Every row, or every other row, of a table deleted.
+    Delete(bool, Index, bool),
+}
+
+fn arb_edit() -> impl Strategy<Value = NpEdit> {
+    let file = any::<bool>();
+    prop_oneof![
+        6 => (file, any::<Index>(), any::<Index>(), any::<Index>(), arb_cell())
+            .prop_map(|(f, t, r, c, v)| NpEdit::Set(f, t, r, c, v)),
+        1 => (file, any::<Index>()).prop_map(|(f, t)| NpEdit::DropTable(f, t)),
+        1 => (file, any::<Index>()).prop_map(|(f, t)| NpEdit::RenameTable(f, t)),
+        1 => (file, any::<Index>(), any::<Index>()).prop_map(|(f, t, c)| NpEdit::RenameColumn(f, t, c)),
+        1 => (file, any::<Index>(), any::<bool>()).prop_map(|(f, t, all)| NpEdit::Delete(f, t, all)),
+    ]
+}
+
+/// Applies `edit` to the DB (`map` false) or the map; a statement SQLite refuses leaves the file as it was.
+/// Returns the table edited.
+fn apply_edit(db: &rusqlite::Connection, map: &rusqlite::Connection, edit: &NpEdit) -> String {
+    use rusqlite::types::Value as V;
+    let (is_map, t) = match edit {
+        NpEdit::Set(m, t, ..)
+        | NpEdit::DropTable(m, t)
+        | NpEdit::RenameTable(m, t)
+        | NpEdit::RenameColumn(m, t, _)
+        | NpEdit::Delete(m, t, _) => (*m, *t),
+    };
+    let c = if is_map { map } else { db };
+    c.execute_batch("PRAGMA foreign_keys = OFF").unwrap();
+    let tables: Vec<String> = c
+        .prepare("SELECT name FROM sqlite_master WHERE type = 'table' AND name NOT LIKE 'sqlite_%' ORDER BY name")
+        .unwrap()
+        .query_map([], |r| r.get(0))
+        .unwrap()
+        .collect::<Result<_, _>>()
+        .unwrap();
+    let table = tables[t.index(tables.len())].clone();
+    let cols: Vec<String> = c
+        .prepare(&format!("PRAGMA table_info(\"{table}\")"))
+        .unwrap()
+        .query_map([], |r| r.get(1))
+        .unwrap()
+        .collect::<Result<_, _>>()
+        .unwrap();
+    let _ = match edit {
+        NpEdit::Set(_, _, row, col, cell) => {
+            let rowids: Vec<i64> = c
+                .prepare(&format!("SELECT rowid FROM \"{table}\" ORDER BY rowid"))
+                .unwrap()
+                .query_map([], |r| r.get(0))
+                .unwrap()
+                .collect::<Result<_, _>>()
+                .unwrap();
+            if rowids.is_empty() || cols.is_empty() {
+                return table;
+            }
+            let rowid = rowids[row.index(rowids.len())];
+            let col = &cols[col.index(cols.len())];
+            let old: V = c
+                .query_row(
+                    &format!("SELECT \"{col}\" FROM \"{table}\" WHERE rowid = ?1"),
+                    [rowid],
+                    |r| r.get(0),
+                )
+                .unwrap();
+            let blob = |v: &V| match v {
+                V::Blob(b) => b.clone(),
+                V::Text(t) => t.as_bytes().to_vec(),
+                _ => vec![],
+            };
+            let new = match cell {
+                Cell::Null => V::Null,
+                Cell::Int(i) => V::Integer(*i),
+                Cell::Real(f) => V::Real(*f),
+                Cell::Scale(k) => match old {
+                    V::Integer(i) => V::Real(i as f64 * k),
+                    V::Real(f) => V::Real(f * k),
+                    other => other,
+                },
+                Cell::Text(s) => V::Text(s.clone()),
+                Cell::Blob(b) => V::Blob(b.clone()),
+                Cell::Flip(flips) => {
+                    let mut b = blob(&old);
+                    for (at, x) in flips {
+                        if !b.is_empty() {
+                            let i = at.index(b.len());
+                            b[i] = *x;
+                        }
+                    }
+                    V::Blob(b)
+                }
+                Cell::Count(at, n) => {
+                    let mut b = blob(&old);
+                    if b.len() >= 4 {
+                        let i = at.index(b.len() - 3);
+                        b[i..i + 4].copy_from_slice(&n.to_le_bytes());
+                    }
+                    V::Blob(b)
+                }
+                Cell::Cut(at) => {
+                    let b = blob(&old);
+                    V::Blob(b[..at.index(b.len() + 1)].to_vec())
+                }
+            };
+            c.execute(
+                &format!("UPDATE \"{table}\" SET \"{col}\" = ?1 WHERE rowid = ?2"),
+                rusqlite::params![new, rowid],
+            )
+            .map(|_| ())
+        }
+        NpEdit::DropTable(..) => c.execute_batch(&format!("DROP TABLE \"{table}\"")),
+        NpEdit::RenameTable(..) => c.execute_batch(&format!(
+            "ALTER TABLE \"{table}\" RENAME TO \"{table}_old\""
+        )),
+        NpEdit::RenameColumn(_, _, col) => {
+            let col = &cols[col.index(cols.len())];
+            c.execute_batch(&format!(
+                "ALTER TABLE \"{table}\" RENAME COLUMN \"{col}\" TO \"{col}_x\""
+            ))
+        }
+        NpEdit::Delete(_, _, all) => c.execute_batch(&format!(
+            "DELETE FROM \"{table}\"{}",
+            if *all { "" } else { " WHERE rowid % 2 = 0" }
+        )),
+    };
+    table
+}
+
+/// Writes the pristine copy, applies `edits`, imports the whole log (or the window of a tagged lidar_pc) within
+/// the bound; what imports is simulated for 3 steps and scored. An error must name the file and a table.
+fn nuplan_mutated_import(c: &NpCopy, edits: &[NpEdit], window: bool) {
+    std::fs::write(&c.fx.db, &c.db_bytes).unwrap();
+    std::fs::write(&c.fx.map, &c.map_bytes).unwrap();
+    let mut touched = vec![];
+    {
+        let db = rusqlite::Connection::open(&c.fx.db).unwrap();
+        let map = rusqlite::Connection::open(&c.fx.map).unwrap();
+        for e in edits {
+            touched.push(apply_edit(&db, &map, e));
+        }
+    }
+    let token = window
+        .then(|| {
+            c.fx.expected["scenario_tags"][0]["lidar_pc"]
+                .as_str()
+                .map(str::to_string)
+        })
+        .flatten();
+    let spec = c.fx.spec(token.as_deref());
+    let t0 = Instant::now();
+    let r = b2dr::scene::import::nuplan::load(&spec);
+    match r {
+        Ok(sc) => {
+            let cfg = b2dr::sim::SimConfig {
+                agents: b2dr::sim::AgentMode::Idm,
+                steps: 3,
+                ..Default::default()
+            };
+            let run = b2dr::sim::run(&sc, &mut b2dr::sim::ConstantVelocityPlanner, &cfg);
+            if let Ok(s) =
+                b2dr::sim::score::score_run(&sc, &run, &b2dr::metrics::ScoreParams::default())
+            {
+                assert!(
+                    s.score.is_finite() && (0.0..=1.0).contains(&s.score),
+                    "{edits:?}: score {}",
+                    s.score
+                );
+            }
+        }
+        Err(e) => {
+            let e = format!("{e:#}");
+            assert!(
+                e.contains("nuPlan log DB") || e.contains("nuPlan map"),
+                "{edits:?} ({touched:?}): the error names no file: {e}"
+            );
+            assert!(
+                e.contains("table `") || e.contains("layer `"),
+                "{edits:?} ({touched:?}): the error names no table: {e}"
+            );
+        }
+    }
+    let took = t0.elapsed();
+    assert!(
+        took < NUPLAN_BOUND,
+        "{edits:?} ({touched:?}): import and simulation took {took:?}"
+    );
+}
+
+proptest! {
+    #![proptest_config(config(96))]
+
+    /// Mutated nuPlan log DB and GeoPackage map (1 to 3 edits: a cell replaced by a wrong type, NaN, an infinity,
+    /// an absurd magnitude, arbitrary text or bytes, a corrupted WKB geometry or pickle (bytes flipped, a count
+    /// made huge, truncated); a table dropped, renamed, emptied or halved; a column renamed): the import
+    /// returns Ok (and then simulates and scores) or an error naming the file and a table, within the bound,
+    /// never a panic.
+    #[test]
+    fn nuplan_db_and_map_import_or_err(edits in prop::collection::vec(arb_edit(), 1..4), window in any::<bool>()) {
+        static COPY: std::sync::OnceLock<Option<NpCopy>> = std::sync::OnceLock::new();
+        let Some(c) = COPY.get_or_init(nuplan_copy) else { return Ok(()) };
+        static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+        let _g = LOCK.lock().unwrap_or_else(|p| p.into_inner());
+        nuplan_mutated_import(c, &edits, window);
     }
 }
 

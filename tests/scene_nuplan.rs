@@ -281,7 +281,8 @@ fn map_gives_route_and_drivable_area() {
     assert_eq!(m.roadblocks[l11.roadblock].id, "1");
     assert_eq!(m.roadblocks[l11.roadblock].lanes.len(), 2);
     assert_eq!(m.roadblocks[c21.roadblock].id, "2");
-    assert_eq!(sc.route.roadblock_ids, vec!["1", "2", "3"]);
+    // the route of the log's two scenes ("1 2 3", "3 7"; 7 lies beyond the map), the lanes the ego drives
+    assert_eq!(sc.route.roadblock_ids, vec!["1", "2", "3", "7"]);
     assert_eq!(sc.route.lane_ids, vec!["11", "21", "31"]);
     assert_eq!(m.crosswalks.len(), 1);
     assert_eq!(m.intersections.len(), 1);
@@ -337,7 +338,8 @@ fn lonlat_map_is_projected_to_utm() {
         worst = worst.max(p.distance(*q));
     }
     assert!(worst < 1e-6, "{worst} m");
-    assert_eq!(b.route.roadblock_ids, vec!["1"]); // 4 s: the ego stays in lane group 1
+    assert_eq!(b.route.roadblock_ids, vec!["1", "2", "3", "7"]); // the scenes' routes
+    assert_eq!(b.route.lane_ids, vec!["11"]); // 4 s: the ego stays in lane 11
     eprintln!("lon / lat map projected to UTM: largest difference {worst:.2e} m");
     let _ = std::fs::remove_dir_all(&ll);
 }
@@ -486,7 +488,7 @@ fn log_without_cameras_and_text_ids() {
     .unwrap();
     assert_eq!(sc.rig.cameras.len(), 6);
     assert!(sc.rig.frames[0].images[0].path.starts_with("builtin://"));
-    assert_eq!(sc.route.roadblock_ids, vec!["1", "2", "3"]);
+    assert_eq!(sc.route.roadblock_ids, vec!["1", "2", "3", "7"]);
     // Without the image table at all, too.
     let sc = edited(
         "noimage",
@@ -654,4 +656,272 @@ fn import_speed() {
         times[0],
         if cfg!(debug_assertions) { "debug" } else { "release" }
     );
+}
+
+/// A GeoPackage LineString blob (little endian, no envelope) through `pts`.
+fn gpkg_line(pts: &[(f64, f64)]) -> Vec<u8> {
+    let mut b = b"GP\x00\x01".to_vec();
+    b.extend(0i32.to_le_bytes());
+    b.push(1);
+    b.extend(2u32.to_le_bytes());
+    b.extend((pts.len() as u32).to_le_bytes());
+    for (x, y) in pts {
+        b.extend(x.to_le_bytes());
+        b.extend(y.to_le_bytes());
+    }
+    b
+}
+
+/// Hostile and careless values (issue #18) are refused by the bounds every importer applies
+/// (`src/scene/import/bounds.rs`), each error naming the file, the table, the row and the column.
+#[test]
+fn hostile_values_are_refused() {
+    if root().is_none() {
+        return;
+    }
+    let check = |e: &str, parts: &[&str]| {
+        for p in parts {
+            assert!(e.contains(p), "error {e:?} lacks {p:?}");
+        }
+        eprintln!("{e}");
+    };
+    let cases: Vec<(&str, &str, &[&str])> = vec![
+        (
+            "UPDATE ego_pose SET x = 1e12 WHERE rowid = 5",
+            "",
+            &["table `ego_pose` row token ", "column `x`", "beyond 1e8"],
+        ),
+        (
+            "UPDATE ego_pose SET vy = -1e7 WHERE rowid = 5",
+            "",
+            &["table `ego_pose` row token ", "column `vy`", "m/s"],
+        ),
+        (
+            "UPDATE ego_pose SET qw = 1e300, qx = 1e300 WHERE rowid = 1",
+            "",
+            &[
+                "table `ego_pose` row token ",
+                "qw, qx, qy, qz",
+                "not a rotation",
+            ],
+        ),
+        (
+            "UPDATE lidar_box SET y = -3e9 WHERE rowid = 3",
+            "",
+            &["table `lidar_box` row token ", "column `y`"],
+        ),
+        (
+            "UPDATE lidar_box SET yaw = 1e9 WHERE rowid = 3",
+            "",
+            &["table `lidar_box` row token ", "column `yaw`", "rad"],
+        ),
+        (
+            "UPDATE track SET width = 1e5 WHERE rowid = 1",
+            "",
+            &["table `track` row token ", "width", "1000 m"],
+        ),
+        (
+            "UPDATE lidar_pc SET timestamp = 9223372036854775807 WHERE rowid = 9",
+            "",
+            &["table `lidar_pc` row token ", "column `timestamp`"],
+        ),
+        (
+            "UPDATE log SET location = '../../etc'",
+            "",
+            &["table `log` row token ", "column `location`", "plain name"],
+        ),
+        (
+            "UPDATE camera SET width = 1000000 WHERE channel = 'CAM_R1'",
+            "",
+            &["table `camera` row token ", "width, height", "16384"],
+        ),
+        (
+            "UPDATE camera SET channel = 'a/b' WHERE channel = 'CAM_R1'",
+            "",
+            &["table `camera` row token ", "column `channel`"],
+        ),
+        (
+            // LONG_BINPUT 0xffffffff: the memo would be sized from a 4-byte field
+            "UPDATE camera SET rotation = X'80045d72ffffffff2e' WHERE channel = 'CAM_F0'",
+            "",
+            &[
+                "table `camera` row token ",
+                "column `rotation`",
+                "memo key 4294967295",
+            ],
+        ),
+        (
+            "UPDATE image SET filename_jpg = '../../../etc/passwd' WHERE rowid = 4",
+            "",
+            &[
+                "table `image` row token ",
+                "column `filename_jpg`",
+                "relative path",
+            ],
+        ),
+        (
+            "",
+            "UPDATE lanes_polygons SET speed_limit_mps = -4 WHERE fid = 12",
+            &[
+                "map.gpkg",
+                "table `lanes_polygons` row fid 12",
+                "speed_limit_mps",
+            ],
+        ),
+    ];
+    for (i, (db_sql, map_sql, parts)) in cases.into_iter().enumerate() {
+        let e = broken(&format!("hostile{i}"), |db, map| {
+            if !db_sql.is_empty() {
+                db.execute_batch(db_sql).unwrap();
+            }
+            if !map_sql.is_empty() {
+                map.execute_batch(map_sql).unwrap();
+            }
+        });
+        check(&e, parts);
+    }
+    // A map geometry with a point beyond the coordinate bound (and one that is NaN).
+    for (k, bad) in [(1e12, 0.0), (f64::NAN, 1.0)].into_iter().enumerate() {
+        let e = broken(&format!("hostile_geom{k}"), |_, map| {
+            let (x0, y0) = (664_400.0, 3_996_800.0);
+            map.execute(
+                "UPDATE baseline_paths SET geom = ?1 WHERE fid = 1011",
+                [gpkg_line(&[(x0, y0), bad])],
+            )
+            .unwrap();
+        });
+        check(
+            &e,
+            &[
+                "map.gpkg",
+                "table `baseline_paths` row fid 1011",
+                "column `geom`",
+                "not finite or lies beyond",
+            ],
+        );
+    }
+}
+
+/// The route and mission goal come from the `scene` rows as the devkit reads them (issue #17): a scenario
+/// token's lidar_pc -> its scene's space-separated `roadblock_ids` and `goal_ego_pose_token`; the whole log
+/// concatenates its scenes' routes. Without a `scene` table, or with NULL `roadblock_ids`, the roadblocks the
+/// logged ego drives through; hostile ids and a dangling goal are errors naming the scene row.
+#[test]
+fn route_and_goal_come_from_the_scene_table() {
+    let Some(root) = root() else { return };
+    let ex = expected(root);
+    let db = db_path(root);
+    let scenes = ex["scenes"].as_array().unwrap();
+    let goal = |k: usize| -> [f64; 3] {
+        let g = &scenes[k]["goal"];
+        [f(&g[0]), f(&g[1]), f(&g[2])]
+    };
+    let same = |p: Option<b2dr::scene::geometry::Pose2>, g: [f64; 3]| {
+        let p = p.expect("a goal");
+        assert!(
+            (p.x - g[0]).abs() < 1e-6
+                && (p.y - g[1]).abs() < 1e-6
+                && (p.heading - g[2]).abs() < 1e-9,
+            "{p:?} vs {g:?}"
+        );
+    };
+    let whole = nuplan::load_log(&spec(&db, None)).unwrap();
+    assert_eq!(whole.scenario.route.roadblock_ids, vec!["1", "2", "3", "7"]);
+    same(whole.goal, goal(1));
+    // the second scene's first lidar_pc: its scene only (the ego drives 1, 2, 3 in that window)
+    let second = scenes[1]["first_lidar_pc"].as_str().unwrap();
+    let w = nuplan::load_log(&spec(&db, Some(second))).unwrap();
+    assert_eq!(w.scenario.route.roadblock_ids, vec!["3", "7"]);
+    assert_eq!(w.scenario.route.lane_ids, vec!["11", "21", "31"]);
+    same(w.goal, goal(1));
+    // a tag in the first scene
+    let tag = ex["scenario_tags"][0]["lidar_pc"].as_str().unwrap();
+    let w = nuplan::load_log(&spec(&db, Some(tag))).unwrap();
+    assert_eq!(w.scenario.route.roadblock_ids, vec!["1", "2", "3"]);
+    same(w.goal, goal(0));
+    // no scene table / no roadblock ids: the roadblocks the logged ego drives through
+    let noscene = edited(
+        "noscene",
+        |db, _| db.execute_batch("DROP TABLE scene").unwrap(),
+        nuplan::load_log,
+    )
+    .unwrap();
+    assert_eq!(noscene.scenario.route.roadblock_ids, vec!["1", "2", "3"]);
+    assert!(noscene.goal.is_none());
+    let null = edited(
+        "nullroute",
+        |db, _| {
+            db.execute_batch("UPDATE scene SET roadblock_ids = NULL")
+                .unwrap()
+        },
+        nuplan::load,
+    )
+    .unwrap();
+    assert_eq!(null.route.roadblock_ids, vec!["1", "2", "3"]);
+    // hostile: 20000 ids, a dangling goal
+    let e = broken("manyids", |db, _| {
+        let ids: Vec<String> = (0..20_000).map(|i| i.to_string()).collect();
+        db.execute("UPDATE scene SET roadblock_ids = ?1", [ids.join(" ")])
+            .unwrap();
+    });
+    assert!(
+        e.contains("table `scene` row token ") && e.contains("column `roadblock_ids`"),
+        "{e}"
+    );
+    let e = broken("goal", |db, _| {
+        db.execute_batch("UPDATE scene SET goal_ego_pose_token = X'00000000000000ff'")
+            .unwrap()
+    });
+    assert!(
+        e.contains("table `scene` row token ")
+            && e.contains("column `goal_ego_pose_token`")
+            && e.contains("dangling"),
+        "{e}"
+    );
+}
+
+/// `config.json` fingerprints the log DB and its map (for `--resume`, issue #18); a log that cannot be read is
+/// recorded as unreadable and fails on its own (score 0, counted in `failures`), not the whole batch.
+#[test]
+fn inputs_are_fingerprinted_and_a_missing_log_fails_alone() {
+    let Some(root) = root() else { return };
+    let out = std::env::temp_dir().join(format!("b2dr_nuplan_inputs_{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let db = db_path(root);
+    let missing = root.join("missing.db");
+    let scenario = format!("nuplan:{},nuplan:{}", db.display(), missing.display());
+    let o = b2dr()
+        .args(["sim", "--scenario", &scenario, "--planner", "cv"])
+        .args([
+            "--agents",
+            "none",
+            "--steps",
+            "5",
+            "--bev-every",
+            "0",
+            "--out",
+        ])
+        .arg(&out)
+        .output()
+        .unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let s: Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("metrics.json")).unwrap()).unwrap();
+    assert_eq!(s["failures"].as_u64(), Some(1), "{s}");
+    let cfg: Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("config.json")).unwrap()).unwrap();
+    let inputs = cfg["input_files"].as_object().unwrap();
+    let d = &inputs[&db.display().to_string()];
+    assert_eq!(
+        d["size"].as_u64(),
+        Some(std::fs::metadata(&db).unwrap().len())
+    );
+    assert!(inputs.keys().any(|k| k.ends_with("map.gpkg")), "{cfg}");
+    assert!(
+        inputs[&missing.display().to_string()]["unreadable"]
+            .as_str()
+            .is_some_and(|e| e.contains("no such file")),
+        "{cfg}"
+    );
+    let _ = std::fs::remove_dir_all(&out);
 }

@@ -960,3 +960,191 @@ fn camera_sweeps_become_frames() {
     assert!((img.timestamp_us - 250_000).abs() < 42_000);
     let _ = std::fs::remove_dir_all(&root);
 }
+
+/// Makes a FIFO at `p` (`mkfifo`); false when that fails.
+fn mkfifo(p: &Path) -> bool {
+    Command::new("mkfifo")
+        .arg(p)
+        .status()
+        .is_ok_and(|s| s.success())
+}
+
+/// Symbolic links in a DATAROOT (issue #18; docs/nuscenes.md "Symbolic links"): links that point outside the
+/// DATAROOT are followed (the tables folder, the maps and the images of this copy all live in the fixture's
+/// DATAROOT), while a link (or a file) that is not a regular file once followed (a FIFO here: reading it would
+/// block) is an error naming the table, or the sample_data row and its filename, and fails fast.
+#[test]
+fn symlinks_in_the_dataroot() {
+    let Some(root) = dataroot() else { return };
+    let dst = std::env::temp_dir().join(format!("b2dr_nuscenes_links_{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dst);
+    std::fs::create_dir_all(&dst).unwrap();
+    for d in ["v1.0-mini", "maps", "samples"] {
+        std::os::unix::fs::symlink(root.join(d), dst.join(d)).unwrap();
+    }
+    let log = nuscenes::load_log(&spec(&dst)).unwrap();
+    let img = &log.scenario.rig.frames[0].images[0];
+    assert!(img.path.starts_with(dst.to_str().unwrap()), "{}", img.path);
+    assert!(Path::new(&img.path).is_file(), "{}", img.path);
+    let want = nuscenes::load(&spec(root)).unwrap();
+    assert_eq!(log.scenario.ego.len(), want.ego.len());
+    assert_eq!(log.scenario.tracks.len(), want.tracks.len());
+
+    // A table that is a link to a FIFO outside the DATAROOT.
+    let fifo = std::env::temp_dir().join(format!("b2dr_nuscenes_fifo_{}", std::process::id()));
+    let _ = std::fs::remove_file(&fifo);
+    if !mkfifo(&fifo) {
+        eprintln!("skipping the FIFO part: mkfifo failed");
+        let _ = std::fs::remove_dir_all(&dst);
+        return;
+    }
+    std::fs::remove_file(dst.join("v1.0-mini")).unwrap();
+    std::fs::create_dir_all(dst.join("v1.0-mini")).unwrap();
+    for e in std::fs::read_dir(root.join("v1.0-mini")).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, dst.join("v1.0-mini").join(p.file_name().unwrap())).unwrap();
+    }
+    let ego = dst.join("v1.0-mini/ego_pose.json");
+    std::fs::remove_file(&ego).unwrap();
+    std::os::unix::fs::symlink(&fifo, &ego).unwrap();
+    let t0 = Instant::now();
+    let e = format!("{:#}", nuscenes::load(&spec(&dst)).unwrap_err());
+    assert!(
+        e.contains("table `ego_pose`") && e.contains("not a regular file"),
+        "{e}"
+    );
+    std::fs::remove_file(&ego).unwrap();
+    std::fs::copy(root.join("v1.0-mini/ego_pose.json"), &ego).unwrap();
+
+    // An image that is a link to the FIFO.
+    std::fs::remove_file(dst.join("samples")).unwrap();
+    let cams = dst.join("samples/CAM_FRONT");
+    std::fs::create_dir_all(&cams).unwrap();
+    let first = std::fs::read_dir(root.join("samples/CAM_FRONT"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .min()
+        .unwrap();
+    std::os::unix::fs::symlink(&fifo, cams.join(&first)).unwrap();
+    let e = format!("{:#}", nuscenes::load(&spec(&dst)).unwrap_err());
+    assert!(
+        e.contains("table `sample_data`")
+            && e.contains("column `filename`")
+            && e.contains(first.to_str().unwrap())
+            && e.contains("not a regular file"),
+        "{e}"
+    );
+    assert!(t0.elapsed() < std::time::Duration::from_secs(30));
+    let _ = std::fs::remove_dir_all(&dst);
+    let _ = std::fs::remove_file(&fifo);
+}
+
+/// Dividers (`road_divider`, `lane_divider`: their `line` geometry) and stop lines (`stop_line` polygons as
+/// convex quadrilaterals) of the map expansion come into the scene map (issue #17): exactly the fixture's
+/// records that meet the region, with their points.
+#[test]
+fn dividers_and_stop_lines_come_from_the_map_expansion() {
+    use b2dr::scene::geometry::Aabb;
+    use b2dr::scene::map::MapLineKind;
+    use glam::DVec2;
+    use std::collections::HashMap;
+    let Some(root) = dataroot() else { return };
+    let sc = nuscenes::load(&spec(root)).unwrap();
+    assert!(!sc.map.lines.is_empty() && !sc.map.stop_lines.is_empty());
+    let region = Aabb::from_points(&sc.ego.iter().map(|e| e.rear_axle.pos()).collect::<Vec<_>>())
+        .expand(200.0);
+    let map = nuscenes::expansion::load(root, "singapore-onenorth", &region).unwrap();
+    let file: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(root.join("maps/expansion/singapore-onenorth.json")).unwrap(),
+    )
+    .unwrap();
+    let nodes: HashMap<&str, DVec2> = file["node"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|n| {
+            (
+                n["token"].as_str().unwrap(),
+                DVec2::new(n["x"].as_f64().unwrap(), n["y"].as_f64().unwrap()),
+            )
+        })
+        .collect();
+    let pts = |toks: &serde_json::Value| -> Vec<DVec2> {
+        toks.as_array()
+            .unwrap()
+            .iter()
+            .map(|t| nodes[t.as_str().unwrap()])
+            .collect()
+    };
+    let lines: HashMap<&str, Vec<DVec2>> = file["line"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| (l["token"].as_str().unwrap(), pts(&l["node_tokens"])))
+        .collect();
+    let polys: HashMap<&str, Vec<DVec2>> = file["polygon"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| {
+            (
+                p["token"].as_str().unwrap(),
+                pts(&p["exterior_node_tokens"]),
+            )
+        })
+        .collect();
+    let meets = |p: &[DVec2]| region.overlaps(&Aabb::from_points(p));
+    let mut want = vec![];
+    for (layer, kind) in [
+        ("road_divider", MapLineKind::RoadDivider),
+        ("lane_divider", MapLineKind::LaneDivider),
+    ] {
+        for r in file[layer].as_array().unwrap() {
+            let p = &lines[r["line_token"].as_str().unwrap()];
+            if meets(p) {
+                want.push((r["token"].as_str().unwrap().to_string(), kind, p.clone()));
+            }
+        }
+    }
+    assert!(want.iter().any(|w| w.1 == MapLineKind::RoadDivider));
+    assert!(want.iter().any(|w| w.1 == MapLineKind::LaneDivider));
+    let got: Vec<_> = map
+        .lines
+        .iter()
+        .map(|l| (l.id.clone(), l.kind, l.points.clone()))
+        .collect();
+    assert_eq!(got, want);
+    let want_stop: Vec<(String, Vec<DVec2>)> = file["stop_line"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| {
+            (
+                r["token"].as_str().unwrap().to_string(),
+                polys[r["polygon_token"].as_str().unwrap()].clone(),
+            )
+        })
+        .filter(|(_, p)| meets(p))
+        .collect();
+    assert!(!want_stop.is_empty());
+    let got_stop: Vec<(String, Vec<DVec2>)> = map
+        .stop_lines
+        .iter()
+        .map(|s| (s.id.clone(), s.polygon.to_vec()))
+        .collect();
+    assert_eq!(got_stop, want_stop);
+    // a stop line polygon that is not a quadrilateral: the rectangle along its longest edge enclosing it
+    let q = nuscenes::expansion::quadrilateral(&[
+        DVec2::new(0.0, 0.0),
+        DVec2::new(4.0, 0.0),
+        DVec2::new(4.0, 1.0),
+        DVec2::new(2.0, 1.5),
+        DVec2::new(0.0, 1.0),
+    ])
+    .unwrap();
+    let near = |a: DVec2, b: DVec2| a.distance(b) < 1e-12;
+    assert!(
+        near(q[0], DVec2::new(0.0, 0.0)) && near(q[2], DVec2::new(4.0, 1.5)),
+        "{q:?}"
+    );
+}

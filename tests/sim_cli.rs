@@ -378,3 +378,70 @@ fn comparison_out_in_the_scenario_folder_is_refused() {
     assert!(!dir.join("comparison.json").exists() && !dir.join("none").exists());
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `--resume` checks the content of its inputs (issue #18): config.json records each scenario file's and the
+/// planner script's size and hash; a resume after either changed is refused naming the file; unchanged inputs
+/// resume (skipping the finished scenario).
+#[test]
+fn resume_refuses_changed_scenario_or_planner_files() {
+    let dir = tmp("resume_inputs");
+    let (scenarios, out) = (dir.join("scenarios"), dir.join("out"));
+    std::fs::create_dir_all(&scenarios).unwrap();
+    let a = scenarios.join("a.json");
+    std::fs::write(&a, tiny_scenario("a")).unwrap();
+    std::fs::write(scenarios.join("b.json"), tiny_scenario("b")).unwrap();
+    let script = dir.join("planner.sh");
+    let client = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("examples/planner_client.py");
+    let body = format!("exec python3 {} --mode cv\n", client.display());
+    std::fs::write(&script, &body).unwrap();
+    let run = |resume: bool| {
+        let mut c = b2dr();
+        c.args(["sim", "--agents", "none", "--bev-every", "0", "--planner"])
+            .arg(format!("cmd:sh {}", script.display()))
+            .arg("--scenario")
+            .arg(&scenarios)
+            .arg("--out")
+            .arg(&out);
+        if resume {
+            c.arg("--resume");
+        }
+        c.output().unwrap()
+    };
+    let o = run(false);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let cfg: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("config.json")).unwrap()).unwrap();
+    let inputs = cfg["input_files"].as_object().unwrap();
+    assert_eq!(inputs.len(), 3, "{cfg}");
+    let key = a.display().to_string();
+    assert_eq!(inputs[&key]["role"], "scenario", "{cfg}");
+    assert_eq!(inputs[&script.display().to_string()]["role"], "planner");
+    // unchanged: resumes
+    let o = run(true);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    // a scenario file changed in place (same size: one digit)
+    let text = tiny_scenario("a");
+    let changed = text.replacen("1.0", "2.0", 1);
+    assert_eq!(changed.len(), text.len());
+    assert_ne!(changed, text);
+    std::fs::write(&a, &changed).unwrap();
+    let o = run(true);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success()
+            && e.contains("--resume")
+            && e.contains(&format!("the scenario {key} changed")),
+        "{e}"
+    );
+    std::fs::write(&a, &text).unwrap();
+    assert!(run(true).status.success());
+    // the planner script changed
+    std::fs::write(&script, format!("# v2\n{body}")).unwrap();
+    let o = run(true);
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && e.contains(&format!("the planner {} changed", script.display())),
+        "{e}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -6,7 +6,7 @@ use b2dr::sim::planner::trajectory_from_ego_frame;
 use b2dr::sim::trajectory::Trajectory;
 use b2dr::sim::{run, AgentMode, ExpertPlanner, IdmPlanner, Planner, PlannerInput, SimConfig};
 use b2dr::world::town as synthetic;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 fn trace_bytes(r: &b2dr::sim::SimResult) -> Vec<u8> {
@@ -240,4 +240,113 @@ fn a_planner_replying_1000_poses_runs_in_bounded_time() {
     assert_eq!(r.steps.len(), 41);
     assert!(t0.elapsed() < Duration::from_secs(10), "{:?}", t0.elapsed());
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Whether process `pid` is alive (a zombie counts as dead).
+fn pid_alive(pid: u32) -> bool {
+    std::fs::read_to_string(format!("/proc/{pid}/stat"))
+        .map(|s| {
+            let state = s[s.rfind(')').map_or(0, |i| i + 1)..]
+                .split_whitespace()
+                .next()
+                .unwrap_or("");
+            state != "Z" && state != "X"
+        })
+        .unwrap_or(false)
+}
+
+/// A planner that starts a descendant in its own session (`setsid`: outside the planner's process group, so
+/// the group kill does not reach it) holding the planner's stdin and stdout open (issue #18): a planner that
+/// then serves normally finishes its scenario, one that exits without replying fails at the timeout (the read
+/// does not wait for an EOF the descendant withholds), and in both cases the descendant is killed with the
+/// planner.
+#[test]
+fn a_planner_whose_setsid_child_holds_the_pipes_does_not_hang() {
+    if !python_available() || !Path::new("/proc/self/fd").is_dir() {
+        println!("SKIP: python3 or /proc not available");
+        return;
+    }
+    let sc = synthetic::town(2, None);
+    let cfg = SimConfig {
+        agents: AgentMode::Idm,
+        steps: 6,
+        ..SimConfig::default()
+    };
+    let dir = std::env::temp_dir().join(format!("b2dr_setsid_{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let script = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("examples/planner_client.py");
+    for (case, serve, needle) in [
+        (
+            "serves",
+            format!("exec python3 {} --mode cv", script.display()),
+            None,
+        ),
+        ("exits", "exit 0".to_string(), Some("timed out")),
+    ] {
+        let pidfile = dir.join(format!("{case}.pid"));
+        let _ = std::fs::remove_file(&pidfile);
+        // the escaped child: its own session, stdin / stdout inherited from the planner's shell
+        let escape = format!(
+            "python3 -c 'import os, sys, time; os.setsid(); open(sys.argv[1], \"w\").write(str(os.getpid())); time.sleep(600)' {} &",
+            pidfile.display()
+        );
+        let wait_pid = format!("while [ ! -s {} ]; do sleep 0.05; done", pidfile.display());
+        let cmd = format!("{escape} {wait_pid}; {serve}");
+        let mut p = ExternalPlanner::new(&cmd, Duration::from_secs(3)).unwrap();
+        let t0 = std::time::Instant::now();
+        let r = run(&sc, &mut p, &cfg);
+        let took = t0.elapsed();
+        let f = r.failure.clone().unwrap_or_default();
+        println!("{case}: {f:?} in {took:?}");
+        match needle {
+            None => assert!(r.failure.is_none(), "{case}: {f}"),
+            Some(n) => assert!(f.contains(n), "{case}: {f}"),
+        }
+        assert!(took < Duration::from_secs(12), "{case}: took {took:?}");
+        drop(p);
+        let pid: u32 = std::fs::read_to_string(&pidfile)
+            .unwrap()
+            .trim()
+            .parse()
+            .unwrap();
+        let deadline = std::time::Instant::now() + Duration::from_secs(3);
+        while pid_alive(pid) && std::time::Instant::now() < deadline {
+            std::thread::sleep(Duration::from_millis(20));
+        }
+        if pid_alive(pid) {
+            // SAFETY: plain syscall on the test's own escaped process, so that a failing test leaves none
+            unsafe { libc::kill(pid as i32, libc::SIGKILL) };
+            panic!("{case}: the setsid child {pid} outlived its planner");
+        }
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The simulator's dt guard (issue #18): a scenario built in code with a step that is not a time step (NaN,
+/// infinite, zero, negative, subnormal, huge) ends at once with a reason naming dt, instead of sizing horizons
+/// (seconds / dt poses) from it; a valid step runs.
+#[test]
+fn a_scenario_with_a_bad_dt_is_refused_by_the_simulator() {
+    let cfg = SimConfig {
+        agents: AgentMode::Idm,
+        steps: 5,
+        ..SimConfig::default()
+    };
+    for dt in [f64::NAN, f64::INFINITY, 0.0, -0.1, 5e-324, 1e-9, 1e6] {
+        let mut sc = synthetic::town(2, None);
+        sc.dt = dt;
+        let t0 = std::time::Instant::now();
+        let r = run(&sc, &mut ExpertPlanner, &cfg);
+        let f = r.failure.clone().unwrap_or_default();
+        assert!(f.contains("dt") && f.contains("time step"), "{dt}: {f:?}");
+        assert!(r.steps.is_empty(), "{dt}");
+        assert!(
+            t0.elapsed() < Duration::from_secs(1),
+            "{dt}: {:?}",
+            t0.elapsed()
+        );
+    }
+    let mut sc = synthetic::town(2, None);
+    sc.dt = 0.05;
+    assert!(run(&sc, &mut ExpertPlanner, &cfg).failure.is_none());
 }

@@ -16,7 +16,10 @@ The known scenario (`--seconds`, default 20 s, at 20 Hz in the DB):
 - tracks: a car ahead in lane 11 at 10 m/s, a pedestrian walking across at x = 97, a cyclist in lane 12
   (appears at t = 2 s, leaves at t = 15 s), a static traffic cone;
 - traffic_light_status on connector 21: green for t < 8 s, yellow until 10 s, red after; unknown on 22;
-- scene (whole log) with roadblock_ids "1,2,3", scenario_tag rows at t = 2 s and t = 4 s;
+- two scenes (the first and the second half of the log; `lidar_pc.scene_token`) with the devkit's space-separated
+  `roadblock_ids`: "1 2 3" and "3 7" (7: a roadblock beyond the fixture's map, as a route may run past the loaded
+  region), `goal_ego_pose_token` = the ego pose of each scene's last lidar_pc; scenario_tag rows at t = 2 s and
+  t = 4 s;
 - 8 cameras (CAM_F0 ... CAM_L2) with pickled calibration: translation and rotation as pickled lists, intrinsic and
   distortion as pickled numpy arrays (both forms occur in logs), 64 x 36 px; images at 10 Hz each.
 
@@ -367,7 +370,8 @@ def write_fixture(out: Path, seconds: float = 20.0, png: bool = False, lonlat: b
         cams.append({"channel": ch, "token": tok, "translation": tr, "rotation": q, "intrinsic": intr.tolist(),
                      "distortion": dist.tolist(), "width": CAM_W, "height": CAM_H})
     n = int(round(seconds * 20)) + 1
-    scene_tok = token()
+    scene_toks = [token(), token()]
+    half = n // 2
     lpc = [token() for _ in range(n)]
     track_tok, track_last = {}, {}
     poses = []
@@ -381,7 +385,7 @@ def write_fixture(out: Path, seconds: float = 20.0, png: bool = False, lonlat: b
                    (ep, ts, x, y, 0.0, *q, v, 0.0, 0.0, 0.1, 0.0, 0.0, 0.0, 0.0, 0.0, EPSG, log_tok))
         poses.append(ep)
         db.execute("INSERT INTO lidar_pc VALUES (?,?,?,?,?,?,?,?)",
-                   (lpc[k], lpc[k + 1] if k + 1 < n else None, lpc[k - 1] if k > 0 else None, scene_tok, ep,
+                   (lpc[k], lpc[k + 1] if k + 1 < n else None, lpc[k - 1] if k > 0 else None, scene_toks[k >= half], ep,
                     lidar_tok, f"{LOG}/MergedPointCloud/{lpc[k].hex()}.pcd", ts))
         for name, cat, (l, w, h), bx, by, byaw, vx, vy in tracks_at(t):
             if name not in track_tok:
@@ -414,7 +418,9 @@ def write_fixture(out: Path, seconds: float = 20.0, png: bool = False, lonlat: b
                 if c.get("last") is not None:
                     db.execute("UPDATE image SET next_token = ? WHERE token = ?", (tokn, c["last"]))
                 c["last"] = tokn
-    db.execute("INSERT INTO scene VALUES (?,?,?,?,?)", (scene_tok, log_tok, "scene-0001", poses[-1], "1,2,3"))
+    scenes = [("scene-0001", 0, half - 1, "1 2 3"), ("scene-0002", half, n - 1, "3 7")]
+    for tok, (name, first, last, rbs) in zip(scene_toks, scenes):
+        db.execute("INSERT INTO scene VALUES (?,?,?,?,?)", (tok, log_tok, name, poses[last], rbs))
     tags = [(40, "on_intersection"), (80, "following_lane_with_lead")]
     for k, kind in tags:
         if k < n:
@@ -436,6 +442,9 @@ def write_fixture(out: Path, seconds: float = 20.0, png: bool = False, lonlat: b
         "lidar_pc": n, "tracks": {nm: track_tok[nm].hex() for nm in track_tok},
         "track_sizes": {"car": [4.8, 2.0, 1.6], "ped": [0.6, 0.6, 1.8], "cone": [0.4, 0.4, 0.7],
                         "bike": [1.8, 0.6, 1.5]},
+        "scenes": [{"token": tok.hex(), "name": name, "first_lidar_pc": lpc[first].hex(), "roadblock_ids": rbs.split(" "),
+                    "goal": list(ego_at(last * 0.05)[:3])}
+                   for tok, (name, first, last, rbs) in zip(scene_toks, scenes)],
         "scenario_tags": [{"lidar_pc": lpc[k].hex(), "type": kind, "t": k * 0.05} for k, kind in tags if k < n],
         "cameras": [{k: v for k, v in c.items() if k not in ("token", "last")} for c in cams],
         "images_per_camera": (n + 1) // 2,

@@ -30,7 +30,8 @@ road_divider records, `arcline_path_3`, `connectivity`). Where the values come f
 - map: the scene's ScenarioNet lanes (with polygon) become `lane`, those without become `lane_connector` (polygon:
   the centre line buffered by 1.75 m each side), centre lines become straight `arcline_path_3` pieces, links are
   inferred from geometry (end within 1 m of a start, headings within 30 degrees) into `connectivity`;
-  ROAD_LINE_BROKEN_SINGLE_WHITE -> lane_divider, ROAD_LINE_SOLID_SINGLE_YELLOW -> road_divider; the drivable area is
+  ROAD_LINE_BROKEN_SINGLE_WHITE -> lane_divider, ROAD_LINE_SOLID_SINGLE_YELLOW -> road_divider; a `stop_line`
+  (TURN_STOP, a quadrilateral 1 m deep) across the end of every lane leading into a connector; the drivable area is
   `maps/<map>.drivable_area.geojson` cropped to 300 m around the scene.
 
 Only the Python standard library is needed (`python3 -m b2dr_ref.nuscenes_fixture --shared DIR --out DIR`).
@@ -67,6 +68,7 @@ LIDAR_CALIB = ([0.943713, 0.0, 1.84023], [0.7077955119163518, -0.006492242056004
 CONNECTOR_HALF_WIDTH = 1.75
 LINK_GAP_M, LINK_HEADING_RAD = 1.0, math.radians(30.0)
 DRIVABLE_MARGIN_M = 300.0
+STOP_LINE_DEPTH_M = 1.0
 
 
 def token(*parts) -> str:
@@ -264,6 +266,21 @@ def expansion_map(scene, drivable_geojson, centre):
     for i, j in infer_links(centres):
         connectivity[centres[i][0]]["outgoing"].append(centres[j][0])
         connectivity[centres[j][0]]["incoming"].append(centres[i][0])
+    # Stop lines (ScenarioNet's conversion keeps none): a TURN_STOP line across the end of every lane that leads
+    # into a connector, a quadrilateral 1 m deep ending at the lane's end.
+    connectors = {c["token"] for c in connector}
+    stop = []
+    for fid, pts in centres:
+        if fid in connectors or not any(o in connectors for o in connectivity[fid]["outgoing"]):
+            continue
+        (ex, ey), (px, py) = pts[-1], pts[-2]
+        d = math.hypot(ex - px, ey - py) or 1.0
+        back = [ex - (ex - px) / d * STOP_LINE_DEPTH_M, ey - (ey - py) / d * STOP_LINE_DEPTH_M]
+        a, b = _edge(pts[-1], pts[-2], flip=True)
+        c, e = _edge(back, pts[-2], flip=True)
+        pt = mw.add_polygon(("stop", fid), [a, b, e, c])
+        stop.append({"token": token("stop_line", fid), "polygon_token": pt, "stop_line_type": "TURN_STOP",
+                     "ped_crossing_tokens": [], "traffic_light_tokens": [], "road_block_token": ""})
     polys = drivable_geojson["coordinates"] if drivable_geojson["type"] == "MultiPolygon" else [
         drivable_geojson["coordinates"]]
     cx, cy = centre
@@ -278,14 +295,14 @@ def expansion_map(scene, drivable_geojson, centre):
         # GeoJSON repeats the first vertex at the end; nuScenes polygons do not.
         rings = [r[:-1] if len(r) > 1 and r[0] == r[-1] else r for r in rings]
         kept.append(mw.add_polygon(("drivable", k), rings[0], rings[1:]))
-    empty = ["road_segment", "road_block", "ped_crossing", "walkway", "stop_line", "carpark_area", "traffic_light"]
+    empty = ["road_segment", "road_block", "ped_crossing", "walkway", "carpark_area", "traffic_light"]
     out = {
         "version": "1.3",
         "canvas_edge": [2000.0, 2000.0],
         "node": mw.node, "line": mw.line, "polygon": mw.polygon,
         "drivable_area": [{"token": token("drivable_area", 0), "polygon_tokens": kept}],
         "lane": lane, "lane_connector": connector,
-        "lane_divider": lane_div, "road_divider": road_div,
+        "lane_divider": lane_div, "road_divider": road_div, "stop_line": stop,
         "arcline_path_3": arc, "connectivity": connectivity,
     }
     for k in empty:

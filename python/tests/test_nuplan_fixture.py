@@ -26,6 +26,11 @@ def test_tables_tokens_and_rates(fixture):
     for t in tables:
         for (tok,) in db.execute(f"SELECT token FROM {t}"):
             assert isinstance(tok, bytes) and len(tok) == 8, t
+    # two scenes, the devkit's space-separated roadblock ids, goals are ego poses
+    scenes = db.execute("SELECT token, roadblock_ids, goal_ego_pose_token FROM scene ORDER BY name").fetchall()
+    assert [r[1] for r in scenes] == ["1 2 3", "3 7"]
+    assert all(db.execute("SELECT count(*) FROM ego_pose WHERE token = ?", (r[2],)).fetchone()[0] == 1 for r in scenes)
+    assert db.execute("SELECT count(DISTINCT scene_token) FROM lidar_pc").fetchone()[0] == 2
     ts = [r[0] for r in db.execute("SELECT timestamp FROM lidar_pc ORDER BY timestamp")]
     assert len(ts) == 81 and all(b - a == 50_000 for a, b in zip(ts, ts[1:]))
     # Foreign keys resolve.

@@ -125,6 +125,12 @@ def test_map_expansion(fixture):
     da = m["drivable_area"][0]["polygon_tokens"]
     assert da and all(p in polys for p in da)
     assert m["lane_divider"] and m["road_divider"]
+    # stop lines: a quadrilateral polygon each, across the end of a lane leading into a connector
+    connectors = {r["token"] for r in m["lane_connector"]}
+    assert len(m["stop_line"]) > 10
+    for sl in m["stop_line"]:
+        assert sl["stop_line_type"] == "TURN_STOP" and len(polys[sl["polygon_token"]]["exterior_node_tokens"]) == 4
+    assert connectors
 
 
 def test_camera_sweeps(tmp_path):

@@ -104,6 +104,179 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
         .with_context(|| format!("renaming {} to {}", tmp.display(), path.display()))
 }
 
+/// Key of `config.json` holding the content fingerprints of the files the batch reads ([`with_inputs`]).
+pub const INPUTS_KEY: &str = "input_files";
+
+/// Content fingerprint of a file: its size and a 64-bit FNV-1a style hash over its 8-byte little-endian words in
+/// four interleaved lanes (the tail zero-padded, the lanes folded by FNV-1a), read in 1 MiB blocks: fast enough
+/// for multi-GB nuPlan DBs (memory bandwidth, not one multiply per byte). Detects any change of content
+/// (with 2^-64 odds of missing one), not an adversary.
+pub fn file_fingerprint(path: &Path) -> Result<Value> {
+    use std::io::Read;
+    const P: u64 = 0x0000_0100_0000_01b3;
+    let mut f = std::fs::File::open(path).with_context(|| format!("hashing {}", path.display()))?;
+    let mut lanes = [0xcbf2_9ce4_8422_2325u64; 4];
+    for (i, l) in lanes.iter_mut().enumerate() {
+        *l ^= i as u64;
+    }
+    let mut buf = vec![0u8; 1 << 20];
+    let mut size = 0u64;
+    let mut word = 0usize;
+    loop {
+        // fill the block whole (a short read mid-file would shift the words)
+        let mut n = 0;
+        while n < buf.len() {
+            let k = f
+                .read(&mut buf[n..])
+                .with_context(|| format!("hashing {}", path.display()))?;
+            if k == 0 {
+                break;
+            }
+            n += k;
+        }
+        if n == 0 {
+            break;
+        }
+        size += n as u64;
+        let padded = n.div_ceil(8) * 8;
+        buf[n..padded].fill(0);
+        for w in buf[..padded].chunks_exact(8) {
+            let x = u64::from_le_bytes(w.try_into().unwrap_or([0; 8]));
+            let l = &mut lanes[word % 4];
+            *l = (*l ^ x).wrapping_mul(P);
+            word += 1;
+        }
+        if n < buf.len() {
+            break;
+        }
+    }
+    let mut h = 0xcbf2_9ce4_8422_2325u64;
+    for b in lanes
+        .iter()
+        .flat_map(|l| l.to_le_bytes())
+        .chain(size.to_le_bytes())
+    {
+        h = (h ^ b as u64).wrapping_mul(P);
+    }
+    Ok(json!({"size": size, "fnv1a64x4": format!("{h:016x}")}))
+}
+
+/// The files a planner command line reads that can be named: every word of it (split at blanks, quotes
+/// removed) that names an existing regular file, e.g. the script of `python3 planner.py --weights w.pt` and its
+/// weights. `python -m module` planners name no file.
+pub fn planner_files(planner: &str) -> Vec<PathBuf> {
+    let Some(cmd) = planner.strip_prefix("cmd:") else {
+        return vec![];
+    };
+    cmd.split_whitespace()
+        .map(|w| w.trim_matches(|c| c == '"' || c == '\'').to_string())
+        .flat_map(|w| {
+            // `--flag=FILE` names FILE
+            let tail = w.split_once('=').map(|(_, t)| t.to_string());
+            [Some(w), tail]
+        })
+        .flatten()
+        .map(PathBuf::from)
+        .filter(|p| p.is_file())
+        .collect()
+}
+
+/// `config` with [`INPUTS_KEY`]: the fingerprint ([`file_fingerprint`]) of every file the scenarios are read
+/// from (a ScenarioNet file; a nuScenes scene's tables and map expansion; a nuPlan log DB and its map) and of
+/// every file the planner command names ([`planner_files`]), by path, so that `--resume` refuses a folder whose
+/// inputs changed since (naming the file). Built-in scenarios read no file; images are not hashed. A file that
+/// cannot be read is recorded as such (`"unreadable"`: its scenario fails on its own, scoring 0, as before),
+/// so that it becoming readable is a change too.
+pub fn with_inputs(mut config: Value, sources: &[Source], planner: &str) -> Result<Value> {
+    let mut files: Vec<(String, PathBuf)> = vec![];
+    let mut inputs = Map::new();
+    for s in sources {
+        let paths = match s {
+            Source::Builtin(_) => vec![],
+            Source::File(p) => vec![p.clone()],
+            Source::Nuscenes(n) => n.input_files(),
+            Source::Nuplan(n) => match n.input_files() {
+                Ok(v) => v,
+                Err(e) => {
+                    inputs.insert(
+                        n.db.display().to_string(),
+                        json!({"role": "scenario", "unreadable": format!("{e:#}")}),
+                    );
+                    vec![]
+                }
+            },
+        };
+        files.extend(paths.into_iter().map(|p| ("scenario".to_string(), p)));
+    }
+    files.extend(
+        planner_files(planner)
+            .into_iter()
+            .map(|p| ("planner".to_string(), p)),
+    );
+    for (role, p) in files {
+        let key = p.display().to_string();
+        if inputs.contains_key(&key) {
+            continue;
+        }
+        let mut fp =
+            file_fingerprint(&p).unwrap_or_else(|e| json!({"unreadable": format!("{e:#}")}));
+        fp["role"] = json!(role);
+        inputs.insert(key, fp);
+    }
+    if let Some(o) = config.as_object_mut() {
+        o.insert(INPUTS_KEY.into(), Value::Object(inputs));
+    }
+    Ok(config)
+}
+
+/// How the input files of two configurations differ, naming each changed, added or removed file (None: same).
+fn inputs_difference(old: &Value, new: &Value) -> Option<String> {
+    let empty = Map::new();
+    let (a, b) = (
+        old.get(INPUTS_KEY)
+            .and_then(Value::as_object)
+            .unwrap_or(&empty),
+        new.get(INPUTS_KEY)
+            .and_then(Value::as_object)
+            .unwrap_or(&empty),
+    );
+    let what = |v: &Value| match v["unreadable"].as_str() {
+        Some(why) => format!("unreadable: {why}"),
+        None => format!(
+            "{} bytes, fnv1a64x4 {}",
+            v["size"],
+            v["fnv1a64x4"].as_str().unwrap_or("?")
+        ),
+    };
+    let mut out = vec![];
+    for (k, v) in b {
+        match a.get(k) {
+            Some(o) if o == v => {}
+            Some(o) => out.push(format!(
+                "the {} {k} changed since the run began (then {}; now {})",
+                v["role"].as_str().unwrap_or("input"),
+                what(o),
+                what(v)
+            )),
+            None => out.push(format!(
+                "the {} {k} ({}) was not an input of the run",
+                v["role"].as_str().unwrap_or("input"),
+                what(v)
+            )),
+        }
+    }
+    for (k, o) in a {
+        if !b.contains_key(k) {
+            out.push(format!(
+                "the {} {k} ({}) is no longer an input",
+                o["role"].as_str().unwrap_or("input"),
+                what(o)
+            ));
+        }
+    }
+    (!out.is_empty()).then(|| out.join("; "))
+}
+
 fn read_json(path: &Path) -> Result<Value> {
     let text =
         std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
@@ -152,10 +325,17 @@ pub fn prepare_out(out: &Path, config: &Value, resume: bool) -> Result<()> {
     }
     if resume && cpath.is_file() {
         let old = read_json(&cpath)?;
-        if let Some(d) = config_difference(&old, config, &[]) {
+        if let Some(d) = config_difference(&old, config, &[INPUTS_KEY]) {
             bail!(
                 "--resume: {} was written by another configuration ({d}); delete the folder or use the same flags:\n  \
                  before: {old}\n  now:    {config}",
+                cpath.display()
+            );
+        }
+        if let Some(d) = inputs_difference(&old, config) {
+            bail!(
+                "--resume: {}: {d}; the results there may not be those of these inputs: delete the folder or \
+                 rerun without --resume",
                 cpath.display()
             );
         }
@@ -357,6 +537,8 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Value> {
         out.display()
     );
     let mut first: Option<(PathBuf, Value)> = None;
+    // union of the shards' input files; one file with two fingerprints is an error
+    let mut inputs = Map::new();
     // shard index -> folder, and N: a map, so that an N read from a file sizes nothing
     let mut seen: std::collections::BTreeMap<usize, PathBuf> = Default::default();
     let mut count: Option<usize> = None;
@@ -372,6 +554,21 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Value> {
             d.display()
         );
         let cfg = read_json(&cpath)?;
+        if let Some(m) = cfg.get(INPUTS_KEY).and_then(Value::as_object) {
+            for (k, v) in m {
+                match inputs.get(k) {
+                    Some(o) if o != v => bail!(
+                        "merge: {}: the input file {k} differs from another shard's ({v} vs {o}): it changed \
+                         between the shards' runs",
+                        cpath.display()
+                    ),
+                    Some(_) => {}
+                    None => {
+                        inputs.insert(k.clone(), v.clone());
+                    }
+                }
+            }
+        }
         let spath = d.join("metrics.json");
         ensure!(
             spath.is_file(),
@@ -395,7 +592,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Value> {
         match &first {
             None => first = Some((d.clone(), cfg.clone())),
             Some((d0, c0)) => {
-                if let Some(diff) = config_difference(c0, &cfg, &["shard"]) {
+                if let Some(diff) = config_difference(c0, &cfg, &["shard", INPUTS_KEY]) {
                     bail!(
                         "merge: {} and {} are runs of different configurations ({diff}); only shards of one \
                          configuration merge",
@@ -491,6 +688,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Value> {
     let (_, mut cfg) = first.context("merge: no shard")?;
     if let Some(o) = cfg.as_object_mut() {
         o.remove("shard");
+        o.insert(INPUTS_KEY.into(), Value::Object(inputs));
     }
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     write_atomic(

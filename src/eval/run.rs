@@ -298,7 +298,8 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
     planner(cfg, out)?;
     let sources = batch::select(resolve(&cfg.scenario)?, cfg.shard)?;
     batch::check_out_outside_scenarios(out, &sources)?;
-    batch::prepare_out(out, &serde_json::to_value(cfg)?, resume)?;
+    let config = batch::with_inputs(serde_json::to_value(cfg)?, &sources, &cfg.planner)?;
+    batch::prepare_out(out, &config, resume)?;
     let mut engine = if cfg.renderer.uses_model() {
         let ctx = ctx.context("the b2dr renderer needs a Vulkan device")?;
         let pkg = crate::render::package::resolve_model(cfg.model.as_deref())?;

@@ -53,6 +53,24 @@ pub struct Crosswalk {
     pub polygon: Vec<DVec2>,
 }
 
+/// Which painted line a [`MapLine`] is (nuScenes map expansion `road_divider` / `lane_divider`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+pub enum MapLineKind {
+    /// Divides the two directions of a road.
+    RoadDivider,
+    /// Divides lanes of one direction.
+    LaneDivider,
+}
+
+/// A painted line read from a source map that has them (nuScenes dividers). Kept as read: the road lines drawn
+/// in layout masks are still derived from lane geometry (`scene::roadlines`) for every source.
+#[derive(Clone, Debug)]
+pub struct MapLine {
+    pub id: String,
+    pub kind: MapLineKind,
+    pub points: Vec<DVec2>,
+}
+
 /// Input description of a lane for [`Map::build`].
 #[derive(Clone, Debug)]
 pub struct LaneSpec {
@@ -82,6 +100,8 @@ pub struct Map {
     pub intersections: Vec<Vec<DVec2>>,
     /// The drivable area; when empty the union of lane polygons is used.
     pub drivable: PolygonSet,
+    /// Painted lines of sources that have them (empty otherwise; set after [`Map::build`]).
+    pub lines: Vec<MapLine>,
     lane_by_id: HashMap<String, usize>,
     lane_tree: BoxIndex,
     intersection_tree: BoxIndex,
@@ -205,6 +225,7 @@ impl Map {
             crosswalks,
             intersections,
             drivable,
+            lines: vec![],
             lane_by_id,
             lane_tree,
             intersection_tree,

@@ -432,6 +432,19 @@ pub fn run_with_sensors(
 ) -> SimResult {
     let n = cfg.steps.min(sc.len().saturating_sub(1));
     let dt = sc.dt;
+    // dt guard (issue #18): the importers refuse such a step; a scenario built in code is refused here, before
+    // the tracker's and the planners' horizons (seconds / dt poses) are sized from it.
+    if let Err(why) = crate::scene::import::bounds::check_dt(dt) {
+        return SimResult {
+            scenario: sc.name.clone(),
+            planner: planner.name(),
+            agent_mode: cfg.agents,
+            steps: vec![],
+            failure: Some(format!("scenario {}: dt {why}", sc.name)),
+            idm_agents: 0,
+            timing: vec![],
+        };
+    }
     let params = sc.ego_params;
     let c = LoopCtx {
         sc,

@@ -2,6 +2,9 @@
 //! protocol (v1 and v2) is documented in docs/planner_protocol.md. One process per scenario. A writer thread
 //! owns the planner's stdin and a reader thread its stdout, so that every write AND read is under the
 //! timeout: a planner that never reads its input, or closes its stdout but lives on, is ended at the timeout.
+//! The planner runs in its own process group, killed at the end of its scenario; on Linux, processes holding its
+//! pipes are killed as well, so a descendant that escaped the group (`setsid`) and keeps the pipes open neither
+//! outlives the scenario nor keeps the reader thread blocked (the reads time out in any case).
 use super::planner::{trajectory_from_ego_frame, Planner, PlannerInput, PLAN_POSES};
 use super::sensors::CameraFrame;
 use super::trajectory::Trajectory;
@@ -47,6 +50,9 @@ pub struct ExternalPlanner {
     mode: ImageMode,
     size: Option<(u32, u32)>,
     scenario: String,
+    /// Inodes of the planner's stdin and stdout pipes (Linux): a descendant that left the process group
+    /// (`setsid`) and keeps them open is found by them and killed with the group.
+    pipes: Vec<u64>,
 }
 
 /// FNV-1a 64 of a byte string (the image checksum of the protocol: over the RGB bytes, row-major (H, W, 3)).
@@ -97,6 +103,69 @@ fn read_lines(out: impl Read, tx: Sender<std::result::Result<String, String>>) {
     }
 }
 
+/// The inode of a pipe end of ours (Linux: `/proc/self/fd/N` names it), None elsewhere.
+#[cfg(target_os = "linux")]
+fn pipe_inode(fd: &impl std::os::fd::AsRawFd) -> Option<u64> {
+    use std::os::unix::fs::MetadataExt;
+    std::fs::metadata(format!("/proc/self/fd/{}", fd.as_raw_fd()))
+        .ok()
+        .map(|m| m.ino())
+}
+#[cfg(not(target_os = "linux"))]
+fn pipe_inode<T>(_: &T) -> Option<u64> {
+    None
+}
+
+/// SIGKILLs every other process holding one of the pipes `inodes` (Linux: `/proc/<pid>/fd/*` reading
+/// `pipe:[<inode>]`). Our pipes are created close-on-exec, so only the planner's own descendants hold them.
+#[cfg(target_os = "linux")]
+fn kill_pipe_holders(inodes: &[u64]) {
+    if inodes.is_empty() {
+        return;
+    }
+    let names: Vec<String> = inodes.iter().map(|i| format!("pipe:[{i}]")).collect();
+    let me = std::process::id();
+    // Twice: a holder may have forked between the scan and its kill.
+    for _ in 0..2 {
+        let Ok(procs) = std::fs::read_dir("/proc") else {
+            return;
+        };
+        for p in procs.flatten() {
+            let Some(pid) = p.file_name().to_str().and_then(|n| n.parse::<u32>().ok()) else {
+                continue;
+            };
+            // Our own fds, and children of ours: another planner being spawned holds copies of every fd of
+            // ours until its exec (close-on-exec); an escaped descendant's parent is not us.
+            if pid == me || parent_of(&p.path()) == Some(me) {
+                continue;
+            }
+            let Ok(fds) = std::fs::read_dir(p.path().join("fd")) else {
+                continue;
+            };
+            let holds = fds.flatten().any(|fd| {
+                std::fs::read_link(fd.path())
+                    .is_ok_and(|l| names.iter().any(|n| l.as_os_str() == n.as_str()))
+            });
+            if let (true, Ok(pid)) = (holds, i32::try_from(pid)) {
+                // SAFETY: plain syscall; the process holds this planner's pipe (its descendant).
+                unsafe {
+                    libc::kill(pid, libc::SIGKILL);
+                }
+            }
+        }
+    }
+}
+#[cfg(not(target_os = "linux"))]
+fn kill_pipe_holders(_: &[u64]) {}
+
+/// The parent pid of `/proc/<pid>` (its `stat`: the field after the parenthesised command name).
+#[cfg(target_os = "linux")]
+fn parent_of(proc_dir: &std::path::Path) -> Option<u32> {
+    let stat = std::fs::read_to_string(proc_dir.join("stat")).ok()?;
+    let rest = &stat[stat.rfind(')')? + 1..];
+    rest.split_whitespace().nth(1)?.parse().ok()
+}
+
 impl ExternalPlanner {
     pub fn new(command: &str, timeout: Duration) -> Result<Self> {
         if command.trim().is_empty() {
@@ -119,6 +188,7 @@ impl ExternalPlanner {
             mode: ImageMode::None,
             size: None,
             scenario: String::new(),
+            pipes: vec![],
         })
     }
 
@@ -150,6 +220,10 @@ impl ExternalPlanner {
             .stdin
             .take()
             .ok_or_else(|| anyhow!("planner stdin unavailable"))?;
+        self.pipes = [pipe_inode(&stdout), pipe_inode(&stdin)]
+            .into_iter()
+            .flatten()
+            .collect();
         let (tx, rx) = std::sync::mpsc::channel();
         std::thread::spawn(move || read_lines(stdout, tx));
         let (wtx, wrx) = std::sync::mpsc::channel::<Vec<u8>>();
@@ -183,6 +257,9 @@ impl ExternalPlanner {
             let _ = c.kill();
             let _ = c.wait();
         }
+        // Descendants in their own session or group (setsid, double fork) escape the group kill; those holding
+        // the planner's pipes would keep the reader thread (and themselves) alive: end them too.
+        kill_pipe_holders(&std::mem::take(&mut self.pipes));
         self.lines = None;
         self.acks = None;
     }

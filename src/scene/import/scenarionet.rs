@@ -189,14 +189,8 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
         Some(s) => c.f64(s, "metadata.sample_rate")?,
         None => 0.1,
     };
-    if !(super::bounds::MIN_DT_S..10.0).contains(&dt) {
-        return Err(c.err(
-            "metadata.sample_rate",
-            &format!(
-                "must be a time step in seconds in {}..10, found {dt}",
-                super::bounds::MIN_DT_S
-            ),
-        ));
+    if let Err(why) = super::bounds::check_dt(dt) {
+        return Err(c.err("metadata.sample_rate", &why));
     }
     let name = v
         .get("id")

@@ -1,6 +1,7 @@
 //! SQLite access for nuPlan log DBs and GeoPackage maps with errors that name the file, the table, the row (its
 //! token or fid) and the column: tables and columns are checked before they are read, and every value is read
 //! through a typed accessor.
+use crate::scene::import::bounds;
 use anyhow::{anyhow, bail, Context, Result};
 use rusqlite::types::Value;
 use rusqlite::{Connection, OpenFlags};
@@ -187,6 +188,43 @@ impl Rec {
             Value::Integer(i) => Ok(*i as f64),
             _ => Err(self.bad(col, "a finite number")),
         }
+    }
+    /// A finite number within `max` in absolute value (`unit` names what it measures, for the error).
+    pub fn f64_within(&self, col: &str, max: f64, unit: &str) -> Result<f64> {
+        let v = self.f64(col)?;
+        if v.abs() > max {
+            bail!(
+                "{}: column `{col}`: {v} {unit} is beyond {max:e} {unit}, the largest accepted",
+                self.at()
+            );
+        }
+        Ok(v)
+    }
+    /// A coordinate (m) within [`bounds::MAX_COORD_M`] of the map origin.
+    pub fn coord(&self, col: &str) -> Result<f64> {
+        self.f64_within(col, bounds::MAX_COORD_M, "m")
+    }
+    /// A velocity component (m/s) within [`bounds::MAX_SPEED_MPS`].
+    pub fn speed(&self, col: &str) -> Result<f64> {
+        self.f64_within(col, bounds::MAX_SPEED_MPS, "m/s")
+    }
+    /// A timestamp (us) within [`bounds::MAX_TIMESTAMP_US`] of 0 (so that differences cannot overflow).
+    pub fn timestamp(&self, col: &str) -> Result<i64> {
+        let t = self.i64(col)?;
+        if !(-bounds::MAX_TIMESTAMP_US..=bounds::MAX_TIMESTAMP_US).contains(&t) {
+            bail!(
+                "{}: column `{col}`: {t} us is beyond {} us",
+                self.at(),
+                bounds::MAX_TIMESTAMP_US
+            );
+        }
+        Ok(t)
+    }
+    /// Text that may name a file or folder as is ([`bounds::plain_name`]).
+    pub fn plain_text(&self, col: &str) -> Result<&str> {
+        let t = self.text(col)?;
+        bounds::plain_name(t).map_err(|why| anyhow!("{}: column `{col}`: {why}", self.at()))?;
+        Ok(t)
     }
     pub fn opt_f64(&self, col: &str) -> Result<Option<f64>> {
         if self.is_null(col) {

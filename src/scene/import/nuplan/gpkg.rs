@@ -16,6 +16,7 @@ use super::db::{Db, Rec};
 use super::utm::{self, Zone};
 use super::wkb::{open_ring, Geometry};
 use crate::scene::geometry::{Aabb, Polyline};
+use crate::scene::import::bounds;
 use crate::scene::index::PolygonSet;
 use crate::scene::map::{Crosswalk, LaneKind, LaneSpec, Map, StopLine};
 use anyhow::{anyhow, bail, Context, Result};
@@ -38,6 +39,21 @@ fn overlaps(region: &Aabb, pts: &[DVec2]) -> bool {
 
 fn fid(r: &Rec, col: &str) -> Result<Option<String>> {
     r.opt_id(col)
+}
+
+/// Column `speed_limit_mps`: NULL, or a speed in 0..=[`bounds::MAX_SPEED_MPS`].
+fn speed_limit(r: &Rec) -> Result<Option<f64>> {
+    let v = r.opt_f64("speed_limit_mps")?;
+    if let Some(x) = v {
+        if !(0.0..=bounds::MAX_SPEED_MPS).contains(&x) {
+            bail!(
+                "{}: column `speed_limit_mps`: {x} m/s is not in 0..={} m/s",
+                r.at(),
+                bounds::MAX_SPEED_MPS
+            );
+        }
+    }
+    Ok(v)
 }
 
 /// The coordinate systems of the map: the UTM zone of the `meta` layer's `projectedCoordSystem` and, per layer,
@@ -140,12 +156,26 @@ impl<'a> Geo<'a> {
     fn geom(&self, r: &Rec, col: &str) -> Result<Geometry> {
         let g = r.geometry(col)?;
         let (_, lonlat) = self.layer(&r.table)?;
-        match (lonlat, self.zone) {
+        let g = match (lonlat, self.zone) {
             (true, Some(z)) => g
                 .try_map(&|p| utm::project(&z, p))
-                .map_err(|e| anyhow!("{}: column `{col}`: {e}", r.at())),
-            _ => Ok(g),
-        }
+                .map_err(|e| anyhow!("{}: column `{col}`: {e}", r.at()))?,
+            _ => g,
+        };
+        // Every point within the bounds of every importer (issue #18).
+        g.try_map(&|p| {
+            if bounds::coord_ok(p.x) && bounds::coord_ok(p.y) {
+                Ok(p)
+            } else {
+                bail!(
+                    "point ({}, {}) is not finite or lies beyond {:e} m of the map origin",
+                    p.x,
+                    p.y,
+                    bounds::MAX_COORD_M
+                )
+            }
+        })
+        .map_err(|e| anyhow!("{}: column `{col}`: {e}", r.at()))
     }
 }
 
@@ -281,7 +311,7 @@ pub fn load(path: &Path, name: &str, region: &Aabb) -> Result<Map> {
             centre: Polyline::new(line.clone(), None),
             polygon: conn_poly.get(&id).filter(|p| p.len() >= 3).cloned(),
             width: DEFAULT_LANE_WIDTH_M,
-            speed_limit_mps: r.opt_f64("speed_limit_mps")?,
+            speed_limit_mps: speed_limit(r)?,
             successors: entry.into_iter().collect(),
             roadblock: fid(r, "lane_group_connector_fid")?,
             has_traffic_light: has_light,
@@ -315,7 +345,7 @@ pub fn load(path: &Path, name: &str, region: &Aabb) -> Result<Map> {
             centre: Polyline::new(line.clone(), None),
             polygon: (poly.len() >= 3).then_some(poly),
             width: DEFAULT_LANE_WIDTH_M,
-            speed_limit_mps: r.opt_f64("speed_limit_mps")?,
+            speed_limit_mps: speed_limit(&r)?,
             successors: successors.remove(&id).unwrap_or_default(),
             roadblock: fid(&r, "lane_group_fid")?,
             has_traffic_light: false,

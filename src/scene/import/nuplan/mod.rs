@@ -16,7 +16,9 @@
 //!   distortion is read and checked but not applied); `image` rows within the window become recorded images
 //!   (own timestamp and ego pose), grouped into one frame per step (the image of each camera nearest the step
 //!   time, within [`FRAME_TOLERANCE_US`]). Without cameras the rig is the default generated one.
-//! - Route: the lane groups the logged ego drives through (as for nuScenes).
+//! - Route: the `roadblock_ids` of the scenario's `scene` rows, as the devkit's `get_route_roadblock_ids`
+//!   ([`scene_route`]; lane ids: the lanes the logged ego drives); the lane groups the logged ego drives
+//!   through when no scene gives roadblocks. Mission goal: `scene.goal_ego_pose_token` ([`NuplanLog::goal`]).
 use crate::scene::camera::{Camera, CameraImage, CameraRig, RecordedFrame};
 use crate::scene::geometry::{Aabb, Pose2};
 use crate::scene::{
@@ -26,6 +28,8 @@ use anyhow::{anyhow, bail, Context, Result};
 use glam::{DMat3, DMat4, DQuat, DVec2, DVec3};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
+
+use super::bounds;
 
 pub mod db;
 pub mod gpkg;
@@ -100,6 +104,38 @@ impl NuplanSpec {
         }
     }
 
+    /// The GeoPackage of `location` / `map_version` (`what` names the DB in errors).
+    fn map_file(&self, what: &str, location: &str, map_version: &str) -> Result<PathBuf> {
+        let maps_root = match &self.maps_root {
+            Some(m) => m.clone(),
+            None => search_up(&self.db, "maps", |p| p.join(location).is_dir()).ok_or_else(|| {
+                anyhow!(
+                    "{what}: no maps folder holding {location:?} found next to the DB or above it (set NUPLAN_MAPS_ROOT)"
+                )
+            })?,
+        };
+        Ok(gpkg::map_path(&maps_root, location, map_version))
+    }
+
+    /// The files an import of this spec reads whole (for `--resume`'s fingerprints): the log DB and its map.
+    pub fn input_files(&self) -> Result<Vec<PathBuf>> {
+        let db = Db::open(&self.db, "nuPlan log DB")?;
+        let log = db
+            .select("log", &["token", "location", "map_version"], "LIMIT 1", &[])?
+            .into_iter()
+            .next()
+            .ok_or_else(|| anyhow!("{}: table `log` is empty", db.what))?;
+        let map = self.map_file(
+            &format!("{}: columns `location`, `map_version`", log.at()),
+            log.plain_text("location")?,
+            log.plain_text("map_version")?,
+        )?;
+        Ok([self.db.clone(), map]
+            .into_iter()
+            .filter(|p| p.is_file())
+            .collect())
+    }
+
     /// Output name: the log file stem, plus the token when one is given.
     pub fn name(&self) -> String {
         let stem = self
@@ -158,8 +194,18 @@ fn light_of(r: &Rec) -> Result<TrafficLightStatus> {
 
 fn quat(r: &Rec) -> Result<DQuat> {
     let q = DQuat::from_xyzw(r.f64("qx")?, r.f64("qy")?, r.f64("qz")?, r.f64("qw")?);
-    if q.length().is_nan() || q.length() <= 1e-6 {
-        bail!("{}: columns qw, qx, qy, qz: a zero quaternion", r.at());
+    rotation(q).map_err(|why| anyhow!("{}: columns qw, qx, qy, qz: {why}", r.at()))
+}
+
+/// The unit quaternion of `q`; `Err(why)` when `q` is not a rotation (zero, non-finite or huge: its length is
+/// not within 1e-6..1e6).
+fn rotation(q: DQuat) -> std::result::Result<DQuat, String> {
+    let n = q.length();
+    if !(n.is_finite() && (1e-6..=1e6).contains(&n)) {
+        return Err(format!(
+            "({}, {}, {}, {}) is not a rotation (length {n})",
+            q.w, q.x, q.y, q.z
+        ));
     }
     Ok(q.normalize())
 }
@@ -225,6 +271,8 @@ pub struct NuplanLog {
     /// scenario_tag rows in the window: (lidar_pc token, type).
     pub tags: Vec<(String, String)>,
     pub map_path: PathBuf,
+    /// The mission goal (`scene.goal_ego_pose_token`, rear axle), when the scene names one ([`scene_route`]).
+    pub goal: Option<Pose2>,
 }
 
 /// Loads one scenario.
@@ -246,8 +294,9 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
         .into_iter()
         .next()
         .ok_or_else(|| anyhow!("{what}: table `log` is empty"))?;
-    let location = log.text("location")?.to_string();
-    let map_version = log.text("map_version")?.to_string();
+    // Both name folders of the map path.
+    let location = log.plain_text("location")?.to_string();
+    let map_version = log.plain_text("map_version")?.to_string();
     let log_name = log.opt_text("logfile")?.unwrap_or("").to_string();
 
     // lidar_pc of the whole log, in time order.
@@ -262,7 +311,7 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
     }
     let ts: Vec<i64> = pcs
         .iter()
-        .map(|r| r.i64("timestamp"))
+        .map(|r| r.timestamp("timestamp"))
         .collect::<Result<_>>()?;
     let (a, b) = match &spec.token {
         None => (0, pcs.len()),
@@ -281,7 +330,7 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
                         })
                         .unwrap_or_default();
                     anyhow!(
-                        "{what}: no lidar_pc has token {t} (scenario tokens are lidar_pc tokens; tagged ones: {})",
+                        "{what}: table `lidar_pc`: no lidar_pc has token {t} (scenario tokens are lidar_pc tokens; tagged ones: {})",
                         tags.join(", ")
                     )
                 })?;
@@ -295,10 +344,10 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
     };
     let sel: Vec<&Rec> = pcs[a..b].iter().step_by(2).collect();
     if sel.len() < 2 {
-        bail!("{what}: the scenario window holds fewer than 2 steps");
+        bail!("{what}: table `lidar_pc`: the scenario window holds fewer than 2 steps");
     }
-    let t0 = sel[0].i64("timestamp")?;
-    let t_last = sel[sel.len() - 1].i64("timestamp")?;
+    let t0 = ts[a];
+    let t_last = sel[sel.len() - 1].timestamp("timestamp")?;
     let n = sel.len();
     let pc_tokens: Vec<String> = sel
         .iter()
@@ -321,10 +370,10 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
     for r in &sel {
         let e = follow(r, "ego_pose_token", "ego_pose", &eps)?;
         let yaw = yaw_of(quat(e)?);
-        let v_local = DVec2::new(e.f64("vx")?, e.f64("vy")?);
+        let v_local = DVec2::new(e.speed("vx")?, e.speed("vy")?);
         let (s, c) = yaw.sin_cos();
         ego.push(EgoLogState {
-            rear_axle: Pose2::new(e.f64("x")?, e.f64("y")?, yaw),
+            rear_axle: Pose2::new(e.coord("x")?, e.coord("y")?, yaw),
             velocity: DVec2::new(c * v_local.x - s * v_local.y, s * v_local.x + c * v_local.y),
             accel: 0.0,
         });
@@ -379,10 +428,11 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
             None => {
                 let cat = follow(tr, "category_token", "category", &cat_name)?;
                 let (l, w, h) = (tr.f64("length")?, tr.f64("width")?, tr.f64("height")?);
-                if !(l > 0.0 && w > 0.0 && h >= 0.0) {
+                if !(l > 0.0 && w > 0.0 && h >= 0.0 && [l, w, h].into_iter().all(bounds::size_ok)) {
                     bail!(
-                        "{}: columns length, width, height must be positive, found {l}, {w}, {h}",
-                        tr.at()
+                        "{}: columns length, width, height must be positive and at most {} m, found {l}, {w}, {h}",
+                        tr.at(),
+                        bounds::MAX_SIZE_M
                     );
                 }
                 tracks.push(Track {
@@ -398,26 +448,24 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
             }
         };
         tracks[i].states[k] = Some(ObjectState {
-            pose: Pose2::new(bx.f64("x")?, bx.f64("y")?, bx.f64("yaw")?),
-            velocity: DVec2::new(bx.f64("vx")?, bx.f64("vy")?),
+            pose: Pose2::new(
+                bx.coord("x")?,
+                bx.coord("y")?,
+                bx.f64_within("yaw", bounds::MAX_ANGLE_RAD, "rad")?,
+            ),
+            velocity: DVec2::new(bx.speed("vx")?, bx.speed("vy")?),
         });
     }
     tracks.sort_by(|a, b| a.id.cmp(&b.id));
 
     // Map around the ego path.
-    let maps_root = match &spec.maps_root {
-        Some(m) => m.clone(),
-        None => search_up(&spec.db, "maps", |p| p.join(&location).is_dir()).ok_or_else(|| {
-            anyhow!(
-                "{what}: no maps folder holding {location:?} found next to the DB or above it (set NUPLAN_MAPS_ROOT)"
-            )
-        })?,
-    };
-    let map_path = gpkg::map_path(&maps_root, &location, &map_version);
+    // Errors about the map name the log row that chose it.
+    let log_at = format!("{}: columns `location`, `map_version`", log.at());
+    let map_path = spec.map_file(&log_at, &location, &map_version)?;
     let region = Aabb::from_points(&ego.iter().map(|e| e.rear_axle.pos()).collect::<Vec<_>>())
         .expand(MAP_MARGIN_M);
     let map = gpkg::load(&map_path, &location, &region)
-        .with_context(|| format!("{what}: loading the map of {location:?} {map_version:?}"))?;
+        .with_context(|| format!("{log_at}: loading the map of {location:?} {map_version:?}"))?;
 
     // Traffic lights.
     let mut traffic_lights: Vec<Vec<(usize, TrafficLightStatus)>> = vec![vec![]; n];
@@ -455,7 +503,8 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
     }
 
     let ego_params = VehicleParameters::PACIFICA;
-    let route = super::scenarionet::route_from_ego(&map, &ego, &ego_params);
+    let driven = super::scenarionet::route_from_ego(&map, &ego, &ego_params);
+    let (route, goal) = scene_route(&db, spec, t0, t_last, driven)?;
     let name = spec.name();
     let rig = camera_rig(&db, spec, &log, &sel, &eps, t0, t_last)?
         .unwrap_or_else(|| super::default_rig(&name, &ego, DT));
@@ -478,7 +527,100 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
         lidar_pc: pc_tokens,
         tags,
         map_path,
+        goal,
     })
+}
+
+/// Most route roadblock ids accepted from the `scene` rows of one scenario, and the longest id.
+pub const MAX_ROUTE_ROADBLOCKS: usize = 10_000;
+pub const MAX_ROADBLOCK_ID_CHARS: usize = 64;
+
+/// The route and mission goal as the devkit reads them (`get_roadblock_ids_for_lidarpc_token_from_db`,
+/// `get_mission_goal_for_sensor_data_token_from_db`): the `scene` of a lidar_pc (`lidar_pc.scene_token`) gives
+/// the route roadblock ids (`roadblock_ids`, space separated) and the goal (`goal_ego_pose_token`). With a
+/// scenario token, the scene of that lidar_pc; for the whole log, the scenes of its steps in time order
+/// (their routes concatenated, a repeated id kept once where two meet; the goal of the last). Lane ids stay those
+/// the logged ego drives (`driven`), as do the roadblocks when no scene gives any (no `scene` table, NULL or
+/// empty `roadblock_ids`).
+fn scene_route(
+    db: &Db,
+    spec: &NuplanSpec,
+    t0: i64,
+    t_last: i64,
+    driven: crate::scene::Route,
+) -> Result<(crate::scene::Route, Option<Pose2>)> {
+    if !db.has_table("scene")? {
+        return Ok((driven, None));
+    }
+    let pcs = db.select(
+        "lidar_pc",
+        &["token", "scene_token"],
+        "WHERE timestamp BETWEEN ?1 AND ?2 ORDER BY timestamp",
+        &[&t0 as &dyn rusqlite::ToSql, &t_last],
+    )?;
+    let mut scene_of: Vec<(String, &Rec)> = Vec::new();
+    for r in &pcs {
+        if spec
+            .token
+            .as_deref()
+            .is_some_and(|t| r.token("token").ok().as_deref() != Some(t))
+        {
+            continue;
+        }
+        let s = r.token("scene_token")?;
+        if scene_of.last().map(|x| &x.0) != Some(&s) {
+            scene_of.push((s, r));
+        }
+    }
+    let toks: Vec<String> = scene_of.iter().map(|x| x.0.clone()).collect();
+    let scenes = by_token(
+        db,
+        "scene",
+        &["token", "roadblock_ids", "goal_ego_pose_token"],
+        &toks,
+    )?;
+    let mut ids: Vec<String> = Vec::new();
+    let mut goal_tok = None;
+    for (_, pc) in &scene_of {
+        let sc = follow(pc, "scene_token", "scene", &scenes)?;
+        for id in sc.opt_text("roadblock_ids")?.unwrap_or("").split(' ') {
+            let id = id.trim();
+            if id.is_empty() || ids.last().is_some_and(|l| l == id) {
+                continue;
+            }
+            if ids.len() >= MAX_ROUTE_ROADBLOCKS || id.chars().count() > MAX_ROADBLOCK_ID_CHARS {
+                bail!(
+                    "{}: column `roadblock_ids`: more than {MAX_ROUTE_ROADBLOCKS} roadblock ids in the scenario, or \
+                     one longer than {MAX_ROADBLOCK_ID_CHARS} characters",
+                    sc.at()
+                );
+            }
+            ids.push(id.to_string());
+        }
+        goal_tok = sc.opt_token("goal_ego_pose_token")?.map(|t| (t, sc));
+    }
+    let goal = match goal_tok {
+        None => None,
+        Some((t, sc)) => {
+            let eps = by_token(
+                db,
+                "ego_pose",
+                &["token", "x", "y", "qw", "qx", "qy", "qz"],
+                std::slice::from_ref(&t),
+            )?;
+            let e = follow(sc, "goal_ego_pose_token", "ego_pose", &eps)?;
+            Some(Pose2::new(e.coord("x")?, e.coord("y")?, yaw_of(quat(e)?)))
+        }
+    };
+    let route = if ids.is_empty() {
+        driven
+    } else {
+        crate::scene::Route {
+            roadblock_ids: ids,
+            lane_ids: driven.lane_ids,
+        }
+    };
+    Ok((route, goal))
 }
 
 fn ego2global_of(e: &Rec) -> Result<DMat4> {
@@ -530,15 +672,34 @@ fn camera_rig(
         pickle::decode(d)
             .and_then(|o| pickle::to_array(&o))
             .map_err(|e| anyhow!("{}: column `distortion`: pickled array: {e}", r.at()))?;
-        let rot = DQuat::from_xyzw(q[1], q[2], q[3], q[0]);
-        if rot.length().is_nan() || rot.length() <= 1e-6 {
-            bail!("{}: column `rotation`: a zero quaternion", r.at());
+        let rot = rotation(DQuat::from_xyzw(q[1], q[2], q[3], q[0]))
+            .map_err(|why| anyhow!("{}: column `rotation`: {why}", r.at()))?;
+        if !t.iter().all(|x| x.abs() <= bounds::MAX_SIZE_M) {
+            bail!(
+                "{}: column `translation`: {t:?} lies beyond {} m of the ego",
+                r.at(),
+                bounds::MAX_SIZE_M
+            );
+        }
+        let m = bounds::MAX_INTRINSIC_PX;
+        if !(k.iter().all(|x| x.abs() <= m) && k[0] > 0.0 && k[4] > 0.0) {
+            bail!(
+                "{}: column `intrinsic`: {k:?} is not [[fx, s, cx], [0, fy, cy], [0, 0, 1]] with fx, fy > 0 and \
+                 every value within {m:e} px",
+                r.at()
+            );
         }
         let (w, h) = (r.i64("width")?, r.i64("height")?);
-        if w <= 0 || h <= 0 || w > 1 << 16 || h > 1 << 16 {
-            bail!("{}: image size {w}x{h}", r.at());
+        let side = 1..=i64::from(bounds::MAX_IMAGE_SIDE_PX);
+        if !(side.contains(&w) && side.contains(&h)) {
+            bail!(
+                "{}: columns width, height: image size {w}x{h} (each side must be 1..={} px)",
+                r.at(),
+                bounds::MAX_IMAGE_SIDE_PX
+            );
         }
-        let name = r.text("channel")?.to_string();
+        // Camera names become output file names (frames/<step>_<CAM>.png).
+        let name = r.plain_text("channel")?.to_string();
         cam_by_tok.insert(r.token("token")?, name.clone());
         cameras.push(Camera {
             name,
@@ -546,10 +707,7 @@ fn camera_rig(
             intrinsic: DMat3::from_cols_array(&[
                 k[0], k[3], k[6], k[1], k[4], k[7], k[2], k[5], k[8],
             ]),
-            cam2ego: DMat4::from_rotation_translation(
-                rot.normalize(),
-                DVec3::new(t[0], t[1], t[2]),
-            ),
+            cam2ego: DMat4::from_rotation_translation(rot, DVec3::new(t[0], t[1], t[2])),
             width: w as u32,
             height: h as u32,
         });
@@ -594,7 +752,7 @@ fn camera_rig(
     )?;
     let step_ts: Vec<i64> = sel
         .iter()
-        .map(|r| r.i64("timestamp"))
+        .map(|r| r.timestamp("timestamp"))
         .collect::<Result<_>>()?;
     // Per step and camera: (|dt|, image).
     let mut best: Vec<HashMap<String, (i64, CameraImage)>> = vec![HashMap::new(); sel.len()];
@@ -607,7 +765,7 @@ fn camera_rig(
             )
         })?;
         let e = follow(r, "ego_pose_token", "ego_pose", &img_eps)?;
-        let t = r.i64("timestamp")?;
+        let t = r.timestamp("timestamp")?;
         let k = step_ts.partition_point(|&s| s < t);
         let k = [k.saturating_sub(1), k.min(step_ts.len() - 1)]
             .into_iter()
@@ -621,6 +779,8 @@ fn camera_rig(
             continue;
         }
         let file = r.text("filename_jpg")?;
+        bounds::inside_relative(file)
+            .map_err(|why| anyhow!("{}: column `filename_jpg`: {why}", r.at()))?;
         best[k].insert(
             cam.clone(),
             (

@@ -26,8 +26,39 @@ pub enum Obj {
     },
 }
 
+/// Longest pickle accepted (bytes): the calibration columns hold a few hundred; the bound also bounds the
+/// nesting depth of what a pickle builds (one byte or more per level), so that no recursion overflows the stack.
+pub const MAX_PICKLE_BYTES: usize = 4096;
+/// Most objects one pickle may build, copies made by memo GETs included (GET of a list holding itself twice,
+/// repeated, doubles the size each time).
+pub const MAX_PICKLE_OBJECTS: usize = 1 << 20;
+
+/// Objects in `o` (itself included; strings and byte strings count one per 64 bytes as well).
+fn weight(o: &Obj) -> usize {
+    match o {
+        Obj::Str(t) => 1 + t.len() / 64,
+        Obj::Bytes(b) => 1 + b.len() / 64,
+        Obj::List(v) | Obj::Tuple(v) => 1 + v.iter().map(weight).sum::<usize>(),
+        Obj::Dict(d) => 1 + d.iter().map(|(k, v)| weight(k) + weight(v)).sum::<usize>(),
+        Obj::Call { func, args, state } => {
+            1 + weight(func)
+                + args.iter().map(weight).sum::<usize>()
+                + state.as_deref().map_or(0, weight)
+        }
+        _ => 1,
+    }
+}
+
 /// Decodes one pickle.
 pub fn decode(data: &[u8]) -> Result<Obj> {
+    if data.len() > MAX_PICKLE_BYTES {
+        bail!(
+            "pickle of {} bytes (at most {MAX_PICKLE_BYTES} are accepted)",
+            data.len()
+        );
+    }
+    // Objects built so far (each opcode builds at most one; memo GETs copy).
+    let mut built = 0usize;
     let mut stack: Vec<Obj> = Vec::new();
     let mut marks: Vec<usize> = Vec::new();
     let mut memo: Vec<Option<Obj>> = Vec::new();
@@ -46,15 +77,28 @@ pub fn decode(data: &[u8]) -> Result<Obj> {
             .pop()
             .ok_or_else(|| anyhow!("pickle: stack underflow at byte {at}"))
     };
-    let put = |memo: &mut Vec<Option<Obj>>, k: usize, v: Obj| {
+    // Memo keys are dense from 0 as Python writes them; one far past the end (LONG_BINPUT 4e9) would size the
+    // memo from a 4-byte field.
+    let put = |memo: &mut Vec<Option<Obj>>, k: usize, v: Obj, at: usize| -> Result<()> {
+        if k > memo.len() + MAX_PICKLE_BYTES {
+            bail!(
+                "pickle: memo key {k} at byte {at} is far past the memo's {} entries",
+                memo.len()
+            );
+        }
         if memo.len() <= k {
             memo.resize(k + 1, None);
         }
         memo[k] = Some(v);
+        Ok(())
     };
     loop {
         let at = i;
         let op = *take(&mut i, 1)?.first().unwrap();
+        built += 1;
+        if built > MAX_PICKLE_OBJECTS {
+            bail!("pickle: more than {MAX_PICKLE_OBJECTS} objects at byte {at}");
+        }
         match op {
             0x80 => {
                 let v = take(&mut i, 1)?[0];
@@ -127,7 +171,11 @@ pub fn decode(data: &[u8]) -> Result<Obj> {
                     .cloned()
                     .ok_or_else(|| anyhow!("pickle: MEMOIZE on an empty stack at byte {at}"))?;
                 let k = memo.len();
-                put(&mut memo, k, top);
+                built += weight(&top);
+                if built > MAX_PICKLE_OBJECTS {
+                    bail!("pickle: more than {MAX_PICKLE_OBJECTS} objects at byte {at} (memo copies)");
+                }
+                put(&mut memo, k, top, at)?;
             }
             b'q' | b'r' => {
                 let k = if op == b'q' {
@@ -139,7 +187,11 @@ pub fn decode(data: &[u8]) -> Result<Obj> {
                     .last()
                     .cloned()
                     .ok_or_else(|| anyhow!("pickle: PUT on an empty stack at byte {at}"))?;
-                put(&mut memo, k, top);
+                built += weight(&top);
+                if built > MAX_PICKLE_OBJECTS {
+                    bail!("pickle: more than {MAX_PICKLE_OBJECTS} objects at byte {at} (memo copies)");
+                }
+                put(&mut memo, k, top, at)?;
             }
             b'h' | b'j' => {
                 let k = if op == b'h' {
@@ -152,6 +204,10 @@ pub fn decode(data: &[u8]) -> Result<Obj> {
                     .cloned()
                     .flatten()
                     .ok_or_else(|| anyhow!("pickle: memo {k} unset at byte {at}"))?;
+                built += weight(&v);
+                if built > MAX_PICKLE_OBJECTS {
+                    bail!("pickle: more than {MAX_PICKLE_OBJECTS} objects at byte {at} (memo copies)");
+                }
                 stack.push(v);
             }
             b'c' => {
@@ -273,6 +329,16 @@ fn number(o: &Obj) -> Option<f64> {
 
 /// A numeric array: (shape, values in C order).
 pub fn to_array(o: &Obj) -> Result<(Vec<usize>, Vec<f64>)> {
+    nested_array(o, 0)
+}
+
+/// Deepest nesting of lists accepted as an array.
+const MAX_ARRAY_DEPTH: usize = 8;
+
+fn nested_array(o: &Obj, depth: usize) -> Result<(Vec<usize>, Vec<f64>)> {
+    if depth > MAX_ARRAY_DEPTH {
+        bail!("lists nested deeper than {MAX_ARRAY_DEPTH} levels");
+    }
     match o {
         Obj::List(v) | Obj::Tuple(v) => {
             if v.iter().all(|x| number(x).is_some()) {
@@ -281,7 +347,7 @@ pub fn to_array(o: &Obj) -> Result<(Vec<usize>, Vec<f64>)> {
             let mut shape: Option<Vec<usize>> = None;
             let mut out = Vec::new();
             for x in v {
-                let (s, d) = to_array(x)?;
+                let (s, d) = nested_array(x, depth + 1)?;
                 if shape.as_ref().is_some_and(|p| *p != s) {
                     bail!("ragged nested list");
                 }
@@ -324,8 +390,12 @@ pub fn to_array(o: &Obj) -> Result<(Vec<usize>, Vec<f64>)> {
                 bail!("numpy array data is not bytes (object arrays are not supported)")
             };
             let (kind, big) = dtype_of(dtype)?;
-            let n: usize = shape.iter().product();
             let size = dtype_size(kind);
+            let n = shape
+                .iter()
+                .try_fold(1usize, |a, &d| a.checked_mul(d))
+                .filter(|n| n.checked_mul(size).is_some())
+                .ok_or_else(|| anyhow!("numpy array of shape {shape:?}: the size overflows"))?;
             if raw.len() != n * size {
                 bail!(
                     "numpy array of shape {shape:?} and dtype {kind} holds {} bytes (expected {})",
@@ -439,5 +509,40 @@ mod tests {
     fn unsupported_opcode_is_an_error() {
         let e = decode(b"\x80\x04\xff.").unwrap_err().to_string();
         assert!(e.contains("0xff"), "{e}");
+    }
+
+    /// Hostile pickles (issue #18): a memo key from a 4-byte field, memo copies that double in size, the
+    /// deepest nesting the size bound allows: errors, no huge allocation, no
+    /// stack overflow.
+    #[test]
+    fn hostile_pickles_are_errors() {
+        // LONG_BINPUT 0xffffffff
+        let e = decode(b"\x80\x04]r\xff\xff\xff\xff.")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("memo key 4294967295"), "{e}");
+        // [] memoized; then 60 times: GET 0, GET 0, TUPLE2, PUT 0 (doubles the memo's object)
+        let mut p = b"\x80\x04]\x94".to_vec();
+        for _ in 0..60 {
+            p.extend_from_slice(b"h\x00h\x00\x86q\x00");
+        }
+        p.push(b'.');
+        let e = decode(&p).unwrap_err().to_string();
+        assert!(e.contains("objects"), "{e}");
+        // the deepest nesting within MAX_PICKLE_BYTES: decoded (or refused) and dropped without overflow
+        let depth = (MAX_PICKLE_BYTES - 4) / 2;
+        let mut p = b"\x80\x04".to_vec();
+        p.extend(std::iter::repeat_n(b']', depth));
+        p.extend(std::iter::repeat_n(b'a', depth - 1));
+        p.push(b'.');
+        let o = decode(&p).unwrap();
+        assert!(to_array(&o)
+            .unwrap_err()
+            .to_string()
+            .contains("nested deeper"));
+        drop(o);
+        let mut big = p.clone();
+        big.resize(MAX_PICKLE_BYTES + 1, b'.');
+        assert!(decode(&big).unwrap_err().to_string().contains("at most"));
     }
 }

@@ -8,7 +8,7 @@ use super::tables::{Row, Table};
 use crate::scene::geometry::{wrap_angle, Aabb, Polyline};
 use crate::scene::import::bounds;
 use crate::scene::index::PolygonSet;
-use crate::scene::map::{Crosswalk, LaneKind, LaneSpec, Map};
+use crate::scene::map::{Crosswalk, LaneKind, LaneSpec, Map, MapLine, MapLineKind, StopLine};
 use anyhow::{anyhow, bail, Context, Result};
 use glam::DVec2;
 use serde_json::Value;
@@ -142,6 +142,8 @@ struct MapFile {
     json: serde_json::Map<String, Value>,
     nodes: HashMap<String, DVec2>,
     polygon: Table,
+    /// The `line` layer, read when a divider layer needs it.
+    line: Option<Table>,
 }
 
 impl MapFile {
@@ -165,6 +167,22 @@ impl MapFile {
                 })
             })
             .collect()
+    }
+
+    /// The points of line `token` (referenced from `from`'s column `col`).
+    fn line(&self, from: &Row, col: &str, token: &str) -> Result<Vec<DVec2>> {
+        let l = self
+            .line
+            .as_ref()
+            .and_then(|t| t.find(token))
+            .ok_or_else(|| {
+                anyhow!(
+                "{}: column `{col}`: no row of layer `line` has token {token:?} (dangling token)",
+                from.at()
+            )
+            })?;
+        let toks: Vec<String> = l.get("node_tokens")?;
+        self.ring(&l, &toks, "node_tokens")
     }
 
     /// Exterior and holes of polygon `token` (referenced from `from`'s column `col`).
@@ -205,8 +223,8 @@ pub fn load(dataroot: &Path, location: &str, region: &Aabb) -> Result<Map> {
         .join("expansion")
         .join(format!("{location}.json"));
     let file = path.display().to_string();
-    let text = std::fs::read_to_string(&path).with_context(|| {
-        format!("nuScenes map expansion of {location:?}: reading {file} (the map expansion pack is needed for lanes)")
+    let text = bounds::read_table_text(&path).map_err(|why| {
+        anyhow!("nuScenes map expansion of {location:?}: {why} (the map expansion pack is needed for lanes)")
     })?;
     let v: Value = serde_json::from_str(&text)
         .with_context(|| format!("map expansion {file}: not valid JSON"))?;
@@ -246,6 +264,7 @@ pub fn load(dataroot: &Path, location: &str, region: &Aabb) -> Result<Map> {
         json,
         nodes,
         polygon,
+        line: None,
     };
     let arcs = match mf.json.remove("arcline_path_3") {
         Some(Value::Object(o)) => o,
@@ -367,14 +386,90 @@ pub fn load(dataroot: &Path, location: &str, region: &Aabb) -> Result<Map> {
             }
         }
     }
-    Map::build(
+    // Stop lines (their polygons as convex quadrilaterals, the map model's stop lines; not tied to lanes:
+    // nuScenes has no traffic lights to stop for).
+    let mut stop_lines = Vec::new();
+    if mf.json.contains_key("stop_line") {
+        let sl = mf.layer("stop_line")?;
+        for r in sl.iter() {
+            let r = r?;
+            let p = mf.polygon(&r, "polygon_token", r.str("polygon_token")?)?;
+            if p[0].len() >= 3 && overlaps(region, &p[0]) {
+                if let Some(q) = quadrilateral(&p[0]) {
+                    stop_lines.push(StopLine {
+                        id: r.str("token")?.to_string(),
+                        polygon: q,
+                    });
+                }
+            }
+        }
+    }
+    // Dividers: their `line` geometry (node tokens).
+    let mut lines = Vec::new();
+    for (layer, kind) in [
+        ("road_divider", MapLineKind::RoadDivider),
+        ("lane_divider", MapLineKind::LaneDivider),
+    ] {
+        if !mf.json.contains_key(layer) {
+            continue;
+        }
+        let t = mf.layer(layer)?;
+        if mf.line.is_none() {
+            let v = mf.json.remove("line").ok_or_else(|| {
+                anyhow!("map expansion {file}: layer `line` is missing (layer `{layer}` needs it)")
+            })?;
+            mf.line = Some(Table::from_value("line", &file, v)?);
+        }
+        for r in t.iter() {
+            let r = r?;
+            let pts = mf.line(&r, "line_token", r.str("line_token")?)?;
+            if pts.len() >= 2 && overlaps(region, &pts) {
+                lines.push(MapLine {
+                    id: r.str("token")?.to_string(),
+                    kind,
+                    points: pts,
+                });
+            }
+        }
+    }
+    let mut map = Map::build(
         location,
         specs,
-        vec![],
+        stop_lines,
         crosswalks,
         vec![],
         PolygonSet::new(rings),
         false,
     )
-    .with_context(|| format!("map expansion {file}: building the map"))
+    .with_context(|| format!("map expansion {file}: building the map"))?;
+    map.lines = lines;
+    Ok(map)
+}
+
+/// A convex quadrilateral standing for a stop line polygon: its ring when it has 4 corners, else the rectangle
+/// along its longest edge enclosing it; None for a ring without extent.
+pub fn quadrilateral(ring: &[DVec2]) -> Option<[DVec2; 4]> {
+    let mut r = ring.to_vec();
+    if r.len() > 1 && r.first() == r.last() {
+        r.pop();
+    }
+    if r.len() == 4 {
+        return Some([r[0], r[1], r[2], r[3]]);
+    }
+    let n = r.len();
+    let (i, _) = (0..n)
+        .map(|i| (i, (r[(i + 1) % n] - r[i]).length()))
+        .max_by(|a, b| a.1.total_cmp(&b.1))?;
+    let u = (r[(i + 1) % n] - r[i]).normalize_or_zero();
+    if u == DVec2::ZERO {
+        return None;
+    }
+    let v = u.perp();
+    let (mut a0, mut a1, mut b0, mut b1) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for p in &r {
+        let (a, b) = (p.dot(u), p.dot(v));
+        (a0, a1, b0, b1) = (a0.min(a), a1.max(a), b0.min(b), b1.max(b));
+    }
+    let at = |a: f64, b: f64| u * a + v * b;
+    Some([at(a0, b0), at(a1, b0), at(a1, b1), at(a0, b1)])
 }

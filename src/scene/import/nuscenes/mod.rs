@@ -43,8 +43,7 @@ pub const SWEEP_GROUP_US: i64 = 60_000;
 pub const BOX_VELOCITY_MAX_DT: f64 = 1.5;
 /// Longest scene accepted (s; nuScenes scenes last about 20 s): the log is sampled every [`DT`] over it.
 pub const MAX_SCENE_S: f64 = 600.0;
-/// Largest timestamp accepted (us, absolute: about the year 5100), so that differences cannot overflow.
-pub const MAX_TIMESTAMP_US: i64 = 100_000_000_000_000_000;
+pub use super::bounds::MAX_TIMESTAMP_US;
 
 /// `nuscenes:DATAROOT[:VERSION]:SCENE`.
 #[derive(Clone, Debug, PartialEq, Eq)]
@@ -56,6 +55,29 @@ pub struct NuscenesSpec {
 }
 
 impl NuscenesSpec {
+    /// The files an import of this spec reads whole (for `--resume`'s fingerprints): the tables
+    /// ([`tables::TABLES`]) and every map expansion file (which one is used depends on the scene's log). Files
+    /// that do not exist are left out (the import names them).
+    pub fn input_files(&self) -> Vec<PathBuf> {
+        let dir = self.dataroot.join(&self.version);
+        let mut out: Vec<PathBuf> = tables::TABLES
+            .iter()
+            .map(|t| dir.join(format!("{t}.json")))
+            .filter(|p| p.is_file())
+            .collect();
+        let mut maps: Vec<PathBuf> = std::fs::read_dir(self.dataroot.join("maps/expansion"))
+            .map(|d| {
+                d.flatten()
+                    .map(|e| e.path())
+                    .filter(|p| p.extension().is_some_and(|x| x == "json") && p.is_file())
+                    .collect()
+            })
+            .unwrap_or_default();
+        maps.sort();
+        out.extend(maps);
+        out
+    }
+
     /// Parses the part after `nuscenes:` (`spec` is the whole argument, for errors). Split from the right, so
     /// a DATAROOT may hold a colon; the middle field is a VERSION when it starts with `v` and a digit.
     pub fn parse(rest: &str, spec: &str) -> Result<NuscenesSpec> {
@@ -265,6 +287,14 @@ pub fn load_log(spec: &NuscenesSpec) -> Result<NuscenesLog> {
         let filename = r.str("filename")?.to_string();
         if let Err(why) = bounds::inside_relative(&filename) {
             bail!("{}: column `filename`: {why}", r.at());
+        }
+        // Symbolic links in the DATAROOT are followed (samples/ and sweeps/ often live on another disk); an
+        // image that exists must be a regular file: a FIFO or device would block the run that reads it.
+        let image = spec.dataroot.join(&filename);
+        if sensor.str("modality")? == "camera" && image.symlink_metadata().is_ok() {
+            if let Err(why) = bounds::regular_file(&image) {
+                bail!("{}: column `filename`: {why}", r.at());
+            }
         }
         sds.push(Sd {
             at: r.at(),

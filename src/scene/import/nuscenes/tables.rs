@@ -42,8 +42,8 @@ impl Table {
     /// Reads `<dir>/<name>.json`.
     pub fn read(dir: &Path, name: &str) -> Result<Table> {
         let path = dir.join(format!("{name}.json"));
-        let text = std::fs::read_to_string(&path)
-            .with_context(|| format!("nuScenes table `{name}`: reading {}", path.display()))?;
+        let text = bounds::read_table_text(&path)
+            .map_err(|why| anyhow!("nuScenes table `{name}`: {why}"))?;
         let v: Value = serde_json::from_str(&text).with_context(|| {
             format!(
                 "nuScenes table `{name}` ({}): not valid JSON",
@@ -267,6 +267,20 @@ impl<'a> Row<'a> {
         )))
     }
 }
+
+/// The tables the importer reads (`VERSION/<name>.json`).
+pub const TABLES: [&str; 10] = [
+    "scene",
+    "log",
+    "sample",
+    "sample_data",
+    "ego_pose",
+    "calibrated_sensor",
+    "sensor",
+    "sample_annotation",
+    "instance",
+    "category",
+];
 
 /// The tables of one nuScenes version folder that the importer reads.
 pub struct Tables {
