@@ -296,7 +296,11 @@ fn a_planner_whose_setsid_child_holds_the_pipes_does_not_hang() {
         let t0 = std::time::Instant::now();
         let r = run(&sc, &mut p, &cfg);
         let took = t0.elapsed();
-        let f = r.failure.clone().unwrap_or_default();
+        let f = r
+            .failure
+            .as_ref()
+            .map(ToString::to_string)
+            .unwrap_or_default();
         println!("{case}: {f:?} in {took:?}");
         match needle {
             None => assert!(r.failure.is_none(), "{case}: {f}"),
@@ -337,7 +341,11 @@ fn a_scenario_with_a_bad_dt_is_refused_by_the_simulator() {
         sc.dt = dt;
         let t0 = std::time::Instant::now();
         let r = run(&sc, &mut ExpertPlanner, &cfg);
-        let f = r.failure.clone().unwrap_or_default();
+        let f = r
+            .failure
+            .as_ref()
+            .map(ToString::to_string)
+            .unwrap_or_default();
         assert!(f.contains("dt") && f.contains("time step"), "{dt}: {f:?}");
         assert!(r.steps.is_empty(), "{dt}");
         assert!(

@@ -7,9 +7,14 @@ cd "$(dirname "$0")/.."
 . tools/ensure-deps.sh
 export B2DR_VALIDATION=1
 # Mesa 22.3's lavapipe uses one worker thread per core by default; nothing to tune for correctness.
+# every test's scratch folders (std::env::temp_dir(), Python's tempfile) go to one folder removed at the end, so
+# repeated runs do not fill /tmp (a failing run keeps it for inspection: its path is printed)
+scratch=$(mktemp -d "${TMPDIR:-/tmp}/b2dr-test.XXXXXX")
+export TMPDIR="$scratch"
 status=0
 cargo test --all-targets --no-fail-fast "$@" || status=$?
 # the Python side (reference modules, trainer, dataset reader): pytest in the cached environment
 . tools/ensure-python.sh
 (cd python && OMP_NUM_THREADS=1 "$B2DR_PY" -m pytest -q) || status=$?
+if [ "$status" -eq 0 ]; then rm -rf "$scratch"; else echo "test scratch files kept in $scratch" >&2; fi
 exit $status

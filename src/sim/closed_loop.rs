@@ -440,7 +440,10 @@ pub fn run_with_sensors(
             planner: planner.name(),
             agent_mode: cfg.agents,
             steps: vec![],
-            failure: Some(format!("scenario {}: dt {why}", sc.name)),
+            failure: Some(SimFailure::Scenario {
+                scenario: sc.name.clone(),
+                error: format!("dt {why}"),
+            }),
             idm_agents: 0,
             timing: vec![],
         };

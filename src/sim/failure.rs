@@ -21,13 +21,17 @@ pub enum SimFailure {
     /// The planner failed at a step: it crashed, timed out, broke the protocol or returned an invalid
     /// trajectory (the error says which).
     Planner { step: usize, error: String },
+    /// The scenario cannot be simulated at all (e.g. a non-finite or absurd time step), found before step 0.
+    Scenario { scenario: String, error: String },
 }
 
 impl SimFailure {
     /// The step the run stopped at (None when it never started).
     pub fn step(&self) -> Option<usize> {
         match self {
-            SimFailure::RendererStart { .. } | SimFailure::PlannerStart { .. } => None,
+            SimFailure::RendererStart { .. }
+            | SimFailure::PlannerStart { .. }
+            | SimFailure::Scenario { .. } => None,
             SimFailure::Renderer { step, .. }
             | SimFailure::Frames { step, .. }
             | SimFailure::Planner { step, .. } => Some(*step),
@@ -51,6 +55,7 @@ impl fmt::Display for SimFailure {
                 write!(f, "step {step}: writing the frames: {error}")
             }
             SimFailure::Planner { step, error } => write!(f, "step {step}: {error}"),
+            SimFailure::Scenario { scenario, error } => write!(f, "scenario {scenario}: {error}"),
         }
     }
 }
