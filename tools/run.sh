@@ -10,7 +10,7 @@ cd "$(dirname "$0")/.."
 . tools/ensure-deps.sh
 out="${1:-out}"
 cargo build --release --quiet
-b=target/release/b2dr
+b="${CARGO_TARGET_DIR:-target}/release/b2dr"
 $b info
 # 6 s of driving (12 planner steps at 2 Hz) with the three front cameras keeps the b2dr renderer's part to a few
 # minutes on a 2-core CPU (lavapipe); drop --cameras and raise --steps for the full 6-camera, 15 s run.
