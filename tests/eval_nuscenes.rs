@@ -4,6 +4,8 @@
 #[path = "golden/b2dr_package.rs"]
 mod b2dr_package;
 mod common;
+#[path = "common/fixture_dirs.rs"]
+mod fixture_dirs;
 #[path = "golden/common.rs"]
 mod golden;
 mod nuscenes_fixture;

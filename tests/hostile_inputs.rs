@@ -20,6 +20,8 @@ use b2dr::sim::planner::trajectory_from_ego_frame;
 use proptest::prelude::*;
 use proptest::sample::Index;
 
+#[path = "common/fixture_dirs.rs"]
+mod fixture_dirs;
 mod nuplan_fixture;
 mod nuscenes_fixture;
 use serde_json::{json, Value};

@@ -6,6 +6,8 @@ use std::path::Path;
 use std::process::Command;
 use std::time::Instant;
 
+#[path = "common/fixture_dirs.rs"]
+mod fixture_dirs;
 mod nuscenes_fixture;
 
 use b2dr::projection::{Box3d, BoxClass, CameraProjector, KeyFrame};

@@ -9,19 +9,8 @@ use std::process::Command;
 use b2dr::scene::import::nuplan::NuplanSpec;
 use serde_json::Value;
 
-pub fn python() -> String {
-    if let Ok(p) = std::env::var("B2DR_PY") {
-        return p;
-    }
-    let venv = std::env::var("HOME")
-        .map(|h| PathBuf::from(h).join(".cache/b2dr-venv/bin/python"))
-        .unwrap_or_default();
-    if venv.is_file() {
-        venv.display().to_string()
-    } else {
-        "python3".into()
-    }
-}
+// the including test crate declares `fixture_dirs` (tests/common/fixture_dirs.rs) at its root
+use crate::fixture_dirs::python;
 
 /// The fixture written into `out` (`extra`: more arguments of the writer); None (reason printed) without
 /// Python / numpy.

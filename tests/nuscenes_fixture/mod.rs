@@ -1,8 +1,8 @@
 //! The nuScenes test fixture: a nuScenes-mini-style DATAROOT written at test time from the shared scene-0061 data
 //! by `python/b2dr_ref/nuscenes_fixture.py` (plain Python; `B2DR_PY`, the test virtualenv or `python3`).
 #![allow(dead_code)]
-#[path = "../common/fixture_dirs.rs"]
-mod fixture_dirs;
+// the including test crate declares `fixture_dirs` (tests/common/fixture_dirs.rs) at its root
+use crate::fixture_dirs;
 
 use std::path::{Path, PathBuf};
 use std::process::Command;
