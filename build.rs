@@ -1,4 +1,5 @@
-//! Compiles every kernel in `kernels/*.wgsl` through naga (WGSL -> validated IR -> SPIR-V 1.3) and generates
+//! Compiles every kernel in `kernels/*.wgsl` (and `kernels/<file>/` folders) through naga (WGSL -> validated IR
+//! -> SPIR-V 1.3) and generates
 //! the kernel registry `$OUT_DIR/kernels.rs` (ids, SPIR-V, bindings, workgroup sizes, parameter structs).
 //!
 //! Kernel file conventions:
@@ -16,6 +17,9 @@
 //!   view is not compiled (nothing would pick it); two entries with the same file, entry and axes fail the
 //!   build.
 //! - `kernels/common.wgsl` is appended to every kernel (shared helpers); errors in it are reported there.
+//! - A folder `kernels/<file>/` is one kernel file split by algorithm: its `*.wgsl` files concatenated in name
+//!   order (`00_common.wgsl` first, holding the variant header lines), compiled and looked up as `<file>`;
+//!   errors name the part file and its line.
 //! - Every `@compute` entry point becomes a registry entry `<file>_<variant>[_<entry>]` (entry `main` omitted).
 //! - Storage buffers are `@group(0) @binding(0..n)` (contiguous); a binding may also be a
 //!   `texture_storage_2d<rgba32float, read>`: a texel view of the buffer bound there (src/vk/image.rs).
@@ -130,7 +134,8 @@ fn main() {
         .map(|rd| rd.filter_map(|e| e.ok().map(|e| e.path())).collect())
         .unwrap_or_default();
     files.retain(|p| {
-        p.extension().is_some_and(|e| e == "wgsl") && p.file_name().unwrap() != "common.wgsl"
+        (p.extension().is_some_and(|e| e == "wgsl") && p.file_name().unwrap() != "common.wgsl")
+            || p.is_dir()
     });
     files.sort();
 
@@ -140,8 +145,9 @@ fn main() {
     for path in &files {
         println!("cargo:rerun-if-changed={}", path.display());
         let stem = path.file_stem().unwrap().to_string_lossy().to_string();
-        let src = std::fs::read_to_string(path).unwrap();
+        let (src, mut segments) = read_kernel(path);
         let lines: Vec<&str> = src.lines().collect();
+        segments.push((common_path.clone(), lines.len()));
         let variants = parse_variants(&stem, &lines);
         for v in &variants {
             let mut text = String::new();
@@ -153,9 +159,8 @@ fn main() {
                 }
                 text.push('\n');
             }
-            let kernel_lines = lines.len();
             text.push_str(&common);
-            match compile(&text, path, &common_path, kernel_lines) {
+            match compile(&text, path, &segments) {
                 Ok((module, info)) => {
                     let vname = if v.name.is_empty() {
                         stem.clone()
@@ -244,26 +249,58 @@ fn parse_variants(stem: &str, lines: &[&str]) -> Vec<Variant> {
 
 type Compiled = (naga::Module, naga::valid::ModuleInfo);
 
-/// Maps a line of the concatenated text back to (file, line).
-fn locate(line: usize, kernel: &Path, common: &Path, kernel_lines: usize) -> String {
-    if line > kernel_lines {
-        format!("{}:{}", common.display(), line - kernel_lines)
-    } else {
-        format!("{}:{}", kernel.display(), line)
+/// The parts of a compiled text: (file, lines of the text before it), in order.
+type Segments = Vec<(PathBuf, usize)>;
+
+/// A kernel's source: a `.wgsl` file, or a folder's `*.wgsl` files concatenated in name order; with the
+/// segments that map its lines back to the files.
+fn read_kernel(path: &Path) -> (String, Segments) {
+    if !path.is_dir() {
+        return (
+            std::fs::read_to_string(path).unwrap(),
+            vec![(path.to_path_buf(), 0)],
+        );
     }
+    let mut parts: Vec<PathBuf> = std::fs::read_dir(path)
+        .unwrap()
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "wgsl"))
+        .collect();
+    parts.sort();
+    assert!(
+        !parts.is_empty(),
+        "{}: a kernel folder without .wgsl files",
+        path.display()
+    );
+    let (mut text, mut segments) = (String::new(), vec![]);
+    for p in parts {
+        println!("cargo:rerun-if-changed={}", p.display());
+        segments.push((p.clone(), text.lines().count()));
+        let t = std::fs::read_to_string(&p).unwrap();
+        text.push_str(&t);
+        if !t.ends_with('\n') {
+            text.push('\n');
+        }
+    }
+    (text, segments)
 }
 
-fn compile(
-    text: &str,
-    path: &Path,
-    common: &Path,
-    kernel_lines: usize,
-) -> Result<Compiled, String> {
+/// Maps a line of the concatenated text back to (file, line).
+fn locate(line: usize, segments: &Segments) -> String {
+    let (file, before) = segments
+        .iter()
+        .rev()
+        .find(|(_, before)| line > *before)
+        .unwrap_or(&segments[0]);
+    format!("{}:{}", file.display(), line - before)
+}
+
+fn compile(text: &str, path: &Path, segments: &Segments) -> Result<Compiled, String> {
     let pname = path.display().to_string();
     let module = naga::front::wgsl::parse_str(text).map_err(|e| {
         let loc = e
             .location(text)
-            .map(|l| locate(l.line_number as usize, path, common, kernel_lines));
+            .map(|l| locate(l.line_number as usize, segments));
         format!(
             "{}: error: {}\n{}",
             loc.unwrap_or_default(),
@@ -280,14 +317,10 @@ fn compile(
         .subgroup_operations(SubgroupOperationSet::all())
         .validate(&module)
         .map_err(|e| {
-            let loc = e.spans().next().map(|(s, _)| {
-                locate(
-                    s.location(text).line_number as usize,
-                    path,
-                    common,
-                    kernel_lines,
-                )
-            });
+            let loc = e
+                .spans()
+                .next()
+                .map(|(s, _)| locate(s.location(text).line_number as usize, segments));
             format!(
                 "{}: error: {}\n{}",
                 loc.unwrap_or_default(),

@@ -43,6 +43,7 @@ fn rig() -> Vec<Camera> {
                 ),
                 width: 1600,
                 height: 900,
+                distortion: [0.0; 5],
             }
         })
         .collect()

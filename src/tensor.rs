@@ -30,6 +30,12 @@ impl DType {
     }
 }
 
+impl serde::Serialize for DType {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> std::result::Result<S::Ok, S::Error> {
+        s.serialize_str(self.name())
+    }
+}
+
 impl std::str::FromStr for DType {
     type Err = anyhow::Error;
     fn from_str(s: &str) -> Result<Self> {

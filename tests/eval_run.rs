@@ -25,15 +25,15 @@ fn cfg(renderer: RendererMode, agents: AgentMode, controller: &str, steps: usize
         scenario: "builtin:town:2".into(),
         renderer,
         model: None,
-        planner: "expert".into(),
+        planner: "expert".parse().unwrap(),
         agents,
-        controller: controller.into(),
+        controller: controller.parse().unwrap(),
         steps,
         planner_timeout_s: 30.0,
         cameras: vec![],
         size: (56, 104),
         seed: 0,
-        dtype: "f32".into(),
+        dtype: b2dr::tensor::DType::F32,
         gif: false,
         shard: None,
     }
@@ -178,6 +178,23 @@ fn b2dr_renderer_reruns_bit_identically_and_resume_checks_the_config() {
         e.contains("--resume") && e.contains("another configuration"),
         "{e}"
     );
+    // the model's weights changed under the same path: refused, naming the file (issue #18)
+    let cfg_json: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(o1.join("config.json")).unwrap()).unwrap();
+    let weights = dir.join("controlnet/diffusion_pytorch_model.safetensors");
+    let key = weights.display().to_string();
+    assert_eq!(cfg_json["input_files"][&key]["role"], "model", "{cfg_json}");
+    let mut bytes = std::fs::read(&weights).unwrap();
+    let last = bytes.len() - 1;
+    bytes[last] ^= 1;
+    std::fs::write(&weights, &bytes).unwrap();
+    let e = format!("{:#}", run(Some(&ctx), &c, &o1, true).unwrap_err());
+    assert!(
+        e.contains("--resume") && e.contains(&format!("the model {key} changed")),
+        "{e}"
+    );
+    bytes[last] ^= 1;
+    std::fs::write(&weights, &bytes).unwrap();
     // the masks-only baseline runs too, and differs
     let mut nr = c.clone();
     nr.renderer = RendererMode::B2drNorefNoprev;

@@ -555,6 +555,7 @@ fn position_encodings_match_python_port() {
                 cam2ego: m4(&c.get("in.geom.cam2ego").data[k * 16..(k + 1) * 16]),
                 width: (8 * w) as u32,
                 height: (8 * h) as u32,
+                distortion: [0.0; 5],
             };
             let rd = &c.get("in.geom.ref_ego2global").data;
             let (a, b) = (

@@ -31,6 +31,7 @@ fn front_camera(f: f64, w: u32, h: u32, pos: DVec3) -> Camera {
         cam2ego,
         width: w,
         height: h,
+        distortion: [0.0; 5],
     }
 }
 

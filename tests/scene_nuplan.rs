@@ -210,6 +210,8 @@ fn round_trip_equals_the_known_scenario() {
         assert!(cam.cam2ego.abs_diff_eq(want, 1e-9), "{}", cam.name);
         // The camera looks along its mounting yaw: its z axis in the ego frame.
         assert_eq!((cam.width, cam.height), (64, 36));
+        let d: Vec<f64> = c["distortion"].as_array().unwrap().iter().map(f).collect();
+        assert_eq!(cam.distortion.to_vec(), d, "{}", cam.name);
     }
     // Frames: one per step, 8 images each, each image within 35 ms of its step and at its file.
     assert_eq!(sc.rig.frames.len(), 201);
@@ -393,15 +395,15 @@ fn log_replay_uses_the_recorded_images() {
         scenario: format!("nuplan:{}", db_path(root).display()),
         renderer: RendererMode::LogReplay,
         model: None,
-        planner: "expert".into(),
+        planner: b2dr::sim::PlannerSpec::Expert,
         agents: b2dr::sim::AgentMode::Idm,
-        controller: "lqr".into(),
+        controller: b2dr::sim::closed_loop::Controller::Lqr,
         steps: 4,
         planner_timeout_s: 30.0,
         cameras: vec!["CAM_F0".into(), "CAM_B0".into()],
         size: (18, 32),
         seed: 0,
-        dtype: "f32".into(),
+        dtype: b2dr::tensor::DType::F32,
         gif: false,
         shard: None,
     };
@@ -413,7 +415,20 @@ fn log_replay_uses_the_recorded_images() {
         let src = image::open(&sc.rig.frames[0].image(cam).unwrap().path)
             .unwrap()
             .to_rgb8();
-        let want = image::imageops::resize(&src, 32, 18, image::imageops::FilterType::Triangle);
+        // the fixture's lenses are distorted (k1 -0.35): the frame is the undistorted image, resized
+        let c = sc.rig.camera(cam).unwrap();
+        assert!(c.is_distorted());
+        let (w0, h0) = src.dimensions();
+        let und = image::RgbImage::from_raw(
+            w0,
+            h0,
+            c.rescaled(w0, h0)
+                .undistort_image(src.as_raw(), w0 as usize, h0 as usize),
+        )
+        .unwrap();
+        let want = image::imageops::resize(&und, 32, 18, image::imageops::FilterType::Triangle);
+        let plain = image::imageops::resize(&src, 32, 18, image::imageops::FilterType::Triangle);
+        assert_ne!(want, plain, "{cam}: undistorting changed nothing");
         assert_eq!(got.into_raw(), want.into_raw(), "{cam}");
     }
     let _ = std::fs::remove_dir_all(&out);
@@ -561,6 +576,21 @@ fn malformed_inputs_give_clear_errors() {
             "column `intrinsic`",
             "pickle",
             "0xff",
+        ],
+    );
+    // a lens model of 3 coefficients (pickled [1, 2, 3])
+    let e = broken("distortion", |db, _| {
+        db.execute_batch(
+            "UPDATE camera SET distortion = X'80025d7100284b014b024b03652e' WHERE channel = 'CAM_R0'",
+        )
+        .unwrap()
+    });
+    check(
+        &e,
+        &[
+            "table `camera` row token ",
+            "column `distortion`",
+            "3 coefficients",
         ],
     );
     let e = broken("pickle_short", |db, _| {
@@ -827,18 +857,18 @@ fn route_and_goal_come_from_the_scene_table() {
     };
     let whole = nuplan::load_log(&spec(&db, None)).unwrap();
     assert_eq!(whole.scenario.route.roadblock_ids, vec!["1", "2", "3", "7"]);
-    same(whole.goal, goal(1));
+    same(whole.scenario.route.mission_goal, goal(1));
     // the second scene's first lidar_pc: its scene only (the ego drives 1, 2, 3 in that window)
     let second = scenes[1]["first_lidar_pc"].as_str().unwrap();
     let w = nuplan::load_log(&spec(&db, Some(second))).unwrap();
     assert_eq!(w.scenario.route.roadblock_ids, vec!["3", "7"]);
     assert_eq!(w.scenario.route.lane_ids, vec!["11", "21", "31"]);
-    same(w.goal, goal(1));
+    same(w.scenario.route.mission_goal, goal(1));
     // a tag in the first scene
     let tag = ex["scenario_tags"][0]["lidar_pc"].as_str().unwrap();
     let w = nuplan::load_log(&spec(&db, Some(tag))).unwrap();
     assert_eq!(w.scenario.route.roadblock_ids, vec!["1", "2", "3"]);
-    same(w.goal, goal(0));
+    same(w.scenario.route.mission_goal, goal(0));
     // no scene table / no roadblock ids: the roadblocks the logged ego drives through
     let noscene = edited(
         "noscene",
@@ -847,7 +877,7 @@ fn route_and_goal_come_from_the_scene_table() {
     )
     .unwrap();
     assert_eq!(noscene.scenario.route.roadblock_ids, vec!["1", "2", "3"]);
-    assert!(noscene.goal.is_none());
+    assert!(noscene.scenario.route.mission_goal.is_none());
     let null = edited(
         "nullroute",
         |db, _| {

@@ -887,15 +887,15 @@ fn log_replay_and_retrieval_use_the_recorded_images() {
         scenario: format!("nuscenes:{}:v1.0-mini:scene-0061", root.display()),
         renderer: RendererMode::LogReplay,
         model: None,
-        planner: "expert".into(),
+        planner: b2dr::sim::PlannerSpec::Expert,
         agents: b2dr::sim::AgentMode::Idm,
-        controller: "lqr".into(),
+        controller: b2dr::sim::closed_loop::Controller::Lqr,
         steps: 6,
         planner_timeout_s: 30.0,
         cameras: vec!["CAM_FRONT".into(), "CAM_BACK".into()],
         size: (56, 104),
         seed: 0,
-        dtype: "f32".into(),
+        dtype: b2dr::tensor::DType::F32,
         gif: false,
         shard: None,
     };
@@ -1135,6 +1135,26 @@ fn dividers_and_stop_lines_come_from_the_map_expansion() {
         .map(|s| (s.id.clone(), s.polygon.to_vec()))
         .collect();
     assert_eq!(got_stop, want_stop);
+    // the layout masks draw the painted dividers (not dividers derived from the lanes): the layer's divider
+    // polylines are exactly the map's lines
+    use b2dr::projection::{MapClass, MapGeometry};
+    let layer = b2dr::projection::scene::map_layer(&map);
+    let dividers: Vec<Vec<DVec2>> = layer
+        .elements()
+        .iter()
+        .filter(|e| e.class == MapClass::LaneDivider)
+        .map(|e| match &e.geometry {
+            MapGeometry::Polyline(p) => p.iter().map(|v| v.truncate()).collect(),
+            other => panic!("a divider drawn as {other:?}"),
+        })
+        .collect();
+    let painted: Vec<Vec<DVec2>> = map
+        .lines
+        .iter()
+        .filter(|l| l.points.len() >= 2)
+        .map(|l| l.points.clone())
+        .collect();
+    assert_eq!(dividers, painted);
     // a stop line polygon that is not a quadrilateral: the rectangle along its longest edge enclosing it
     let q = nuscenes::expansion::quadrilateral(&[
         DVec2::new(0.0, 0.0),

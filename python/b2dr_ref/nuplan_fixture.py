@@ -119,8 +119,13 @@ def light_at(t):
 
 
 # ---------------------------------------------------------------- images
+def pixel(rgb, x, y):
+    # the camera's colour with a diagonal ramp in green (a lens model must move something visible)
+    return (rgb[0], (rgb[1] + 4 * x + 6 * y) % 256, rgb[2])
+
+
 def png_bytes(w, h, rgb):
-    raw = b"".join(b"\x00" + bytes(rgb) * w for _ in range(h))
+    raw = b"".join(b"\x00" + b"".join(bytes(pixel(rgb, x, y)) for x in range(w)) for y in range(h))
 
     def chunk(kind, data):
         c = struct.pack(">I", len(data)) + kind + data
@@ -136,7 +141,9 @@ def image_bytes(cam_i, k, png):
         return png_bytes(CAM_W, CAM_H, rgb)
     from PIL import Image  # the test virtualenv has Pillow; --png needs nothing
     buf = io.BytesIO()
-    Image.new("RGB", (CAM_W, CAM_H), rgb).save(buf, format="JPEG", quality=90)
+    im = Image.new("RGB", (CAM_W, CAM_H))
+    im.putdata([pixel(rgb, x, y) for y in range(CAM_H) for x in range(CAM_W)])
+    im.save(buf, format="JPEG", quality=90)
     return buf.getvalue()
 
 

@@ -21,13 +21,13 @@ pub struct RunArgs {
     pub model: Option<PathBuf>,
     /// expert, cv, idm or cmd:<command line> (protocol v2, docs/planner_protocol.md)
     #[arg(long, default_value = "expert")]
-    pub planner: String,
+    pub planner: b2dr::sim::PlannerSpec,
     /// idm (reactive, R-CLS), replay (CLS-NR) or none
     #[arg(long, default_value = "idm")]
     pub agents: String,
     /// lqr or perfect
     #[arg(long, default_value = "lqr")]
-    pub controller: String,
+    pub controller: b2dr::sim::closed_loop::Controller,
     /// Steps per scenario (10 Hz)
     #[arg(long, default_value_t = 150)]
     pub steps: usize,
@@ -43,7 +43,7 @@ pub struct RunArgs {
     pub seed: u64,
     /// UNet/ControlNet dtype of the b2dr renderers
     #[arg(long, default_value = "f32")]
-    pub dtype: String,
+    pub dtype: b2dr::tensor::DType,
     /// Skip the animated GIF
     #[arg(long)]
     pub no_gif: bool,

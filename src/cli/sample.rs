@@ -2,14 +2,8 @@
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, ensure, Context as _, Result};
-use b2dr::nn::config::{ControlNetConfig, UNetConfig, VaeConfig};
-use b2dr::nn::controlnet::ControlNet;
-use b2dr::nn::device::DeviceWeights;
 use b2dr::nn::pipeline::{Pipeline, PipelineShape};
-use b2dr::nn::run::read_component;
-use b2dr::nn::unet::UNet;
-use b2dr::nn::vae::VaeDecoder;
-use b2dr::nn::weights::{self, Weights};
+use b2dr::nn::sd_model::{check_vae_folder, SdDevice, SdLayers, SdModel};
 use b2dr::render::inputs;
 use b2dr::sampling::{NoiseSchedule, PredictionType, SamplerKind};
 use b2dr::tensor::DType;
@@ -63,15 +57,6 @@ fn parse_size(s: &str) -> Result<(usize, usize)> {
     Ok((h, w))
 }
 
-fn load(
-    dir: &Path,
-    expected: impl Fn(&serde_json::Value) -> Result<Vec<weights::Spec>>,
-) -> Result<(serde_json::Value, Weights)> {
-    let (cfg, wpath) = read_component(dir)?;
-    let w = Weights::load(&wpath, &expected(&cfg)?)?;
-    Ok((cfg, w))
-}
-
 pub fn run(device: Option<String>, a: SampleArgs) -> Result<()> {
     let (ih, iw) = parse_size(&a.size)?;
     let (h, w) = (ih / 8, iw / 8);
@@ -87,13 +72,8 @@ pub fn run(device: Option<String>, a: SampleArgs) -> Result<()> {
         a.conditioning_scale
     );
     if let Some(dir) = &a.model {
-        // before the device: a VAE that does not downsample by 8 would decode images of another size
-        let vdir = dir.join("vae");
-        let (vcj, _) = read_component(&vdir)?;
-        let what = vdir.join("config.json").display().to_string();
-        VaeConfig::from_json(vcj)
-            .with_context(|| what.clone())?
-            .check_factor_8(&what)?;
+        // before the device (a VAE that does not downsample by 8 would decode images of another size)
+        check_vae_folder(dir)?;
     }
     let ctx = Context::new(&ContextOptions {
         device,
@@ -101,85 +81,11 @@ pub fn run(device: Option<String>, a: SampleArgs) -> Result<()> {
         ..Default::default()
     })?;
     let dt = a.dtype;
-    // Components: a diffusers folder or b2dr-tiny with seeded weights (seeds 1, 2, 3 as in the goldens).
-    let (uc, uw, cc, cw, vc, vw, context) = match &a.model {
-        Some(dir) => {
-            let (ucj, uw) = load(&dir.join("unet"), |c| {
-                Ok(weights::expected_unet(&UNetConfig::from_json(c.clone())?))
-            })?;
-            let control = if dir.join("controlnet").exists() {
-                let (cj, w) = load(&dir.join("controlnet"), |c| {
-                    Ok(weights::expected_controlnet(&ControlNetConfig::from_json(
-                        c.clone(),
-                    )?))
-                })?;
-                Some((ControlNetConfig::from_json(cj)?, w))
-            } else {
-                None
-            };
-            let (vcj, vw) = load(&dir.join("vae"), |c| {
-                Ok(weights::expected_vae(&VaeConfig::from_json(c.clone())?))
-            })?;
-            let cpath = dir.join("context.safetensors");
-            let ctxw = Weights::from_bytes_unchecked(
-                &std::fs::read(&cpath).with_context(|| {
-                    format!("reading {} (the fixed text embedding)", cpath.display())
-                })?,
-                &cpath.display().to_string(),
-            )?;
-            let cond = ctxw.get("cond")?.data.clone();
-            let uncond = ctxw
-                .get("uncond")
-                .map(|t| t.data.clone())
-                .unwrap_or_else(|_| vec![0.0; cond.len()]);
-            let (ccfg, cw) = control
-                .map(|(c, w)| (Some(c), Some(w)))
-                .unwrap_or((None, None));
-            (
-                UNetConfig::from_json(ucj)?,
-                uw,
-                ccfg,
-                cw,
-                VaeConfig::from_json(vcj)?,
-                vw,
-                (uncond, cond),
-            )
-        }
-        None => {
-            let (uc, cc, vc) = (
-                UNetConfig::b2dr_tiny(),
-                ControlNetConfig::b2dr_tiny(),
-                VaeConfig::b2dr_tiny(),
-            );
-            let uw = Weights::random(&weights::expected_unet(&uc), 1);
-            let cw = Weights::random(&weights::expected_controlnet(&cc), 2);
-            let vw = Weights::random(&weights::expected_vae(&vc), 3);
-            let d = uc.enc.cross_attention_dim;
-            let mut r = rand_chacha::ChaCha8Rng::seed_from_u64(77);
-            let cond: Vec<f32> = (0..77 * d).map(|_| StandardNormal.sample(&mut r)).collect();
-            (
-                uc,
-                uw,
-                Some(cc),
-                Some(cw),
-                vc,
-                vw,
-                (vec![0.0; 77 * d], cond),
-            )
-        }
-    };
-    let udw = DeviceWeights::upload(&ctx, &uw, "", dt)?;
-    let unet = UNet::load(&udw, &uc)?;
-    let cdw = cw
-        .as_ref()
-        .map(|w| DeviceWeights::upload(&ctx, w, "", dt))
-        .transpose()?;
-    let control = match (&cc, &cdw) {
-        (Some(c), Some(d)) => Some(ControlNet::load(d, c)?),
-        _ => None,
-    };
-    let vdw = DeviceWeights::upload(&ctx, &vw, "", DType::F32)?;
-    let vae = VaeDecoder::load(&vdw, &vc)?;
+    let model = SdModel::resolve(a.model.as_deref())?;
+    let dev = SdDevice::upload(&ctx, &model, dt)?;
+    let SdLayers { unet, control, vae } = dev.layers(&model)?;
+    let (uc, vc) = (&model.unet_cfg, &model.vae_cfg);
+    let context = (&model.uncond, &model.cond);
     let sched = NoiseSchedule::sd15();
     let plan = a.sampler.plan(&sched, PredictionType::Epsilon, a.steps)?;
     let shape = PipelineShape {
@@ -215,8 +121,8 @@ pub fn run(device: Option<String>, a: SampleArgs) -> Result<()> {
     let mut prog = |d: usize, _n: usize| bar.set_position(d as u64);
     let out = p.run(
         &x_t,
-        &context.0,
-        &context.1,
+        context.0,
+        context.1,
         cond_img.as_deref(),
         false,
         Some(&mut prog),
@@ -234,7 +140,7 @@ pub fn run(device: Option<String>, a: SampleArgs) -> Result<()> {
         "size": [ih, iw], "dtype": dt.name(), "plan_ms": plan_ms, "run_s": run_s,
         "ms_per_step": run_s * 1e3 / a.steps as f64,
         "device_bytes_planned": p.planned_bytes, "device_bytes_total": ctx.allocated_bytes(),
-        "model": a.model.as_ref().map(|m| m.display().to_string()).unwrap_or_else(|| "builtin:b2dr-tiny (seeded random weights)".into()),
+        "model": model.source,
     });
     std::fs::write(
         a.out.join("sample.json"),

@@ -125,7 +125,7 @@ pub fn run(args: SimArgs) -> Result<()> {
         o.insert("shard".into(), serde_json::to_value(s)?);
     }
     batch::check_out_outside_scenarios(&args.out, &sources)?;
-    let config = batch::with_inputs(config, &sources, &args.planner.to_string())?;
+    let config = batch::with_inputs(config, &sources, &args.planner.to_string(), &[])?;
     batch::prepare_out(&args.out, &config, args.resume)?;
     let bar = (sources.len() > 1).then(|| {
         let b = indicatif::ProgressBar::new(sources.len() as u64);

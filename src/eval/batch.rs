@@ -107,59 +107,30 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 /// Key of `config.json` holding the content fingerprints of the files the batch reads ([`with_inputs`]).
 pub const INPUTS_KEY: &str = "input_files";
 
-/// Content fingerprint of a file: its size and a 64-bit FNV-1a style hash over its 8-byte little-endian words in
-/// four interleaved lanes (the tail zero-padded, the lanes folded by FNV-1a), read in 1 MiB blocks: fast enough
-/// for multi-GB nuPlan DBs (memory bandwidth, not one multiply per byte). Detects any change of content
-/// (with 2^-64 odds of missing one), not an adversary.
+/// Content fingerprint of a file: its size and its XXH3-128 (xxhash-rust, streamed in 1 MiB blocks: memory
+/// bandwidth, so multi-GB nuPlan DBs are hashed in seconds). Detects any change of content (with 2^-128 odds of
+/// missing one), not an adversary.
 pub fn file_fingerprint(path: &Path) -> Result<Value> {
     use std::io::Read;
-    const P: u64 = 0x0000_0100_0000_01b3;
     let mut f = std::fs::File::open(path).with_context(|| format!("hashing {}", path.display()))?;
-    let mut lanes = [0xcbf2_9ce4_8422_2325u64; 4];
-    for (i, l) in lanes.iter_mut().enumerate() {
-        *l ^= i as u64;
-    }
+    let mut h = xxhash_rust::xxh3::Xxh3::new();
     let mut buf = vec![0u8; 1 << 20];
     let mut size = 0u64;
-    let mut word = 0usize;
     loop {
-        // fill the block whole (a short read mid-file would shift the words)
-        let mut n = 0;
-        while n < buf.len() {
-            let k = f
-                .read(&mut buf[n..])
-                .with_context(|| format!("hashing {}", path.display()))?;
-            if k == 0 {
-                break;
-            }
-            n += k;
-        }
+        let n = f
+            .read(&mut buf)
+            .with_context(|| format!("hashing {}", path.display()))?;
         if n == 0 {
             break;
         }
         size += n as u64;
-        let padded = n.div_ceil(8) * 8;
-        buf[n..padded].fill(0);
-        for w in buf[..padded].chunks_exact(8) {
-            let x = u64::from_le_bytes(w.try_into().unwrap_or([0; 8]));
-            let l = &mut lanes[word % 4];
-            *l = (*l ^ x).wrapping_mul(P);
-            word += 1;
-        }
-        if n < buf.len() {
-            break;
-        }
+        h.update(&buf[..n]);
     }
-    let mut h = 0xcbf2_9ce4_8422_2325u64;
-    for b in lanes
-        .iter()
-        .flat_map(|l| l.to_le_bytes())
-        .chain(size.to_le_bytes())
-    {
-        h = (h ^ b as u64).wrapping_mul(P);
-    }
-    Ok(json!({"size": size, "fnv1a64x4": format!("{h:016x}")}))
+    Ok(json!({"size": size, HASH_KEY: format!("{:032x}", h.digest128())}))
 }
+
+/// The hash field of a fingerprint ([`file_fingerprint`]).
+pub const HASH_KEY: &str = "xxh3_128";
 
 /// The files a planner command line reads that can be named: every word of it (split at blanks, quotes
 /// removed) that names an existing regular file, e.g. the script of `python3 planner.py --weights w.pt` and its
@@ -183,11 +154,19 @@ pub fn planner_files(planner: &str) -> Vec<PathBuf> {
 
 /// `config` with [`INPUTS_KEY`]: the fingerprint ([`file_fingerprint`]) of every file the scenarios are read
 /// from (a ScenarioNet file; a nuScenes scene's tables and map expansion; a nuPlan log DB and its map) and of
-/// every file the planner command names ([`planner_files`]), by path, so that `--resume` refuses a folder whose
-/// inputs changed since (naming the file). Built-in scenarios read no file; images are not hashed. A file that
-/// cannot be read is recorded as such (`"unreadable"`: its scenario fails on its own, scoring 0, as before),
-/// so that it becoming readable is a change too.
-pub fn with_inputs(mut config: Value, sources: &[Source], planner: &str) -> Result<Value> {
+/// every file the planner command names ([`planner_files`]) and of the `model` files (the renderer's package,
+/// [`crate::render::package::package_files`]), by path, so that `--resume` refuses a folder whose inputs changed
+/// since (naming the file). Built-in scenarios read no file. Camera images are not hashed: a log's images are
+/// many GB (a nuPlan log's sensor_blobs: tens of GB), the tables that name them (path, timestamp, pose) are
+/// hashed; an image edited in place under the same name goes unnoticed. A file that cannot be read is recorded
+/// as such (`"unreadable"`: its scenario fails on its own, scoring 0, as before), so that it becoming readable is
+/// a change too.
+pub fn with_inputs(
+    mut config: Value,
+    sources: &[Source],
+    planner: &str,
+    model: &[PathBuf],
+) -> Result<Value> {
     let mut files: Vec<(String, PathBuf)> = vec![];
     let mut inputs = Map::new();
     for s in sources {
@@ -213,6 +192,7 @@ pub fn with_inputs(mut config: Value, sources: &[Source], planner: &str) -> Resu
             .into_iter()
             .map(|p| ("planner".to_string(), p)),
     );
+    files.extend(model.iter().map(|p| ("model".to_string(), p.clone())));
     for (role, p) in files {
         let key = p.display().to_string();
         if inputs.contains_key(&key) {
@@ -242,11 +222,11 @@ fn inputs_difference(old: &Value, new: &Value) -> Option<String> {
     );
     let what = |v: &Value| match v["unreadable"].as_str() {
         Some(why) => format!("unreadable: {why}"),
-        None => format!(
-            "{} bytes, fnv1a64x4 {}",
-            v["size"],
-            v["fnv1a64x4"].as_str().unwrap_or("?")
-        ),
+        None => match v[HASH_KEY].as_str() {
+            Some(h) => format!("{} bytes, {HASH_KEY} {h}", v["size"]),
+            // a folder begun by an older b2dr (another hash): reported as a change, never matched
+            None => format!("{} bytes, a fingerprint of an older b2dr", v["size"]),
+        },
     };
     let mut out = vec![];
     for (k, v) in b {

@@ -22,7 +22,7 @@ use crate::scene::Scenario;
 use crate::sim::sensors::{navigation_command, Command};
 use crate::world::export::shard::Shard;
 use crate::world::images::ImageStore;
-use crate::world::view::{ego_pose, select_cameras};
+use crate::world::view::ego_pose;
 
 pub const FORMAT: &str = "b2dr-planner-data";
 pub const VERSION: u32 = 1;
@@ -125,7 +125,7 @@ pub fn export(o: &PlannerDataOptions) -> Result<PlannerDataSummary> {
             "{}: planner data needs a synthetic scenario (builtin:...): its ground truth is rendered",
             sc.source
         );
-        let cams = select_cameras(sc, &cams_req)?;
+        let cams = sc.select_cameras(&cams_req)?;
         let store = ImageStore::new(sc, None);
         let mut shard = Shard::default();
         for step in (0..sc.len()).step_by(o.every) {

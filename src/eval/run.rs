@@ -21,13 +21,13 @@ use serde_json::{json, Value};
 
 pub use super::batch::folder_name;
 use super::batch::{self, write_atomic, Shard};
-use super::sensors::{rig_cameras, B2dr, B2drEngine, GroundTruth, LogReplay};
+use super::sensors::{B2dr, B2drEngine, GroundTruth, LogReplay};
 use crate::metrics::ScoreParams;
 use crate::scene::import::{resolve, Source};
-use crate::sim::closed_loop::run_with_sensors;
+use crate::sim::closed_loop::{run_with_sensors, Controller};
 use crate::sim::external::ExternalPlanner;
 use crate::sim::sensors::{CameraFrame, Sensors};
-use crate::sim::{self, AgentMode, Planner, SimConfig, SimResult};
+use crate::sim::{self, AgentMode, Planner, PlannerSpec, SimConfig, SimResult};
 use crate::tensor::DType;
 use crate::vk::Context;
 use crate::world::images::ImageStore;
@@ -81,9 +81,9 @@ pub struct RunConfig {
     pub renderer: RendererMode,
     /// Model package folder (b2dr modes); None: the built-in model.
     pub model: Option<PathBuf>,
-    pub planner: String,
+    pub planner: PlannerSpec,
     pub agents: AgentMode,
-    pub controller: String,
+    pub controller: Controller,
     pub steps: usize,
     pub planner_timeout_s: f64,
     /// Cameras (empty: the model's for b2dr modes, the rig's otherwise).
@@ -91,7 +91,8 @@ pub struct RunConfig {
     /// Render size (H, W) of groundtruth / log-replay (b2dr modes use the model's).
     pub size: (usize, usize),
     pub seed: u64,
-    pub dtype: String,
+    /// UNet / ControlNet dtype of the b2dr renderers.
+    pub dtype: DType,
     /// Write the animated GIF.
     pub gif: bool,
     /// `--shard K/N`: every N-th scenario of the name-ordered list (None: all; not written to config.json).
@@ -117,9 +118,11 @@ impl Totals {
 
 fn planner(cfg: &RunConfig, dir: &Path) -> Result<Box<dyn Planner>> {
     let timeout = Duration::from_secs_f64(cfg.planner_timeout_s);
-    Ok(match cfg.planner.strip_prefix("cmd:") {
-        Some(c) => Box::new(ExternalPlanner::new(c, timeout)?.v2(Some(dir.join("planner_images")))),
-        None => sim::planner_from_spec(&cfg.planner, timeout)?,
+    Ok(match &cfg.planner {
+        PlannerSpec::Command(c) => {
+            Box::new(ExternalPlanner::new(c, timeout)?.v2(Some(dir.join("planner_images"))))
+        }
+        p => p.build(timeout)?,
     })
 }
 
@@ -178,7 +181,7 @@ fn run_one(
     let store = ImageStore::new(&sc, base);
     let sim_cfg = SimConfig {
         agents: cfg.agents,
-        controller: cfg.controller.parse()?,
+        controller: cfg.controller,
         steps: cfg.steps,
         ..SimConfig::default()
     };
@@ -187,8 +190,8 @@ fn run_one(
     std::fs::create_dir_all(dir.join("mosaic"))?;
     let mut p = planner(cfg, dir)?;
     let cams = match engine.as_ref() {
-        Some(e) => rig_cameras(&sc, &e.cameras)?,
-        None => rig_cameras(&sc, &cfg.cameras)?,
+        Some(e) => sc.select_cameras(&e.cameras)?,
+        None => sc.select_cameras(&cfg.cameras)?,
     };
     let mut gt;
     let mut lr;
@@ -298,7 +301,17 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
     planner(cfg, out)?;
     let sources = batch::select(resolve(&cfg.scenario)?, cfg.shard)?;
     batch::check_out_outside_scenarios(out, &sources)?;
-    let config = batch::with_inputs(serde_json::to_value(cfg)?, &sources, &cfg.planner)?;
+    let model_files = if cfg.renderer.uses_model() {
+        crate::render::package::package_files(cfg.model.as_deref())?
+    } else {
+        vec![]
+    };
+    let config = batch::with_inputs(
+        serde_json::to_value(cfg)?,
+        &sources,
+        &cfg.planner.to_string(),
+        &model_files,
+    )?;
     batch::prepare_out(out, &config, resume)?;
     let mut engine = if cfg.renderer.uses_model() {
         let ctx = ctx.context("the b2dr renderer needs a Vulkan device")?;
@@ -308,7 +321,7 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
         } else {
             cfg.cameras.clone()
         };
-        let dtype: DType = cfg.dtype.parse()?;
+        let dtype = cfg.dtype;
         Some(B2drEngine::new(
             ctx,
             pkg,

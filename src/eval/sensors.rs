@@ -27,25 +27,6 @@ use crate::world::images::ImageStore;
 use crate::world::palette::hash_bytes;
 use crate::world::{render_cameras, RenderOptions, WorldObject};
 
-/// The cameras of `sc` named in `names` (all of the rig when empty), in that order.
-pub fn rig_cameras(sc: &Scenario, names: &[String]) -> Result<Vec<Camera>> {
-    if names.is_empty() {
-        return Ok(sc.rig.cameras.clone());
-    }
-    names
-        .iter()
-        .map(|n| {
-            sc.rig.camera(n).cloned().with_context(|| {
-                format!(
-                    "camera {n:?} is not in the rig of {} ({:?})",
-                    sc.name,
-                    sc.rig.cameras.iter().map(|c| &c.name).collect::<Vec<_>>()
-                )
-            })
-        })
-        .collect()
-}
-
 /// The simulated objects as world solids (height from the track, gravity centre at height / 2).
 pub fn world_objects(sc: &Scenario, agents: &[AgentRecord]) -> Vec<WorldObject> {
     agents
@@ -402,7 +383,7 @@ pub struct B2dr<'a> {
 impl<'a> B2dr<'a> {
     pub fn new(engine: &'a mut B2drEngine, store: &'a ImageStore<'a>) -> Result<Self> {
         let sc = store.world().scenario;
-        let cameras = rig_cameras(sc, &engine.cameras)?;
+        let cameras = sc.select_cameras(&engine.cameras)?;
         Ok(Self {
             engine,
             store,

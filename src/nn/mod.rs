@@ -11,6 +11,7 @@ pub mod layers;
 pub mod pipeline;
 pub mod resnet;
 pub mod run;
+pub mod sd_model;
 pub mod transformer;
 pub mod unet;
 pub mod vae;

@@ -92,6 +92,7 @@ impl KeyFrame {
                 cam2ego: mat4_from_rows(&c.cam2ego),
                 width: c.width,
                 height: c.height,
+                distortion: [0.0; 5],
             };
             ensure!(
                 c.width > 0 && c.height > 0 && c.width <= 16384 && c.height <= 16384,

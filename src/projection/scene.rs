@@ -99,13 +99,23 @@ pub fn map_layer(map: &Map) -> MapLayer {
     for c in &map.crosswalks {
         els.push(polygon(MapClass::Crosswalk, &c.polygon));
     }
+    // A map with painted lines (nuScenes dividers) draws them as they are; the dividers derived from lane
+    // geometry stand in only where a map has none. Road edges are always derived (no source paints them).
+    let painted = !map.lines.is_empty();
     for line in road_lines(map) {
         let class = match line.kind {
+            LineKind::LaneDivider | LineKind::CentreLine if painted => continue,
             LineKind::LaneDivider | LineKind::CentreLine => MapClass::LaneDivider,
             LineKind::RoadEdge => MapClass::RoadBoundary,
         };
         els.push(MapElement {
             class,
+            geometry: MapGeometry::Polyline(ring3(&line.points)),
+        });
+    }
+    for line in map.lines.iter().filter(|l| l.points.len() >= 2) {
+        els.push(MapElement {
+            class: MapClass::LaneDivider,
             geometry: MapGeometry::Polyline(ring3(&line.points)),
         });
     }

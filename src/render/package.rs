@@ -140,6 +140,46 @@ pub fn resolve_model(spec: Option<&Path>) -> Result<ModelPackage> {
     }
 }
 
+/// The files of the model package a `--model` spec names (as [`resolve_model`] reads it), for `--resume`'s
+/// fingerprints: every regular file of the folder and its component folders (sorted); a built-in model: its committed folder when it has
+/// one (b2dr-nano), else none (seeded weights, a pure function of the binary).
+pub fn package_files(spec: Option<&Path>) -> Result<Vec<std::path::PathBuf>> {
+    let dir = match spec
+        .and_then(|p| p.to_str())
+        .and_then(|s| s.strip_prefix("builtin:"))
+    {
+        Some("b2dr-nano") => nano_dir(),
+        Some(_) => return Ok(vec![]),
+        None => match spec {
+            Some(d) => d.to_path_buf(),
+            None if DEFAULT_MODEL == "b2dr-nano" => nano_dir(),
+            None => return Ok(vec![]),
+        },
+    };
+    if !dir.is_dir() {
+        // a missing folder is the loader's error to name; a built-in without its folder has none
+        return Ok(vec![]);
+    }
+    let mut out = vec![];
+    // a package is the folder and its component folders (unet/, controlnet/, vae/): two levels
+    let mut stack = vec![(dir, 0)];
+    while let Some((d, depth)) = stack.pop() {
+        for e in std::fs::read_dir(&d)
+            .with_context(|| format!("listing the model package {}", d.display()))?
+            .flatten()
+        {
+            let p = e.path();
+            if p.is_file() {
+                out.push(p);
+            } else if p.is_dir() && depth < 2 {
+                stack.push((p, depth + 1));
+            }
+        }
+    }
+    out.sort();
+    Ok(out)
+}
+
 /// b2dr-nano's configs (python/b2dr_ref/nano.py NANO, the same numbers).
 fn nano_configs() -> (UNetConfig, B2drConfig, VaeConfig) {
     let down = [

@@ -4,7 +4,9 @@
 //! All geometry in f64. Poses are 4x4 homogeneous transforms `a2b` mapping points of frame a into frame b.
 use glam::{DMat3, DMat4, DVec3};
 
-/// One pinhole camera of a rig (images are undistorted).
+/// One pinhole camera of a rig. Geometry (projection, masks, rendering) is pinhole; a camera whose recorded
+/// images are distorted carries its lens model in `distortion`, and the image store undistorts those images
+/// when it reads them ([`Camera::undistort_image`]), so every consumer sees pinhole images.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Camera {
     /// Channel name, e.g. `CAM_FRONT`.
@@ -16,6 +18,10 @@ pub struct Camera {
     /// Native image size in pixels.
     pub width: u32,
     pub height: u32,
+    /// Lens distortion of the recorded images, (k1, k2, p1, p2, k3) of the Brown-Conrady ("Caltech", OpenCV
+    /// plumb bob) model nuPlan's `camera.distortion` stores; all zero: the images are pinhole (nuScenes,
+    /// synthetic).
+    pub distortion: [f64; 5],
 }
 
 /// One camera image of a recorded frame: each camera fires at its own time, so it carries its own ego pose.
@@ -84,7 +90,72 @@ impl Camera {
             cam2ego: self.cam2ego,
             width: new_width,
             height: new_height,
+            distortion: self.distortion,
         }
+    }
+
+    /// Whether recorded images of this camera need undistorting.
+    pub fn is_distorted(&self) -> bool {
+        self.distortion.iter().any(|k| *k != 0.0)
+    }
+
+    /// The distorted normalised image coordinates of the pinhole ones `(x, y) = (X / Z, Y / Z)` (OpenCV's
+    /// model): `r2 = x^2 + y^2`, `x_d = x (1 + k1 r2 + k2 r2^2 + k3 r2^3) + 2 p1 x y + p2 (r2 + 2 x^2)`,
+    /// `y_d = y (...) + p1 (r2 + 2 y^2) + 2 p2 x y`.
+    pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
+        let [k1, k2, p1, p2, k3] = self.distortion;
+        let r2 = x * x + y * y;
+        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+        (
+            x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x),
+            y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y,
+        )
+    }
+
+    /// A recorded image of this camera (RGB interleaved, the native `width x height`) as the pinhole camera of
+    /// the same intrinsics sees it (what `cv2.undistort(img, K, D)` computes): each output pixel centre is
+    /// mapped through [`Camera::distort`] into the recorded image and sampled bilinearly; where that falls
+    /// outside the recorded image the pixel is black. A camera without distortion returns the image unchanged.
+    pub fn undistort_image(&self, rgb: &[u8], width: usize, height: usize) -> Vec<u8> {
+        if !self.is_distorted() {
+            return rgb.to_vec();
+        }
+        let k = self.intrinsic;
+        // glam is column-major: (fx, skew, cx; 0, fy, cy)
+        let (fx, s, cx) = (k.x_axis.x, k.y_axis.x, k.z_axis.x);
+        let (fy, cy) = (k.y_axis.y, k.z_axis.y);
+        let mut out = vec![0u8; width * height * 3];
+        for v in 0..height {
+            for u in 0..width {
+                // pixel centre -> normalised pinhole coordinates (inverse of u = fx x + s y + cx, v = fy y + cy)
+                let y = (v as f64 - cy) / fy;
+                let x = (u as f64 - cx - s * y) / fx;
+                let (xd, yd) = self.distort(x, y);
+                let (ud, vd) = (fx * xd + s * yd + cx, fy * yd + cy);
+                if !(ud > -1.0 && vd > -1.0 && ud < width as f64 && vd < height as f64) {
+                    continue;
+                }
+                let (u0, v0) = (ud.floor(), vd.floor());
+                let (a, b) = (ud - u0, vd - v0);
+                let px = |uu: f64, vv: f64, c: usize| -> f64 {
+                    if uu < 0.0 || vv < 0.0 || uu >= width as f64 || vv >= height as f64 {
+                        // the border beyond the last pixel centre: clamp to the edge pixel
+                        let (uc, vc) = (
+                            uu.clamp(0.0, width as f64 - 1.0),
+                            vv.clamp(0.0, height as f64 - 1.0),
+                        );
+                        return rgb[(vc as usize * width + uc as usize) * 3 + c] as f64;
+                    }
+                    rgb[(vv as usize * width + uu as usize) * 3 + c] as f64
+                };
+                for c in 0..3 {
+                    let val = (1.0 - b) * ((1.0 - a) * px(u0, v0, c) + a * px(u0 + 1.0, v0, c))
+                        + b * ((1.0 - a) * px(u0, v0 + 1.0, c) + a * px(u0 + 1.0, v0 + 1.0, c));
+                    out[(v * width + u) * 3 + c] = val.round().clamp(0.0, 255.0) as u8;
+                }
+            }
+        }
+        out
     }
 }
 
@@ -179,5 +250,78 @@ mod tests {
             ImageRef::File("a/b.jpg")
         );
         assert!(ImageRef::parse("builtin://x/CAM").is_err());
+    }
+
+    fn lens(distortion: [f64; 5]) -> Camera {
+        Camera {
+            name: "CAM".into(),
+            intrinsic: DMat3::from_cols(
+                DVec3::new(40.0, 0.0, 0.0),
+                DVec3::new(0.5, 42.0, 0.0),
+                DVec3::new(31.5, 23.5, 1.0),
+            ),
+            cam2ego: DMat4::IDENTITY,
+            width: 64,
+            height: 48,
+            distortion,
+        }
+    }
+
+    /// Undistorting samples the recorded image where the lens put each pinhole ray: a recorded image that is a
+    /// linear ramp in the recorded (distorted) pixel coordinates becomes, at pinhole pixel (u, v), that ramp at
+    /// the distorted position of (u, v) (bilinear sampling is exact on a ramp, up to rounding); mapping the
+    /// other way (distorting instead of undistorting) misses by several levels.
+    #[test]
+    fn undistort_samples_through_the_lens_model() {
+        let cam = lens([0.25, 0.05, 0.002, -0.003, 0.0]);
+        let (w, h) = (64usize, 48usize);
+        let ramp = |u: f64, v: f64| [3.0 * u + 20.0, 4.0 * v + 20.0, 2.0 * u + v + 10.0];
+        let mut rec = vec![0u8; w * h * 3];
+        for v in 0..h {
+            for u in 0..w {
+                for (c, val) in ramp(u as f64, v as f64).iter().enumerate() {
+                    rec[(v * w + u) * 3 + c] = val.round() as u8;
+                }
+            }
+        }
+        let out = cam.undistort_image(&rec, w, h);
+        let k = cam.intrinsic;
+        let (mut inside, mut outside, mut moved) = (0, 0, 0);
+        for v in 0..h {
+            for u in 0..w {
+                let y = (v as f64 - k.z_axis.y) / k.y_axis.y;
+                let x = (u as f64 - k.z_axis.x - k.y_axis.x * y) / k.x_axis.x;
+                let (xd, yd) = cam.distort(x, y);
+                let (ud, vd) = (
+                    k.x_axis.x * xd + k.y_axis.x * yd + k.z_axis.x,
+                    k.y_axis.y * yd + k.z_axis.y,
+                );
+                let got = &out[(v * w + u) * 3..(v * w + u) * 3 + 3];
+                if ud >= 0.0 && vd >= 0.0 && ud <= (w - 1) as f64 && vd <= (h - 1) as f64 {
+                    inside += 1;
+                    for (c, want) in ramp(ud, vd).iter().enumerate() {
+                        assert!(
+                            (got[c] as f64 - want).abs() <= 1.0,
+                            "({u}, {v}) channel {c}: {} vs {want:.2}",
+                            got[c]
+                        );
+                    }
+                    if (ud - u as f64).hypot(vd - v as f64) > 1.0 {
+                        moved += 1;
+                    }
+                } else if ud < -1.0 || vd < -1.0 || ud > w as f64 || vd > h as f64 {
+                    outside += 1;
+                    assert_eq!(got, [0, 0, 0], "({u}, {v}) maps outside: black");
+                }
+            }
+        }
+        // (pincushion) the lens moves half the pixels by more than a pixel and sends the corners beyond the
+        // recorded image
+        assert!(
+            inside > w * h / 2 && moved > inside / 2 && outside > 0,
+            "{inside} {moved} {outside}"
+        );
+        // no distortion: the image unchanged
+        assert_eq!(lens([0.0; 5]).undistort_image(&rec, w, h), rec);
     }
 }

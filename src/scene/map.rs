@@ -62,8 +62,9 @@ pub enum MapLineKind {
     LaneDivider,
 }
 
-/// A painted line read from a source map that has them (nuScenes dividers). Kept as read: the road lines drawn
-/// in layout masks are still derived from lane geometry (`scene::roadlines`) for every source.
+/// A painted line read from a source map that has them (nuScenes dividers). Layout masks draw them as the
+/// map's dividers (`projection::scene::map_layer`); maps without them get dividers derived from lane geometry
+/// (`scene::roadlines`), and road edges are derived for every source.
 #[derive(Clone, Debug)]
 pub struct MapLine {
     pub id: String,

@@ -190,11 +190,15 @@ pub struct EgoLogState {
     pub accel: f64,
 }
 
-/// The route the expert drove: roadblocks in order and the lanes the expert used.
+/// The route the expert drove: roadblocks in order and the lanes the expert used, and the mission goal where
+/// the source names one.
 #[derive(Clone, Debug, Default, serde::Serialize)]
 pub struct Route {
     pub roadblock_ids: Vec<String>,
     pub lane_ids: Vec<String>,
+    /// The mission goal (rear axle pose; nuPlan `scene.goal_ego_pose_token`, what nuPlan hands its planners as
+    /// `mission_goal`); None where the source has none (ScenarioNet, nuScenes, built-in).
+    pub mission_goal: Option<Pose2>,
 }
 
 /// A complete scenario.
@@ -229,6 +233,28 @@ impl Scenario {
             return &[];
         }
         &self.traffic_lights[k.min(self.traffic_lights.len() - 1)]
+    }
+
+    /// The cameras of the rig named in `names`, in that order (all of the rig when empty); an unknown name is
+    /// an error listing the rig's cameras.
+    pub fn select_cameras(&self, names: &[String]) -> anyhow::Result<Vec<camera::Camera>> {
+        if names.is_empty() {
+            return Ok(self.rig.cameras.clone());
+        }
+        names
+            .iter()
+            .map(|n| {
+                self.rig.camera(n).cloned().ok_or_else(|| {
+                    let known: Vec<&str> =
+                        self.rig.cameras.iter().map(|c| c.name.as_str()).collect();
+                    anyhow::anyhow!(
+                        "unknown camera {n:?}: the rig of {} has {}",
+                        self.name,
+                        known.join(", ")
+                    )
+                })
+            })
+            .collect()
     }
 }
 

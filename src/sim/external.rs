@@ -461,7 +461,7 @@ impl Planner for ExternalPlanner {
             "type": "start", "version": 2, "scenario": sc.name, "map": sc.source,
             "dt_s": sc.dt, "rig": rig,
             "ego": {"length": p.length, "width": p.width, "wheel_base": p.wheel_base, "rear_axle_to_center": p.rear_axle_to_center},
-            "route": { "roadblock_ids": sc.route.roadblock_ids, "lane_ids": sc.route.lane_ids },
+            "route": sc.route,
         });
         let reply = self
             .request(&msg, &[], true)?
@@ -512,7 +512,7 @@ impl Planner for ExternalPlanner {
                 "length": sc.ego_params.length, "width": sc.ego_params.width,
                 "wheel_base": sc.ego_params.wheel_base, "rear_axle_to_center": sc.ego_params.rear_axle_to_center,
             },
-            "route": { "roadblock_ids": sc.route.roadblock_ids, "lane_ids": sc.route.lane_ids },
+            "route": sc.route,
             "images": input.images.iter().map(|i| json!({"camera": i.camera, "path": i.path, "timestamp_us": i.timestamp_us})).collect::<Vec<_>>(),
             "reply": { "poses": PLAN_POSES, "dt_s": super::planner::PLAN_DT_S, "frame": "ego_rear_axle" },
         });

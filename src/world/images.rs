@@ -3,7 +3,8 @@
 //! Generated images (`builtin://<scenario>/<CAMERA>/<step>`, [`ImageRef::Generated`]) are rendered by the
 //! ground-truth renderer from the scenario at that log step, with the image's own recorded ego pose, and kept in
 //! an in-memory cache (FIFO, [`ImageStore::with_capacity`] images); nothing is written to disk. File images are
-//! read relative to the scenario's directory and resized (bilinear) to the requested size.
+//! read relative to the scenario's directory, undistorted when their camera has a lens distortion
+//! ([`crate::scene::camera::Camera::undistort_image`]), and resized (bilinear) to the requested size.
 use super::render::{render_cameras, RenderOptions};
 use super::{objects_at, World};
 use crate::scene::camera::{CameraImage, ImageRef};
@@ -126,9 +127,19 @@ impl<'a> ImageStore<'a> {
                     Some(d) => d.join(p),
                     None => PathBuf::from(p),
                 };
-                let im = image::open(&path)
+                let mut im = image::open(&path)
                     .with_context(|| format!("reading recorded image {}", path.display()))?
                     .to_rgb8();
+                if let Some(cam) = sc.rig.camera(&img.camera).filter(|c| c.is_distorted()) {
+                    // a distorted lens: undistort at the file's own size, then resize (the file may be stored
+                    // at another size than the calibration's: the intrinsics follow it)
+                    let (w0, h0) = im.dimensions();
+                    let data =
+                        cam.rescaled(w0, h0)
+                            .undistort_image(im.as_raw(), w0 as usize, h0 as usize);
+                    im = image::RgbImage::from_raw(w0, h0, data)
+                        .context("internal: undistorted image size")?;
+                }
                 let im = image::imageops::resize(
                     &im,
                     width as u32,

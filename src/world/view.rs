@@ -64,22 +64,6 @@ pub fn parse_offset(s: &str) -> Result<Pose2> {
     Ok(Pose2::new(x[0], x[1], x[2].to_radians()))
 }
 
-/// The cameras named in `names` (all of the rig when empty), in the order given.
-pub fn select_cameras(sc: &Scenario, names: &[String]) -> Result<Vec<Camera>> {
-    if names.is_empty() {
-        return Ok(sc.rig.cameras.clone());
-    }
-    names
-        .iter()
-        .map(|n| {
-            sc.rig.camera(n).cloned().with_context(|| {
-                let known: Vec<&str> = sc.rig.cameras.iter().map(|c| c.name.as_str()).collect();
-                format!("unknown camera {n:?}; the rig has {}", known.join(", "))
-            })
-        })
-        .collect()
-}
-
 /// The ego rear-axle pose at log step `step` displaced by `offset` (in the ego frame); errors when the step is
 /// out of range or the pose is off the map.
 pub fn ego_pose(sc: &Scenario, step: usize, offset: &Pose2) -> Result<Pose2> {
@@ -149,7 +133,7 @@ pub struct ViewOutput {
 
 /// Renders the ground truth, the masks and the bird's-eye view of one state.
 pub fn view(sc: &Scenario, world: &World, req: &ViewRequest) -> Result<ViewOutput> {
-    let cams = select_cameras(sc, &req.cameras)?;
+    let cams = sc.select_cameras(&req.cameras)?;
     let ego = ego_pose(sc, req.step, &req.offset)?;
     let e2g = ego2global(&ego);
     let frames = world.render_step(&cams, &e2g, req.step, req.width, req.height, 1)?;
@@ -196,6 +180,7 @@ pub fn bev(
         cam2ego,
         width: size as u32,
         height: size as u32,
+        distortion: [0.0; 5],
     };
     let mut objects = objects_at(sc, step);
     let centre = sc.ego_params.center_of(ego);

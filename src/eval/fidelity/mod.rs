@@ -30,7 +30,7 @@ use serde::Serialize;
 
 use self::metrics::{IouCounts, PaletteClassifier};
 use self::scene::Deviation;
-use crate::eval::sensors::{rig_cameras, B2drEngine};
+use crate::eval::sensors::B2drEngine;
 use crate::projection::scene::map_layer;
 use crate::render::frame::{FrameInputs, FrameRenderer, Prev, RefInputs};
 use crate::render::inputs::{self, Geometry};
@@ -459,7 +459,7 @@ pub fn eval_render(ctx: &Context, cfg: &EvalConfig, out: &Path) -> Result<Result
             sc.source
         );
         let store = ImageStore::new(&sc, None);
-        let cams: Vec<Camera> = rig_cameras(&sc, &cfg.cameras)?;
+        let cams: Vec<Camera> = sc.select_cameras(&cfg.cameras)?;
         let map = map_layer(&sc.map);
         let nf = sc.rig.frames.len();
         bar.set_message(sc.name.clone());

@@ -22,7 +22,6 @@ use serde::Serialize;
 
 use crate::eval::fidelity::metrics::{psnr, IouCounts, PaletteClassifier};
 use crate::eval::fidelity::scene;
-use crate::eval::sensors::rig_cameras;
 use crate::projection::scene::map_layer;
 use crate::render::frame::{FrameInputs, FrameRenderer, FrameShape, Prev, RefInputs};
 use crate::render::inputs::{self};
@@ -591,7 +590,7 @@ pub fn bench_trade(ctx: &Context, cfg: &TradeConfig, out: &Path) -> Result<Trade
         sc.source
     );
     let store = ImageStore::new(&sc, None);
-    let cams = rig_cameras(&sc, &names)?;
+    let cams = sc.select_cameras(&names)?;
     let map = map_layer(&sc.map);
     let nrec = sc.rig.frames.len();
     for &fi in &cfg.frames {

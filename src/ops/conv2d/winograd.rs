@@ -1,4 +1,5 @@
-//! Winograd F(4x4, 3x3) and F(6x6, 3x3) for stride-1 3x3 convs (`kernels/winograd.wgsl`): input transform,
+//! Winograd F(4x4, 3x3) and F(6x6, 3x3) for stride-1 3x3 convs (`kernels/winograd/`: 00_common, 10_f4, 20_f6,
+//! 30_f6_pairs): input transform,
 //! 36 (or 64) batched GEMMs on the tiled matmul, output transform (+ bias, residual, SiLU). F(4x4) does 4x
 //! fewer multiply-adds than the implicit GEMM, F(6x6) 5.1x; the transformed tensors are f32 in every mode.
 //! Tiles are processed in slabs so the two intermediates stay small (they live in the recorder's scratch
@@ -90,7 +91,7 @@ struct Ids {
 }
 
 /// The kernels of one dtype, tile size and prologue choice (`gs`: the input entries with the GroupNorm + SiLU
-/// prologue), from the generated lookup of `kernels/winograd.wgsl`.
+/// prologue), from the generated lookup of `kernels/winograd/`.
 fn ids(d: DType, t: Tile, gs: bool) -> Result<Ids> {
     use lookup::WinogradEntry as E;
     let k = |e: E| {

@@ -154,6 +154,7 @@ pub fn nuscenes_like_cameras() -> Vec<Camera> {
                 cam2ego,
                 width: 1600,
                 height: 900,
+                distortion: [0.0; 5],
             }
         })
         .collect()

@@ -10,7 +10,7 @@ pub mod shard;
 
 use super::images::ImageStore;
 use super::render::{render_cameras, RenderOptions};
-use super::view::{layout_masks, select_cameras, MAX_OFF_ROAD_M};
+use super::view::{layout_masks, MAX_OFF_ROAD_M};
 use super::{load, objects_at};
 use crate::projection::scene::map_layer;
 use crate::projection::{channel_name, MapLayer, NUM_MASK_CHANNELS};
@@ -287,7 +287,7 @@ pub fn export_training(opt: &ExportOptions) -> Result<ExportSummary> {
     }
     let mut plans = Vec::new();
     for (si, (src, sc)) in scenarios.iter().enumerate() {
-        let cams = select_cameras(sc, &opt.cameras)?;
+        let cams = sc.select_cameras(&opt.cameras)?;
         let names: Vec<String> = cams.iter().map(|c| c.name.clone()).collect();
         match &cam_names {
             Some(n) if *n != names => bail!(

@@ -13,12 +13,12 @@
 //!   grouped by `track_token`; size and category from `track` / `category`.
 //! - Traffic lights: `traffic_light_status` of the step's lidar_pc, `lane_connector_id` = connector fid.
 //! - Cameras: `camera` rows of the log (pickled translation, rotation w,x,y,z camera->ego, intrinsic 3x3;
-//!   distortion is read and checked but not applied); `image` rows within the window become recorded images
-//!   (own timestamp and ego pose), grouped into one frame per step (the image of each camera nearest the step
-//!   time, within [`FRAME_TOLERANCE_US`]). Without cameras the rig is the default generated one.
+//!   distortion (k1, k2, p1, p2, k3) kept on the camera: the image store undistorts its images); `image` rows
+//!   within the window become recorded images (own timestamp and ego pose), grouped into one frame per step
+//!   (the image of each camera nearest the step time, within [`FRAME_TOLERANCE_US`]). Without cameras the rig is the default generated one.
 //! - Route: the `roadblock_ids` of the scenario's `scene` rows, as the devkit's `get_route_roadblock_ids`
 //!   ([`scene_route`]; lane ids: the lanes the logged ego drives); the lane groups the logged ego drives
-//!   through when no scene gives roadblocks. Mission goal: `scene.goal_ego_pose_token` ([`NuplanLog::goal`]).
+//!   through when no scene gives roadblocks. Mission goal: `scene.goal_ego_pose_token` (`Route::mission_goal`).
 use crate::scene::camera::{Camera, CameraImage, CameraRig, RecordedFrame};
 use crate::scene::geometry::{Aabb, Pose2};
 use crate::scene::{
@@ -271,8 +271,6 @@ pub struct NuplanLog {
     /// scenario_tag rows in the window: (lidar_pc token, type).
     pub tags: Vec<(String, String)>,
     pub map_path: PathBuf,
-    /// The mission goal (`scene.goal_ego_pose_token`, rear axle), when the scene names one ([`scene_route`]).
-    pub goal: Option<Pose2>,
 }
 
 /// Loads one scenario.
@@ -504,7 +502,8 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
 
     let ego_params = VehicleParameters::PACIFICA;
     let driven = super::scenarionet::route_from_ego(&map, &ego, &ego_params);
-    let (route, goal) = scene_route(&db, spec, t0, t_last, driven)?;
+    let (mut route, goal) = scene_route(&db, spec, t0, t_last, driven)?;
+    route.mission_goal = goal;
     let name = spec.name();
     let rig = camera_rig(&db, spec, &log, &sel, &eps, t0, t_last)?
         .unwrap_or_else(|| super::default_rig(&name, &ego, DT));
@@ -527,7 +526,6 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
         lidar_pc: pc_tokens,
         tags,
         map_path,
-        goal,
     })
 }
 
@@ -618,6 +616,7 @@ fn scene_route(
         crate::scene::Route {
             roadblock_ids: ids,
             lane_ids: driven.lane_ids,
+            mission_goal: None,
         }
     };
     Ok((route, goal))
@@ -669,9 +668,11 @@ fn camera_rig(
         let q = r.pickled("rotation", 4)?;
         let k = r.pickled("intrinsic", 9)?;
         let d = r.blob("distortion")?;
-        pickle::decode(d)
+        let (_, dv) = pickle::decode(d)
             .and_then(|o| pickle::to_array(&o))
             .map_err(|e| anyhow!("{}: column `distortion`: pickled array: {e}", r.at()))?;
+        let distortion = distortion_coefficients(&dv)
+            .map_err(|why| anyhow!("{}: column `distortion`: {why}", r.at()))?;
         let rot = rotation(DQuat::from_xyzw(q[1], q[2], q[3], q[0]))
             .map_err(|why| anyhow!("{}: column `rotation`: {why}", r.at()))?;
         if !t.iter().all(|x| x.abs() <= bounds::MAX_SIZE_M) {
@@ -710,6 +711,7 @@ fn camera_rig(
             cam2ego: DMat4::from_rotation_translation(rot, DVec3::new(t[0], t[1], t[2])),
             width: w as u32,
             height: h as u32,
+            distortion,
         });
     }
     let order = |n: &str| CAMERAS.iter().position(|c| *c == n).unwrap_or(usize::MAX);
@@ -813,4 +815,25 @@ fn camera_rig(
         });
     }
     Ok(Some(CameraRig { cameras, frames }))
+}
+
+/// The (k1, k2, p1, p2, k3) of a `camera.distortion` array (nuplan-devkit: "the Caltech model (k1, k2, p1, p2,
+/// k3)"); four values are (k1, k2, p1, p2) with k3 = 0. Every coefficient finite and within +-1e3 (a real
+/// lens's are O(1); larger ones fold the image onto itself).
+fn distortion_coefficients(v: &[f64]) -> std::result::Result<[f64; 5], String> {
+    let mut k = [0.0; 5];
+    match v.len() {
+        4 | 5 => k[..v.len()].copy_from_slice(v),
+        n => {
+            return Err(format!(
+                "{n} coefficients; expected 5 (k1, k2, p1, p2, k3) or 4 (k1, k2, p1, p2)"
+            ))
+        }
+    }
+    if !k.iter().all(|x| x.is_finite() && x.abs() <= 1e3) {
+        return Err(format!(
+            "{k:?}: each coefficient must be finite and within 1e3"
+        ));
+    }
+    Ok(k)
 }

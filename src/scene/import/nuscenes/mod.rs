@@ -679,6 +679,7 @@ fn camera_rig(
             cam2ego: cs.transform(bounds::MAX_SIZE_M)?,
             width: s.size.0,
             height: s.size.1,
+            distortion: [0.0; 5],
         });
     }
     let order = |n: &str| {
