@@ -440,6 +440,16 @@ fn measure(
     })
 }
 
+/// A progress line above the bar, or on stderr when the bar is hidden (stderr not a terminal: a background or
+/// batch run, which would otherwise see nothing for hours).
+fn say(bar: &indicatif::ProgressBar, line: &str) {
+    if bar.is_hidden() {
+        eprintln!("{line}");
+    } else {
+        bar.println(line);
+    }
+}
+
 /// An autoregressive rollout: frame 1 from the recorded previous frame, then the renderer's own output; the
 /// masks and references of recorded frame `(k mod (frames - 1)) + 1` (a log shorter than the rollout is
 /// walked again from its start).
@@ -537,8 +547,29 @@ fn rollout(
             }
         }
         bar.inc(1);
+        if (k + 1) % 100 == 0 && k + 1 < frames {
+            say(
+                bar,
+                &format!(
+                    "bench trade: rollout {dtype}: {}/{frames} frames, {nonfinite} non-finite values so far, \
+                     {:.0} ms/frame",
+                    k + 1,
+                    ms / (k + 1) as f64
+                ),
+            );
+        }
     }
     let mean = |v: &[f64]| (!v.is_empty()).then(|| v.iter().sum::<f64>() / v.len() as f64);
+    let db = |v: Option<f64>| v.map_or("-".into(), |x| format!("{x:.2} dB"));
+    say(
+        bar,
+        &format!(
+            "bench trade: rollout {dtype} done: {frames} frames, {nonfinite} non-finite values, PSNR first 10 % {} \
+             -> last 10 % {}",
+            db(mean(&first)),
+            db(mean(&last))
+        ),
+    );
     Ok(Rollout {
         dtype: dtype.into(),
         frames,
@@ -651,6 +682,13 @@ pub fn bench_trade(ctx: &Context, cfg: &TradeConfig, out: &Path) -> Result<Trade
         }
         let r = reference.as_deref().context("internal: no reference")?;
         let m = measure(ctx, &pkg, &names, p, &frames, full, cfg.seed, Some(r))?;
+        say(
+            &bar,
+            &format!(
+                "bench trade: {}: {:.0} ms/frame",
+                p.name, m.result.ms_per_frame
+            ),
+        );
         measured.push(m);
         bar.inc(1);
     }
