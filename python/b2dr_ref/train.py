@@ -234,13 +234,30 @@ def make_context(cfg, cameras: Sequence[str], seed: int = 0) -> torch.Tensor:
     return torch.randn((len(cameras), 77, int(cfg["context_dim"])), generator=g)
 
 
-def lr_lambda(warmup: int, total: int, min_ratio: float = 0.0):
+def lr_lambda(warmup: int, total: int, min_ratio: float = 0.0, anneal: Optional[List] = None):
+    """Linear warm-up, then cosine to ``min_ratio`` at ``total``. ``anneal = [s0, end, r0]`` (``--end-at``): from
+    step s0 on, a cosine from ratio r0 (the schedule's own value at s0, so the lr is continuous) to 0 at ``end``."""
     def f(step):
+        if anneal is not None and step >= anneal[0]:
+            s0, end, r0 = anneal
+            return r0 * 0.5 * (1 + math.cos(math.pi * min(1.0, (step - s0) / max(1, end - s0))))
         if step < warmup:
             return (step + 1) / max(1, warmup)
         p = min(1.0, (step - warmup) / max(1, total - warmup))
         return min_ratio + (1 - min_ratio) * 0.5 * (1 + math.cos(math.pi * p))
     return f
+
+
+def end_at_anneal(warmup: int, total: int, anneal: Optional[List], step: int, end_at: Optional[int]):
+    """The anneal of ``--end-at END`` on a resume at ``step``: [step, END, the current lr ratio], or the run's own
+    anneal when it already ends at END (a later resume of the same annealed run). None without --end-at."""
+    if end_at is None:
+        return anneal
+    if anneal is not None and anneal[1] == end_at:
+        return anneal
+    if end_at <= step:
+        raise SystemExit(f"--end-at {end_at}: the run is already at step {step}")
+    return [step, end_at, lr_lambda(warmup, total, anneal=anneal)(step)]
 
 
 def set_threads(device: str, threads: Optional[int]):
@@ -324,11 +341,39 @@ def unpack_masks(packed: torch.Tensor, channels: int = len(MASK_CHANNELS)) -> to
     return ((p[None] >> bits) & 1).to(torch.uint8)
 
 
+LATENTS_FILE = "latents.pt"
+LATENTS_FORMAT = 1
+
+
+def latent_cache_key(data: str, vae_path: str, sigma: float) -> str:
+    """What the cached latents depend on: the data (its index and the names and sizes of its files; or the
+    ``synthetic:N`` source), the VAE's files (bytes) and the previous frame's blur. A mismatch discards the file."""
+    import hashlib
+
+    h = hashlib.sha256(f"b2dr-latents/{LATENTS_FORMAT}/{sigma!r}/".encode())
+    if os.path.isdir(data):
+        for name in sorted(os.listdir(data)):
+            f = os.path.join(data, name)
+            h.update(f"{name}:{os.path.getsize(f)};".encode())
+            if name.endswith(".json"):
+                with open(f, "rb") as fh:
+                    h.update(fh.read())
+    else:
+        h.update(data.encode())
+    for name in sorted(os.listdir(vae_path)):
+        with open(os.path.join(vae_path, name), "rb") as fh:
+            h.update(name.encode() + hashlib.sha256(fh.read()).digest())
+    return h.hexdigest()
+
+
 class Batcher:
     """Turns sample indices into model inputs; caches the frozen-VAE latents and the PE per sample index (they are
-    deterministic), up to ``cache`` samples."""
+    deterministic), up to ``cache`` samples. With ``latents`` = (path, key) the VAE latents (the costly part: four
+    encodes per sample) also live in that file between runs: loaded here when its key matches, written by
+    ``save_latents`` (at each checkpoint), so a resumed run does not encode the data again."""
 
-    def __init__(self, source, vae, controlnet: B2DRControlNetModel, device, cache: int = 100000):
+    def __init__(self, source, vae, controlnet: B2DRControlNetModel, device, cache: int = 100000,
+                 latents: Optional[Tuple[str, str]] = None):
         self.source, self.vae, self.device = source, vae, device
         cfg = controlnet.config
         self.pe_cfg = PeConfig.from_controlnet_config(cfg)
@@ -339,6 +384,29 @@ class Batcher:
         self.cam_index = {c: i for i, c in enumerate(source.cameras)}
         self.cache_max = cache
         self.cache: Dict[int, Tuple] = {}
+        self.latents = latents
+        self.disk: Dict[int, Tuple] = {}        # index -> (x0, z_prev, z_refs) from / for the latents file
+        self.disk_saved = 0
+        if latents and os.path.exists(latents[0]):
+            d = torch.load(latents[0], weights_only=True)
+            if d.get("key") != latents[1]:
+                print(f"{latents[0]}: made from other data or another VAE; encoding again", flush=True)
+            else:
+                for n, i in enumerate(d["index"].tolist()):
+                    self.disk[i] = (d["x0"][n], d["z_prev"][n], d["z_refs"][n])
+                self.disk_saved = len(self.disk)
+                print(f"{latents[0]}: the latents of {len(self.disk)} samples", flush=True)
+
+    def save_latents(self):
+        """Write the latents file (atomically) when samples were encoded since the last write."""
+        if not self.latents or len(self.disk) == self.disk_saved:
+            return
+        idx = sorted(self.disk)
+        d = dict(key=self.latents[1], index=torch.tensor(idx, dtype=torch.int64),
+                 x0=torch.stack([self.disk[i][0] for i in idx]), z_prev=torch.stack([self.disk[i][1] for i in idx]),
+                 z_refs=torch.stack([self.disk[i][2] for i in idx]))
+        save_checkpoint(self.latents[0], d)
+        self.disk_saved = len(idx)
 
     @torch.no_grad()
     def _encode(self, imgs_u8: np.ndarray, blur: bool) -> torch.Tensor:
@@ -357,12 +425,20 @@ class Batcher:
         local = {}
         if todo:
             ss = [self.source[i] for i in todo]
-            x0 = self._encode(np.stack([s.target for s in ss]), False)
-            zp = self._encode(np.stack([s.prev for s in ss]), True)
-            zr = self._encode(np.concatenate([s.refs for s in ss]), False).reshape(len(ss), 2, 4, *x0.shape[-2:])
+            enc = [n for n, i in enumerate(todo) if i not in self.disk]
+            if enc:
+                es = [ss[n] for n in enc]
+                x0 = self._encode(np.stack([s.target for s in es]), False)
+                zp = self._encode(np.stack([s.prev for s in es]), True)
+                zr = self._encode(np.concatenate([s.refs for s in es]), False).reshape(len(es), 2, 4, *x0.shape[-2:])
+                for m, n in enumerate(enc):
+                    self.disk[todo[n]] = (x0[m], zp[m], zr[m])
             for n, (i, s) in enumerate(zip(todo, ss)):
                 pc, pr = sample_pe(s, self.pe_cfg, self.sizes, self.render_hw)
-                local[i] = (x0[n], zp[n], zr[n], pack_masks(s.masks),
+                x0i, zpi, zri = self.disk[i]
+                if not self.latents:
+                    del self.disk[i]            # kept only for the latents file
+                local[i] = (x0i, zpi, zri, pack_masks(s.masks),
                             self.cam_index[s.camera], [torch.from_numpy(a) for a in pc],
                             [torch.from_numpy(a) for a in pr])
                 if len(self.cache) < self.cache_max:
@@ -512,7 +588,11 @@ def train(args):
     params = list(unet.parameters()) + list(controlnet.parameters())
     opt = torch.optim.AdamW(params, lr=args.lr, weight_decay=args.weight_decay)
     total = ck["total_steps"] if ck else args.steps
-    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_lambda(args.warmup, total))
+    if args.end_at is not None and not ck:
+        raise SystemExit("--end-at shortens a resumed run's schedule: use it with --resume (a new run: --steps)")
+    anneal = end_at_anneal(args.warmup, total, ck.get("anneal") if ck else None, ck["step"] if ck else 0,
+                           args.end_at)
+    sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_lambda(args.warmup, total, anneal=anneal))
     gen = torch.Generator().manual_seed(args.seed)
     ema = Ema([unet, controlnet], args.ema) if args.ema > 0 else None
     step = 0
@@ -527,17 +607,23 @@ def train(args):
             ema.shadow = {k: v.to(device) for k, v in ck["ema"].items()}
         step = ck["step"]
     steps = args.steps if not ck else max(args.steps, step)
+    if anneal is not None:
+        steps = anneal[1]
     if args.stop_after:
         steps = min(steps, step + args.stop_after)
     abar = make_noise_scheduler().alphas_cumprod.to(torch.float32)
-    batcher = Batcher(source, vae, controlnet, device, cache=args.cache)
+    latents = None
+    if not args.no_latents_file:
+        latents = (os.path.join(args.out, LATENTS_FILE),
+                   latent_cache_key(args.data, vae_path, float(controlnet.config.prev_blur_sigma)))
+    batcher = Batcher(source, vae, controlnet, device, cache=args.cache, latents=latents)
     prediction = ck.get("prediction", "epsilon") if ck else args.prediction
     if ck and prediction != args.prediction:
         raise SystemExit(f"--resume: the run predicts {prediction}, not --prediction {args.prediction}")
     if prediction == "v_prediction" and args.loss_weight == "v":
         raise SystemExit("--loss-weight v with --prediction v_prediction would weight the v loss twice "
                          "(the v MSE already is the epsilon MSE x (1 + 1/SNR)): use --loss-weight eps")
-    run_meta = dict(cfg=cfg, cameras=cameras, vae_path=os.path.abspath(vae_path), total_steps=total, prediction=prediction,
+    run_meta = dict(cfg=cfg, cameras=cameras, vae_path=os.path.abspath(vae_path), total_steps=total, anneal=anneal, prediction=prediction,
                     args={k: v for k, v in vars(args).items() if k != "func"})
     with open(os.path.join(args.out, "run.json"), "w") as f:
         json.dump(run_meta, f, indent=2)
@@ -571,6 +657,7 @@ def train(args):
                     run_meta, step=step, unet=unet.state_dict(), controlnet=controlnet.state_dict(),
                     optimizer=opt.state_dict(), lr_scheduler=sched.state_dict(), generator=gen.get_state(),
                     torch_rng=torch.get_rng_state(), ema=ema.shadow if ema is not None else None, context=context))
+                batcher.save_latents()
     finally:
         log.close()
     return losses
@@ -706,11 +793,16 @@ def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m b2dr_ref.train")
     add_common(p)
     p.add_argument("--vae", default=None, help="the trained VAE folder (vae_train's RUN/vae)")
+    p.add_argument("--end-at", type=int, default=None,
+                   help="with --resume: end the run at this step instead: the lr falls from its current value to 0 "
+                        "along a cosine between the resume step and this one (kept by later resumes)")
     p.add_argument("--init-from", default=None,
                    help="start a new run from an exported model package (weights, context, VAE unless --vae)")
     p.add_argument("--ema", type=float, default=0.0, help="EMA decay (0 = off); export uses the EMA when kept")
     p.add_argument("--p-noprev", type=float, default=0.1, help="probability of 'no previous frame' (z = 0, n = 999)")
     p.add_argument("--cache", type=int, default=100000, help="samples whose latents + PE are kept in memory")
+    p.add_argument("--no-latents-file", action="store_true",
+                   help="do not keep the VAE latents of the data in RUN/latents.pt (a resume then encodes them again)")
     p.add_argument("--loss-weight", default="eps", choices=LOSS_WEIGHTS,
                    help="per-noise-level weight of the MSE: eps (1), v (1 + 1/SNR: with --prediction epsilon, the "
                         "v-prediction loss), "

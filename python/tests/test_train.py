@@ -2,6 +2,7 @@
 
 import csv
 import json
+import math
 import os
 
 import numpy as np
@@ -186,6 +187,71 @@ def test_resume_continues_exactly(vae_run, tmp_path):
     assert a["step"] == b["step"] == 4
     for k in a["controlnet"]:
         torch.testing.assert_close(a["controlnet"][k], b["controlnet"][k], rtol=1e-5, atol=1e-6)
+
+
+def read_lrs(run):
+    with open(os.path.join(run, "log.csv")) as f:
+        return [float(r["lr"]) for r in csv.DictReader(f)]
+
+
+def test_end_at_shortens_a_resumed_schedule(vae_run, tmp_path):
+    """--end-at on a resume: the lr goes on from where the run's own schedule was (no jump) and falls along a
+    cosine to 0 at the new end; a later resume keeps that schedule; without --resume, or at/behind the current
+    step, it is refused."""
+    vae = os.path.join(vae_run[0], "vae")
+    run = str(tmp_path / "r")
+    diffusion(vae, run, "--steps", "20", "--stop-after", "4")
+    orig = T.lr_lambda(2, 20)
+    diffusion(vae, run, "--steps", "20", "--resume", "--end-at", "10", "--stop-after", "3")
+    assert torch.load(os.path.join(run, T.CKPT), weights_only=False)["anneal"] == [4, 10, pytest.approx(orig(4))]
+    diffusion(vae, run, "--steps", "20", "--resume", "--end-at", "10")
+    lrs = read_lrs(run)
+    assert len(lrs) == 10
+    base = 1e-4
+    # log row i is step i + 1; its lr is the one the scheduler set for the next step (get_last_lr after step())
+    want = [base * orig(s) for s in range(1, 5)] + \
+        [base * orig(4) * 0.5 * (1 + math.cos(math.pi * (s - 4) / 6)) for s in range(5, 11)]
+    assert lrs == pytest.approx(want, rel=1e-3, abs=1e-12)
+    assert lrs[-1] == 0.0
+    with pytest.raises(SystemExit, match="--end-at"):
+        diffusion(vae, str(tmp_path / "new"), "--steps", "20", "--end-at", "10")
+    with pytest.raises(SystemExit, match="already at step 10"):
+        diffusion(vae, run, "--steps", "20", "--resume", "--end-at", "8")
+
+
+def test_latents_file_spares_a_resume_the_encoding(vae_run, tmp_path, monkeypatch, capsys):
+    """RUN/latents.pt keeps the VAE latents between runs: what it holds equals a fresh encode, a resume that reads
+    it encodes fewer images and gives the same losses as one that encodes everything again (--no-latents-file),
+    and a file made with another key (other data / VAE / blur) is ignored with a message."""
+    import shutil
+
+    vae = os.path.join(vae_run[0], "vae")
+    run, run2 = str(tmp_path / "r"), str(tmp_path / "r2")
+    diffusion(vae, run, "--steps", "4", "--stop-after", "2")
+    f = os.path.join(run, T.LATENTS_FILE)
+    d = torch.load(f, weights_only=True)
+    assert 0 < len(d["index"]) <= 6 and d["x0"].shape[1:] == (4, 7, 13) and d["z_refs"].shape[1:3] == (2, 4)
+    src = T.open_source("synthetic:6", nano.TEST["render_size"])
+    _, cn = T.build_diffusion_models(nano.TEST)
+    fresh = T.Batcher(src, T.load_vae(vae), cn, "cpu")._prepare([int(d["index"][0])])[0]
+    for a, b in zip(fresh[:3], (d["x0"][0], d["z_prev"][0], d["z_refs"][0])):
+        assert torch.equal(a, b)
+    shutil.copytree(run, run2)
+    os.remove(os.path.join(run2, T.LATENTS_FILE))
+    encoded = []
+    orig = T.Batcher._encode
+    monkeypatch.setattr(T.Batcher, "_encode", lambda self, imgs, blur: encoded.append(len(imgs)) or orig(self, imgs, blur))
+    rest = diffusion(vae, run, "--steps", "4", "--resume")
+    with_file = sum(encoded)
+    encoded.clear()
+    rest2 = diffusion(vae, run2, "--steps", "4", "--resume", "--no-latents-file")
+    assert rest == rest2 and len(rest) == 2
+    assert with_file < sum(encoded)
+    assert T.latent_cache_key("synthetic:6", vae, 1.0) != T.latent_cache_key("synthetic:6", vae, 2.0)
+    assert T.latent_cache_key("synthetic:6", vae, 1.0) != T.latent_cache_key("synthetic:7", vae, 1.0)
+    capsys.readouterr()
+    b = T.Batcher(src, T.load_vae(vae), cn, "cpu", latents=(f, "another key"))
+    assert not b.disk and "encoding again" in capsys.readouterr().out
 
 
 def test_vae_resume_continues_exactly(tmp_path):
