@@ -55,7 +55,7 @@ def main():
     if len(labels) != len(runs):
         raise SystemExit(f"--labels: {len(labels)} labels for {len(runs)} runs")
     v = read(a.vae)
-    fig, ax = plt.subplots(1, 3, figsize=(15, 4.2))
+    fig, ax = plt.subplots(1, 3, figsize=(15, 5.6))
     offset = 0
     for i, (d, lab) in enumerate(zip(runs, labels)):
         x = d["step"] + offset
@@ -65,14 +65,14 @@ def main():
         offset = x[-1]
     ax[0].set(title="diffusion: training loss", xlabel="step (batch 8), runs continued one after the other",
               yscale="log")
-    ax[0].legend()
+    ax[0].legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16))
     ax[1].plot(v["step"], v["l1"], color="0.8", lw=0.5, label="per step")
     ax[1].plot(v["step"], running(v["l1"]), color="C3", label="mean of 50")
     ax[1].set(title="VAE: L1 reconstruction (per pixel, [-1, 1])", xlabel="step (batch 8, 56x104 crops)", yscale="log")
     ax[1].legend()
-    ax[2].plot(v["step"], v["lr"], color="C3", label="VAE")
+    ax[2].plot(v["step"], v["lr"], color="k", ls="--", label="VAE")
     ax[2].set(title="learning rate", xlabel="step")
-    ax[2].legend()
+    ax[2].legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16))
     fig.suptitle(a.title)
     fig.tight_layout()
     fig.savefig(a.out, dpi=90)
