@@ -180,35 +180,6 @@ pub fn package_files(spec: Option<&Path>) -> Result<Vec<std::path::PathBuf>> {
     Ok(out)
 }
 
-/// b2dr-nano's configs (python/b2dr_ref/nano.py NANO, the same numbers).
-fn nano_configs() -> (UNetConfig, B2drConfig, VaeConfig) {
-    let down = [
-        "CrossAttnDownBlock2D",
-        "CrossAttnDownBlock2D",
-        "CrossAttnDownBlock2D",
-        "DownBlock2D",
-    ];
-    let up = [
-        "UpBlock2D",
-        "CrossAttnUpBlock2D",
-        "CrossAttnUpBlock2D",
-        "CrossAttnUpBlock2D",
-    ];
-    let unet = UNetConfig::from_json(serde_json::json!({
-        "block_out_channels": [32, 64, 64, 64], "layers_per_block": 1, "cross_attention_dim": 64,
-        "attention_head_dim": [2, 4, 4, 4], "norm_num_groups": 16, "in_channels": 4, "out_channels": 4,
-        "down_block_types": down, "up_block_types": up,
-    }))
-    .expect("b2dr-nano unet config");
-    let mut control = B2drConfig::from_unet(&unet, vec![8, 16, 32, 64]);
-    control.pe_depth_num = 16;
-    let mut vae = VaeConfig::b2dr_tiny();
-    vae.block_out_channels = vec![16, 32, 64, 64];
-    vae.layers_per_block = 1;
-    vae.norm_num_groups = 16;
-    (unet, control, vae)
-}
-
 impl ModelPackage {
     /// Reads a package folder; every error names the file.
     pub fn load(dir: &Path) -> Result<Self> {
@@ -331,25 +302,12 @@ impl ModelPackage {
         Ok(())
     }
 
-    /// The built-in model `name` (seeded random weights: an untrained renderer for tests and timing).
+    /// The built-in model `name`: b2dr-nano, the trained package committed in the repository (an error when the
+    /// binary's source tree no longer has it); b2dr-tiny, seeded random weights (an untrained renderer for tests
+    /// and timing).
     pub fn builtin(name: &str) -> Result<Self> {
         match name {
-            "b2dr-nano" => {
-                let dir = nano_dir();
-                if dir.join("b2dr.json").is_file() {
-                    let mut p = Self::load(&dir)?;
-                    p.source = format!("builtin:b2dr-nano (trained, {})", dir.display());
-                    return Ok(p);
-                }
-                let (u, c, v) = nano_configs();
-                Self::seeded(
-                    u,
-                    c,
-                    v,
-                    true,
-                    "builtin:b2dr-nano (not trained yet: seeded random weights)",
-                )
-            }
+            "b2dr-nano" => Self::trained_nano(&nano_dir()),
             "b2dr-tiny" => {
                 let u = UNetConfig::b2dr_tiny();
                 let c = B2drConfig::from_unet(&u, vec![16, 32, 96, 256]);
@@ -363,6 +321,23 @@ impl ModelPackage {
             }
             other => bail!("unknown built-in model {other:?} (built-in: {BUILTIN:?})"),
         }
+    }
+
+    /// b2dr-nano from its trained package `dir`. It is found through the source tree the binary was built from;
+    /// when that tree moved or was deleted, refuse: falling back to seeded weights drew noise silently (a release
+    /// binary built from a since-deleted clone did exactly that in a closed-loop table).
+    fn trained_nano(dir: &Path) -> Result<Self> {
+        if !dir.join("b2dr.json").is_file() {
+            bail!(
+                "the built-in model b2dr-nano is the trained package {} (models/b2dr-nano of the source tree \
+                 this binary was built from), and it is not there: pass --model path/to/models/b2dr-nano, or \
+                 rebuild b2dr in the repository",
+                dir.display()
+            );
+        }
+        let mut p = Self::load(dir)?;
+        p.source = format!("builtin:b2dr-nano (trained, {})", dir.display());
+        Ok(p)
     }
 
     /// A package of seeded random weights (unet 1, controlnet 4, vae 3, context 77) at 112 x 200 for the
@@ -546,5 +521,23 @@ mod tests {
         assert!(!serde_json::to_string(&eps.clone())
             .unwrap()
             .contains("null"));
+    }
+
+    #[test]
+    fn builtin_nano_without_its_package_is_an_error_not_noise() {
+        let gone = std::env::temp_dir().join("b2dr-no-such-source-tree/models/b2dr-nano");
+        let err = ModelPackage::trained_nano(&gone).unwrap_err().to_string();
+        assert!(
+            err.contains("not there") && err.contains("--model"),
+            "{err}"
+        );
+        assert!(err.contains("b2dr-no-such-source-tree"), "{err}");
+        // the repository's own package loads as the built-in (it is committed)
+        let p = ModelPackage::builtin("b2dr-nano").unwrap();
+        assert!(
+            p.source.starts_with("builtin:b2dr-nano (trained"),
+            "{}",
+            p.source
+        );
     }
 }
