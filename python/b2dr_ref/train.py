@@ -425,20 +425,20 @@ class Batcher:
         local = {}
         if todo:
             ss = [self.source[i] for i in todo]
-            enc = [n for n, i in enumerate(todo) if i not in self.disk]
-            if enc:
-                es = [ss[n] for n in enc]
+            lat = {i: self.disk[i] for i in todo if i in self.disk}       # (x0, z_prev, z_refs)
+            new = [(i, s) for i, s in zip(todo, ss) if i not in lat]
+            if new:
+                es = [s for _, s in new]
                 x0 = self._encode(np.stack([s.target for s in es]), False)
                 zp = self._encode(np.stack([s.prev for s in es]), True)
                 zr = self._encode(np.concatenate([s.refs for s in es]), False).reshape(len(es), 2, 4, *x0.shape[-2:])
-                for m, n in enumerate(enc):
-                    self.disk[todo[n]] = (x0[m], zp[m], zr[m])
-            for n, (i, s) in enumerate(zip(todo, ss)):
+                for m, (i, _) in enumerate(new):
+                    lat[i] = (x0[m], zp[m], zr[m])
+                    if self.latents:
+                        self.disk[i] = lat[i]
+            for i, s in zip(todo, ss):
                 pc, pr = sample_pe(s, self.pe_cfg, self.sizes, self.render_hw)
-                x0i, zpi, zri = self.disk[i]
-                if not self.latents:
-                    del self.disk[i]            # kept only for the latents file
-                local[i] = (x0i, zpi, zri, pack_masks(s.masks),
+                local[i] = (*lat[i], pack_masks(s.masks),
                             self.cam_index[s.camera], [torch.from_numpy(a) for a in pc],
                             [torch.from_numpy(a) for a in pr])
                 if len(self.cache) < self.cache_max:
