@@ -98,6 +98,7 @@ fn eval_render_scores_reruns_identically_and_baselines_behave() {
         assert!(x.mean_iou.is_some(), "{s}");
     }
     assert!(get("masks-only", 2.0).psnr.is_some());
+    assert!(get("no-prev", 2.0).psnr.is_some());
     // drift: 3 frames of each setting; the n = 0 and blur overrides change the frames; no NaN / Inf
     let drift = |s: &str| -> Vec<f64> {
         r.drift
@@ -129,6 +130,21 @@ fn eval_render_scores_reruns_identically_and_baselines_behave() {
         md.contains("| copy-nearest | 1 | exact (= truth) | 1.0000 |"),
         "{md}"
     );
+    // the falloff table: each setting's PSNR at 2 m minus its PSNR on the logged path (one frame), and the
+    // references' gain with and without the previous frame
+    let drop = |s: &str| get(s, 2.0).psnr.unwrap() - get(s, 0.0).psnr.unwrap();
+    let (b, nr, np, mo) = (
+        drop("b2dr"),
+        drop("no-refs"),
+        drop("no-prev"),
+        drop("masks-only"),
+    );
+    let row = format!(
+        "| lateral 2 m | 1 | {b:.2} | {nr:.2} | {:.2} | {np:.2} | {mo:.2} | {:.2} |",
+        b - nr,
+        np - mo
+    );
+    assert!(md.contains(&row), "{row} not in\n{md}");
 }
 
 #[test]

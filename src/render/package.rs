@@ -121,9 +121,48 @@ pub const BUILTIN: &[&str] = &["b2dr-nano", "b2dr-tiny"];
 /// The default built-in model.
 pub const DEFAULT_MODEL: &str = "b2dr-nano";
 
-/// Where the trained b2dr-nano package lives in the repository.
+/// The environment variable naming a folder that holds the built-in packages (`$B2DR_MODELS/b2dr-nano`).
+pub const MODELS_ENV: &str = "B2DR_MODELS";
+
+/// Where the built-in package `name` may live, in the order searched: `$B2DR_MODELS/NAME` when the variable is
+/// set (then nothing else: an explicit setting is not second-guessed); else `models/NAME` of the source tree the
+/// binary was built from, then, for an installed or copied binary, `<exe dir>/../share/b2dr/models/NAME` and
+/// `<exe dir>/models/NAME`.
+pub fn builtin_candidates(
+    name: &str,
+    env: Option<&std::ffi::OsStr>,
+    exe: Option<&Path>,
+    source_tree: &Path,
+) -> Vec<std::path::PathBuf> {
+    if let Some(e) = env.filter(|e| !e.is_empty()) {
+        return vec![Path::new(e).join(name)];
+    }
+    let mut v = vec![source_tree.join("models").join(name)];
+    if let Some(dir) = exe.and_then(|e| e.parent()) {
+        v.push(dir.join("../share/b2dr/models").join(name));
+        v.push(dir.join("models").join(name));
+    }
+    v
+}
+
+/// The folders searched for the trained b2dr-nano package (see [`builtin_candidates`]).
+fn nano_candidates() -> Vec<std::path::PathBuf> {
+    builtin_candidates(
+        "b2dr-nano",
+        std::env::var_os(MODELS_ENV).as_deref(),
+        std::env::current_exe().ok().as_deref(),
+        Path::new(env!("CARGO_MANIFEST_DIR")),
+    )
+}
+
+/// The trained b2dr-nano package: the first candidate that holds one, else the first candidate (the loader then
+/// names what was searched).
 pub fn nano_dir() -> std::path::PathBuf {
-    std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("models/b2dr-nano")
+    let c = nano_candidates();
+    c.iter()
+        .find(|d| d.join("b2dr.json").is_file())
+        .unwrap_or(&c[0])
+        .clone()
 }
 
 /// The model of `--model`: a folder, `builtin:NAME`, or (None) the default built-in model.
@@ -307,7 +346,7 @@ impl ModelPackage {
     /// and timing).
     pub fn builtin(name: &str) -> Result<Self> {
         match name {
-            "b2dr-nano" => Self::trained_nano(&nano_dir()),
+            "b2dr-nano" => Self::trained_nano(&nano_candidates()),
             "b2dr-tiny" => {
                 let u = UNetConfig::b2dr_tiny();
                 let c = B2drConfig::from_unet(&u, vec![16, 32, 96, 256]);
@@ -323,18 +362,21 @@ impl ModelPackage {
         }
     }
 
-    /// b2dr-nano from its trained package `dir`. It is found through the source tree the binary was built from;
-    /// when that tree moved or was deleted, refuse: falling back to seeded weights drew noise silently (a release
-    /// binary built from a since-deleted clone did exactly that in a closed-loop table).
-    fn trained_nano(dir: &Path) -> Result<Self> {
-        if !dir.join("b2dr.json").is_file() {
+    /// b2dr-nano from the first of `candidates` that holds its trained package. When none does (the source tree
+    /// moved or was deleted, an installed binary without its share folder), refuse: falling back to seeded
+    /// weights drew noise silently (a release binary built from a since-deleted clone did exactly that in a
+    /// closed-loop table).
+    fn trained_nano(candidates: &[std::path::PathBuf]) -> Result<Self> {
+        let Some(dir) = candidates.iter().find(|d| d.join("b2dr.json").is_file()) else {
+            let list: Vec<String> = candidates.iter().map(|d| d.display().to_string()).collect();
             bail!(
-                "the built-in model b2dr-nano is the trained package {} (models/b2dr-nano of the source tree \
-                 this binary was built from), and it is not there: pass --model path/to/models/b2dr-nano, or \
-                 rebuild b2dr in the repository",
-                dir.display()
+                "the built-in model b2dr-nano is a trained package (models/b2dr-nano of the repository), and it \
+                 is not there; searched: {}. Pass --model path/to/models/b2dr-nano, set {MODELS_ENV} to the \
+                 folder holding b2dr-nano, copy it to <install prefix>/share/b2dr/models/, or rebuild b2dr in \
+                 the repository",
+                list.join(", ")
             );
-        }
+        };
         let mut p = Self::load(dir)?;
         p.source = format!("builtin:b2dr-nano (trained, {})", dir.display());
         Ok(p)
@@ -524,14 +566,79 @@ mod tests {
     }
 
     #[test]
-    fn builtin_nano_without_its_package_is_an_error_not_noise() {
-        let gone = std::env::temp_dir().join("b2dr-no-such-source-tree/models/b2dr-nano");
-        let err = ModelPackage::trained_nano(&gone).unwrap_err().to_string();
+    fn builtin_packages_are_searched_in_the_source_tree_then_beside_the_binary() {
+        let (src, exe) = (Path::new("/src"), Path::new("/opt/b2dr/bin/b2dr"));
+        let c = builtin_candidates("b2dr-nano", None, Some(exe), src);
+        assert_eq!(
+            c,
+            vec![
+                Path::new("/src/models/b2dr-nano").to_path_buf(),
+                Path::new("/opt/b2dr/bin/../share/b2dr/models/b2dr-nano").to_path_buf(),
+                Path::new("/opt/b2dr/bin/models/b2dr-nano").to_path_buf(),
+            ]
+        );
+        // an explicit B2DR_MODELS is the only place searched; an empty one is unset
+        let env = std::ffi::OsStr::new("/data/models");
+        assert_eq!(
+            builtin_candidates("b2dr-nano", Some(env), Some(exe), src),
+            vec![Path::new("/data/models/b2dr-nano").to_path_buf()]
+        );
+        let empty = std::ffi::OsStr::new("");
+        assert_eq!(
+            builtin_candidates("b2dr-nano", Some(empty), Some(exe), src),
+            c
+        );
+        // a copy of the package beside an installed binary is found when the source tree is gone
+        let root = std::env::temp_dir().join(format!("b2dr-prefix-{}", std::process::id()));
+        let share = root.join("share/b2dr/models/b2dr-nano");
+        std::fs::create_dir_all(root.join("bin")).unwrap(); // the binary's folder (`bin/..` needs it)
+        copy_dir(
+            &Path::new(env!("CARGO_MANIFEST_DIR")).join("models/b2dr-nano"),
+            &share,
+        );
+        let c = builtin_candidates(
+            "b2dr-nano",
+            None,
+            Some(&root.join("bin/b2dr")),
+            &root.join("gone"),
+        );
+        let p = ModelPackage::trained_nano(&c).unwrap();
         assert!(
-            err.contains("not there") && err.contains("--model"),
+            p.source.contains("share/b2dr/models/b2dr-nano"),
+            "{}",
+            p.source
+        );
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    fn copy_dir(from: &Path, to: &Path) {
+        std::fs::create_dir_all(to).unwrap();
+        for e in std::fs::read_dir(from).unwrap() {
+            let e = e.unwrap();
+            let t = to.join(e.file_name());
+            if e.file_type().unwrap().is_dir() {
+                copy_dir(&e.path(), &t);
+            } else {
+                std::fs::copy(e.path(), t).unwrap();
+            }
+        }
+    }
+
+    #[test]
+    fn builtin_nano_without_its_package_is_an_error_not_noise() {
+        let gone = std::env::temp_dir().join("b2dr-no-such-source-tree");
+        let exe = std::env::temp_dir().join("b2dr-no-such-prefix/bin/b2dr");
+        let c = builtin_candidates("b2dr-nano", None, Some(&exe), &gone);
+        let err = ModelPackage::trained_nano(&c).unwrap_err().to_string();
+        assert!(
+            err.contains("not there") && err.contains("--model") && err.contains(MODELS_ENV),
             "{err}"
         );
         assert!(err.contains("b2dr-no-such-source-tree"), "{err}");
+        assert!(
+            err.contains("b2dr-no-such-prefix/bin/../share/b2dr/models/b2dr-nano"),
+            "{err}"
+        );
         // the repository's own package loads as the built-in (it is committed)
         let p = ModelPackage::builtin("b2dr-nano").unwrap();
         assert!(

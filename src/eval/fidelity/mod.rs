@@ -7,7 +7,9 @@
 //!   displacement (teacher forcing), references retrieved from the log at the displaced pose; settings: the
 //!   model as packaged ("b2dr"), reference guidance `--guidance`, no references, no previous frame, masks only,
 //!   and the copy-nearest-frame baseline (the recorded image nearest by position: on the logged path it IS the
-//!   ground truth, the ceiling). Displaced cases run b2dr, no-refs, masks-only and copy-nearest.
+//!   ground truth, the ceiling). Displaced cases run b2dr, no-refs, no-prev, masks-only and copy-nearest;
+//!   the report pairs each with its logged-path score to show how fast PSNR falls off with and without
+//!   references (with the previous frame: b2dr vs no-refs; without it: no-prev vs masks-only).
 //! - autoregressive drift: `--drift-frames` consecutive frames of the logged path (2 Hz), frame 1 from the
 //!   recorded image, then each frame's previous frame is the model's own last output; settings: the model's
 //!   noise modulation and blur, n = 0 (inference-time proxy of a model trained without noise modulation),
@@ -294,6 +296,7 @@ fn deviated_settings(default_w: f64) -> Vec<Setting> {
     vec![
         Setting::model("b2dr", true, true, default_w),
         Setting::model("no-refs", false, true, 1.0),
+        Setting::model("no-prev", true, false, default_w),
         Setting::model("masks-only", false, false, 1.0),
     ]
 }

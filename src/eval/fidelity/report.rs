@@ -97,6 +97,60 @@ fn agg<'a>(v: impl Iterator<Item = &'a Score>, classes: &[u8]) -> Option<Agg> {
     })
 }
 
+/// Mean PSNR change from the logged path to deviation `d` of one setting, over the cases scored (finite
+/// PSNR) both displaced and on the logged path (same scenario, camera and frame), and their count.
+fn falloff(r: &Results, setting: &str, d: Deviation) -> Option<(f64, usize)> {
+    let drops: Vec<f64> = r
+        .single
+        .iter()
+        .filter(|x| x.setting == setting && x.deviation == d)
+        .filter_map(|x| {
+            let on_log = r.single.iter().find(|y| {
+                y.setting == setting
+                    && y.deviation.is_none()
+                    && y.scenario == x.scenario
+                    && y.camera == x.camera
+                    && y.frame == x.frame
+            })?;
+            Some(x.psnr? - on_log.psnr?)
+        })
+        .collect();
+    (!drops.is_empty()).then(|| (drops.iter().sum::<f64>() / drops.len() as f64, drops.len()))
+}
+
+/// "Under deviation, PSNR falls off more slowly with references than without": the falloff of each setting
+/// and the references' gain (falloff with references minus falloff without; > 0: the references help more
+/// off the log), with the previous frame (b2dr vs no-refs) and without it (no-prev vs masks-only).
+fn falloff_table(md: &mut String, r: &Results, devs: &[Deviation]) -> Result<()> {
+    let pairs = [("b2dr", "no-refs"), ("no-prev", "masks-only")];
+    writeln!(
+        md,
+        "\n## Falloff under deviation: PSNR at the deviation minus PSNR on the logged path (dB, same frames)\n\n\
+         Refs gain = falloff with references - falloff without (> 0: the references slow the falloff).\n\n\
+         | deviation | images | b2dr (refs + prev) | no-refs (prev) | refs gain, with prev | \
+         no-prev (refs) | masks-only (neither) | refs gain, without prev |\n|---|---|---|---|---|---|---|---|"
+    )?;
+    for d in devs.iter().filter(|d| !d.is_none()) {
+        let mut cells = vec![];
+        let mut n = None;
+        for (with, without) in pairs {
+            let (a, b) = (falloff(r, with, *d), falloff(r, without, *d));
+            n = n.or(a.map(|a| a.1));
+            cells.push(f2(a.map(|a| a.0)));
+            cells.push(f2(b.map(|b| b.0)));
+            cells.push(f2(a.zip(b).map(|(a, b)| a.0 - b.0)));
+        }
+        writeln!(
+            md,
+            "| {} | {} | {} |",
+            d.label(),
+            n.map(|n| n.to_string()).unwrap_or_else(|| "-".into()),
+            cells.join(" | ")
+        )?;
+    }
+    Ok(())
+}
+
 fn f2(x: Option<f64>) -> String {
     x.map(|v| format!("{v:.2}")).unwrap_or_else(|| "-".into())
 }
@@ -217,7 +271,7 @@ pub fn write(
         }
         v
     };
-    let dev_settings = ["b2dr", "no-refs", "masks-only", "copy-nearest"];
+    let dev_settings = ["b2dr", "no-refs", "no-prev", "masks-only", "copy-nearest"];
     writeln!(
         md,
         "\n## Deviation sweep (references retrieved from the log at the displaced pose)\n\n\
@@ -264,6 +318,7 @@ pub fn write(
         }
         writeln!(md, "| {} | {} |", d.label(), cells.join(" | "))?;
     }
+    falloff_table(&mut md, r, &devs)?;
     let (lat, yaw): (Vec<Series>, Vec<Series>) = dev_series.into_iter().unzip();
     line_chart(
         &out.join("psnr_vs_lateral.png"),
