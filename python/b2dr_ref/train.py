@@ -397,6 +397,20 @@ class Batcher:
                 self.disk_saved = len(self.disk)
                 print(f"{latents[0]}: the latents of {len(self.disk)} samples", flush=True)
 
+    def precache(self, chunk: int = 64):
+        """Encode every sample of the source now (the latents file and, up to ``cache``, the memory cache), with
+        progress: on a GPU the first pass over the data is otherwise spread over the first epoch's steps and
+        makes their time (what a wall-clock budget is sized from) unrepresentative. Same values as lazy encoding
+        (one image at a time)."""
+        n, t0, shown = len(self.source), time.perf_counter(), 0
+        for a in range(0, n, chunk):
+            self._prepare(range(a, min(n, a + chunk)))
+            done = min(n, a + chunk)
+            if done * 10 // n > shown or done == n:
+                shown = done * 10 // n
+                print(f"precache: {done} / {n} samples ({time.perf_counter() - t0:.0f} s)", flush=True)
+        self.save_latents()
+
     def save_latents(self):
         """Write the latents file (atomically) when samples were encoded since the last write."""
         if not self.latents or len(self.disk) == self.disk_saved:
@@ -629,6 +643,17 @@ def train(args):
         json.dump(run_meta, f, indent=2)
     log = CsvLog(os.path.join(args.out, "log.csv"), ["step", "loss", "lr", "grad_norm", "sec"], step)
     losses = []
+
+    def checkpoint():
+        save_checkpoint(ck_path, dict(
+            run_meta, step=step, unet=unet.state_dict(), controlnet=controlnet.state_dict(),
+            optimizer=opt.state_dict(), lr_scheduler=sched.state_dict(), generator=gen.get_state(),
+            torch_rng=torch.get_rng_state(), ema=ema.shadow if ema is not None else None, context=context))
+        batcher.save_latents()
+
+    if args.precache:
+        batcher.precache()
+    t_start = time.perf_counter()
     try:
         while step < steps:
             t0 = time.perf_counter()
@@ -653,11 +678,12 @@ def train(args):
             if step % args.log_every == 0:
                 print(f"step {step} loss {lv:.4f} ({time.perf_counter() - t0:.2f} s)", flush=True)
             if step % args.ckpt_every == 0 or step == steps:
-                save_checkpoint(ck_path, dict(
-                    run_meta, step=step, unet=unet.state_dict(), controlnet=controlnet.state_dict(),
-                    optimizer=opt.state_dict(), lr_scheduler=sched.state_dict(), generator=gen.get_state(),
-                    torch_rng=torch.get_rng_state(), ema=ema.shadow if ema is not None else None, context=context))
-                batcher.save_latents()
+                checkpoint()
+            elif args.time_limit and time.perf_counter() - t_start > args.time_limit:
+                checkpoint()
+                print(f"--time-limit {args.time_limit:g} s reached at step {step} of {steps} (checkpoint written; "
+                      f"lr {sched.get_last_lr()[0]:.3e}: the schedule did not end)", flush=True)
+                break
     finally:
         log.close()
     return losses
@@ -801,6 +827,11 @@ def main(argv=None):
     p.add_argument("--ema", type=float, default=0.0, help="EMA decay (0 = off); export uses the EMA when kept")
     p.add_argument("--p-noprev", type=float, default=0.1, help="probability of 'no previous frame' (z = 0, n = 999)")
     p.add_argument("--cache", type=int, default=100000, help="samples whose latents + PE are kept in memory")
+    p.add_argument("--precache", action="store_true",
+                   help="encode every sample before the first step (progress printed; same values as lazy encoding)")
+    p.add_argument("--time-limit", type=float, default=0.0,
+                   help="stop (with a checkpoint) once the steps have run this many seconds (0 = no limit); the "
+                        "schedule still spans --steps, so size --steps to the time")
     p.add_argument("--no-latents-file", action="store_true",
                    help="do not keep the VAE latents of the data in RUN/latents.pt (a resume then encodes them again)")
     p.add_argument("--loss-weight", default="eps", choices=LOSS_WEIGHTS,

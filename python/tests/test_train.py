@@ -254,6 +254,39 @@ def test_latents_file_spares_a_resume_the_encoding(vae_run, tmp_path, monkeypatc
     assert not b.disk and "encoding again" in capsys.readouterr().out
 
 
+def test_precache_encodes_every_sample_once_and_changes_no_loss(vae_run, tmp_path, monkeypatch, capsys):
+    """--precache encodes each of the 6 samples exactly once (4 images each: target, previous, two references)
+    before the first step, writes them all to the latents file, prints progress, and trains to the same losses
+    as lazy encoding."""
+    vae = os.path.join(vae_run[0], "vae")
+    lazy = diffusion(vae, str(tmp_path / "a"), "--steps", "3", "--no-latents-file")
+    encoded = []
+    orig = T.Batcher._encode
+    monkeypatch.setattr(T.Batcher, "_encode", lambda self, imgs, blur: encoded.append(len(imgs)) or orig(self, imgs, blur))
+    capsys.readouterr()
+    pre = diffusion(vae, str(tmp_path / "b"), "--steps", "3", "--precache")
+    assert pre == lazy
+    assert sum(encoded) == 6 * 4
+    assert "precache: 6 / 6 samples" in capsys.readouterr().out
+    d = torch.load(os.path.join(str(tmp_path / "b"), T.LATENTS_FILE), weights_only=True)
+    assert sorted(d["index"].tolist()) == list(range(6))
+
+
+def test_time_limit_stops_with_a_checkpoint(vae_run, tmp_path, capsys):
+    """--time-limit: once the steps have run that long the run stops with a checkpoint at that step (here after
+    the first), says the schedule did not end, and --resume continues it."""
+    vae = os.path.join(vae_run[0], "vae")
+    run = str(tmp_path / "r")
+    first = diffusion(vae, run, "--steps", "4", "--time-limit", "1e-9")
+    assert len(first) == 1
+    assert "--time-limit 1e-09 s reached at step 1 of 4" in capsys.readouterr().out
+    ck = torch.load(os.path.join(run, T.CKPT), map_location="cpu", weights_only=False)
+    assert ck["step"] == 1
+    full = diffusion(vae, str(tmp_path / "full"), "--steps", "4")
+    rest = diffusion(vae, run, "--steps", "4", "--resume")
+    assert first + rest == pytest.approx(full, rel=1e-6, abs=1e-7)
+
+
 def test_vae_resume_continues_exactly(tmp_path):
     args = ["--data", "synthetic:4", "--steps", "4", "--batch", "2", "--warmup", "1", "--ckpt-every", "1000",
             "--crop", "32x48"] + COMMON
