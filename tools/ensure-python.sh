@@ -9,8 +9,9 @@ if ! "$venv/bin/python" -c "import torch, diffusers, safetensors, numpy, pytest,
   echo "b2dr: setting up the Python environment in $venv (torch, diffusers, ray; once)" >&2
   mkdir -p "$(dirname "$venv")"
   [ -x "$venv/bin/python" ] || python3 -m venv "$venv"
-  "$venv/bin/pip" install -q --upgrade pip >/dev/null
-  "$venv/bin/pip" install -q torch diffusers safetensors numpy pytest pillow ray pyyaml kubernetes
+  "$venv/bin/pip" install -q --no-cache-dir --upgrade pip >/dev/null
+  # --no-cache-dir: the wheels (torch with its CUDA libraries is several GB) would otherwise be kept twice
+  "$venv/bin/pip" install -q --no-cache-dir torch diffusers safetensors numpy pytest pillow ray pyyaml kubernetes
 fi
 B2DR_PY="$venv/bin/python"
 export B2DR_PY

@@ -11,6 +11,14 @@ export B2DR_VALIDATION=1
 # repeated runs do not fill /tmp (a failing run keeps it for inspection: its path is printed)
 scratch=$(mktemp -d "${TMPDIR:-/tmp}/b2dr-test.XXXXXX")
 export TMPDIR="$scratch"
+# the build and the Python environment need disk: about 2.4 GB for target/debug (profile.dev keeps line tables only)
+# and about 6 GB for the virtualenv (PyPI's torch carries its CUDA libraries) on the first run. Say what is free
+# up front, so a full disk reads as such rather than as a compiler crash.
+free_mb=$(df -Pm . | awk 'NR == 2 {print $4}')
+echo "b2dr: ${free_mb} MB free on $(df -P . | awk 'NR == 2 {print $6}') for target/ (and the Python environment)" >&2
+[ "${free_mb:-0}" -ge 4096 ] || echo "b2dr: warning: under 4 GB free; the build may run out of disk" >&2
+# no incremental cache: a one-shot test build does not reuse it, and it adds ~1.4 GB (set CARGO_INCREMENTAL=1 to keep it)
+export CARGO_INCREMENTAL="${CARGO_INCREMENTAL:-0}"
 status=0
 cargo test --all-targets --no-fail-fast "$@" || status=$?
 # the Python side (reference modules, trainer, dataset reader): pytest in the cached environment
