@@ -33,7 +33,12 @@ struct Golden {
 }
 
 fn golden() -> Golden {
-    let models: Value = golden::load_json("b2dr_models.json");
+    golden_with("b2dr_")
+}
+
+/// `prefix`: "b2dr_" (SD1.5's 4 latent channels) or "b2dr_z8_" (the design variant with 8).
+fn golden_with(prefix: &str) -> Golden {
+    let models: Value = golden::load_json(&format!("{prefix}models.json"));
     let ucfg = UNetConfig::from_json(models["configs"]["unet"].clone()).expect("unet config");
     let ccfg = B2drConfig::from_json(models["configs"]["controlnet"].clone()).expect("controlnet");
     let vcfg = VaeConfig::from_json(models["configs"]["vae"].clone()).expect("vae config");
@@ -42,12 +47,18 @@ fn golden() -> Golden {
             .unwrap_or_else(|e| panic!("{f}: {e:#}; {}", golden::REGENERATE))
     };
     Golden {
-        unet: load("b2dr_weights_unet.safetensors", &expected_unet(&ucfg)),
+        unet: load(
+            &format!("{prefix}weights_unet.safetensors"),
+            &expected_unet(&ucfg),
+        ),
         control: load(
-            "b2dr_weights_controlnet.safetensors",
+            &format!("{prefix}weights_controlnet.safetensors"),
             &b2dr::nn::b2dr::expected_b2dr(&ccfg),
         ),
-        vae: load("b2dr_weights_vae.safetensors", &expected_vae(&vcfg)),
+        vae: load(
+            &format!("{prefix}weights_vae.safetensors"),
+            &expected_vae(&vcfg),
+        ),
         ucfg,
         ccfg,
         vcfg,
@@ -384,12 +395,25 @@ fn inputs<'a>(c: &'a Case, locs: usize) -> FrameInputs<'a> {
 
 #[test]
 fn b2dr_frame_matches_reference() {
+    frame_matches(&golden(), &CASES);
+}
+
+/// The design variant whose VAE has 8 latent channels (UNet in / out 8, ControlNet in_channels 16): the whole
+/// frame (prev chain, reference encoder, guided sampling, decode) against the PyTorch modules.
+#[test]
+fn b2dr_frame_with_8_latent_channels_matches_reference() {
+    let g = golden_with("b2dr_z8_");
+    assert_eq!(g.vcfg.latent_channels, 8);
+    assert_eq!(g.ccfg.latent_channels(), 8);
+    frame_matches(&g, &[("b2dr_z8_case_n1_7x13.safetensors", 1, (7, 13))]);
+}
+
+fn frame_matches(g: &Golden, cases: &[(&str, usize, (usize, usize))]) {
     let Some(ctx) = common::ctx() else { return };
-    let g = golden();
     let locs = g.ccfg.ref_attn.len();
     for dt in [DType::F32, DType::F16] {
-        let d = device_model(&ctx, &g, dt);
-        for (file, n, _) in CASES {
+        let d = device_model(&ctx, g, dt);
+        for &(file, n, _) in cases {
             eprintln!("{file} {dt:?}");
             let c = Case(golden::golden_case(file));
             let mut ws = [2.0, 1.0].to_vec();
@@ -398,7 +422,7 @@ fn b2dr_frame_matches_reference() {
             }
             for w in ws {
                 let key = if w == 2.0 { "frame_w2" } else { "frame_w1" };
-                let r = renderer(&ctx, &g, &d, &c, n, w, dt);
+                let r = renderer(&ctx, g, &d, &c, n, w, dt);
                 r.render(&inputs(&c, locs)).unwrap();
                 // the previous-frame chain: blur -> encode -> noise
                 check(

@@ -4,6 +4,7 @@
 
 Run by developers, not by CI (seconds on one core):
     ~/.cache/b2dr-venv/bin/python tools/make_golden_b2dr.py          # or any venv with python/'s dependencies
+    ~/.cache/b2dr-venv/bin/python tools/make_golden_b2dr.py --latent-channels 8   # the b2dr_z8_* files only
 
 Everything written comes from running the modules on this machine; nothing is typed in. Files:
 - b2dr_weights_{unet,controlnet,vae}.safetensors: F32 weights of the test config (b2dr_ref.testing.TEST_CONFIGS),
@@ -15,9 +16,12 @@ Everything written comes from running the modules on this machine; nothing is ty
   (N = 6, latent 4 x 6, image 32 x 48): inputs `in.*` and outputs `out.*` of every component, the previous-frame
   chain and 3-step guided frames (see b2dr_models.json for the list per component).
 - b2dr_models.json: configs, state_dict names and shapes, the cases with their inputs/outputs and descriptions.
+- with --latent-channels C (C != 4): the same for the design variant whose VAE has C latent channels (UNet in / out
+  C, ControlNet in_channels 2 C), prefixed b2dr_zC_ (weights, models json, the N = 1 case only).
 tests/golden/manifest.json gets these files' descriptions; its format_version and other entries stay as they are.
 """
 
+import argparse
 import json
 import math
 import os
@@ -36,7 +40,9 @@ from b2dr_ref import pe as pe_mod  # noqa: E402
 from b2dr_ref.controlnet import B2DRControlNetModel  # noqa: E402
 from b2dr_ref.testing import build_models, configs  # noqa: E402
 
-WEIGHT_FILES = {k: f"b2dr_weights_{k}.safetensors" for k in ("unet", "controlnet", "vae")}
+PREFIX = "b2dr_"          # b2dr_zC_ for the variant with C latent channels (--latent-channels)
+LATENT_CHANNELS = 4
+WEIGHT_FILES = {k: f"{PREFIX}weights_{k}.safetensors" for k in ("unet", "controlnet", "vae")}
 STEPS = 3
 CAMERAS6 = ["CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_FRONT_LEFT", "CAM_BACK", "CAM_BACK_LEFT", "CAM_BACK_RIGHT"]
 YAWS6 = [0.0, -55.0, 55.0, 180.0, 110.0, -110.0]  # degrees, nuScenes-like rig
@@ -94,7 +100,7 @@ def save_weights(models):
 
 def load_weights():
     """Fresh models with the weights read back from the golden files (what the Rust side loads)."""
-    models = build_models(seed=0, nontrivial=False)
+    models = build_models(seed=0, nontrivial=False, latent_channels=LATENT_CHANNELS)
     for k, m in models.items():
         m.load_state_dict(load_file(os.path.join(GOLDEN, WEIGHT_FILES[k])), strict=True)
         m.eval()
@@ -109,19 +115,20 @@ def make_case(models, n, h, w, seed, with_w1):
     H, W = h * f, w * f
     g = torch.Generator().manual_seed(seed)
     t, comps = {}, {}
-    name = f"b2dr_case_n{n}_{h}x{w}.safetensors"
+    name = f"{PREFIX}case_n{n}_{h}x{w}.safetensors"
 
     # ---- inputs ----
-    t["in.x_t"] = torch.randn((n, 4, h, w), generator=g)
+    lc = cn.latent_channels
+    t["in.x_t"] = torch.randn((n, lc, h, w), generator=g)
     t["in.timestep"] = torch.tensor([601.0])
     ctx_shape = (77, cfg.cross_attention_dim) if n == 1 else (n, 77, cfg.cross_attention_dim)
     t["in.context"] = torch.randn(ctx_shape, generator=g)
     t["in.masks"] = (torch.rand((n, 15, H, W), generator=g) > 0.7).float()
     t["in.prev_image"] = torch.rand((n, 3, H, W), generator=g)
-    t["in.eps_prev"] = torch.randn((n, 4, h, w), generator=g)
+    t["in.eps_prev"] = torch.randn((n, lc, h, w), generator=g)
     t["in.ref_images"] = torch.rand((n, 2, 3, H, W), generator=g)
     t["in.noise_level"] = torch.full((n,), float(cfg.prev_noise_level))
-    t["in.x_T"] = torch.randn((n, 4, h, w), generator=g)
+    t["in.x_T"] = torch.randn((n, lc, h, w), generator=g)
     ks, c2e, cur, ref = geometry(n, H, W)
     t["in.geom.k_render"], t["in.geom.cam2ego"] = t32(ks), t32(c2e)
     t["in.geom.cur_ego2global"], t["in.geom.ref_ego2global"] = t32(cur), t32(ref)
@@ -280,16 +287,25 @@ def make_case(models, n, h, w, seed, with_w1):
 
 
 def main():
+    global PREFIX, LATENT_CHANNELS, WEIGHT_FILES
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--latent-channels", type=int, default=4)
+    a = ap.parse_args()
+    LATENT_CHANNELS = a.latent_channels
+    if LATENT_CHANNELS != 4:
+        PREFIX = f"b2dr_z{LATENT_CHANNELS}_"
+        WEIGHT_FILES = {k: f"{PREFIX}weights_{k}.safetensors" for k in ("unet", "controlnet", "vae")}
     torch.set_num_threads(1)
     os.makedirs(GOLDEN, exist_ok=True)
     man_path = os.path.join(GOLDEN, "manifest.json")
     with open(man_path) as f:
         manifest = json.load(f)
-    models = build_models(seed=0, nontrivial=True)
+    models = build_models(seed=0, nontrivial=True, latent_channels=LATENT_CHANNELS)
     save_weights(models)
     models = load_weights()
-    cases = [make_case(models, 1, 7, 13, seed=7013, with_w1=True),
-             make_case(models, 6, 4, 6, seed=6046, with_w1=False)]
+    cases = [make_case(models, 1, 7, 13, seed=7013, with_w1=True)]
+    if LATENT_CHANNELS == 4:
+        cases.append(make_case(models, 6, 4, 6, seed=6046, with_w1=False))
     import diffusers
 
     cn = models["controlnet"]
@@ -306,12 +322,13 @@ def main():
         "diffusers": diffusers.__version__, "torch": torch.__version__,
         "contract": "docs/b2dr_controlnet.md",
         "configs": cfgs,
-        "constructor_args": configs(),
+        "constructor_args": configs(LATENT_CHANNELS),
         "state_dicts": {k: [[n, list(v.shape)] for n, v in m.state_dict().items()] for k, m in models.items()},
         "zero_initialised_on_fresh_model": cn.zero_init_names(),
         "weights": {k: {"file": f, "dtype": "F32",
                         "init": "diffusers init with torch seed 0 (UNet, ControlNet, VAE built in that order); "
-                                "every all-zero tensor and conv_in.weight[:, 4:8] drawn uniform +-1/sqrt(fan_in); "
+                                f"every all-zero tensor and conv_in.weight[:, {LATENT_CHANNELS}:] drawn uniform "
+                                "+-1/sqrt(fan_in); "
                                 "norms 1 or 0 + U(+-0.1)"} for k, f in WEIGHT_FILES.items()},
         "sampler": {"kind": "UniPCMultistepScheduler", "config": dict(fr.SD15_SCHEDULE, solver_order=2,
                                                                       solver_type="bh2", lower_order_final=True,
@@ -320,13 +337,15 @@ def main():
         "cases": cases,
         "notes": __doc__,
     }
-    with open(os.path.join(GOLDEN, "b2dr_models.json"), "w") as f:
+    with open(os.path.join(GOLDEN, f"{PREFIX}models.json"), "w") as f:
         json.dump(doc, f, indent=1)
-    files = {"b2dr_models.json": "B2D-R goldens index: configs, state_dict names/shapes, cases with inputs/outputs"}
+    what = "B2D-R" if LATENT_CHANNELS == 4 else f"B2D-R, {LATENT_CHANNELS} latent channels,"
+    files = {f"{PREFIX}models.json": f"{what} goldens index: configs, state_dict names/shapes, cases with "
+                                     "inputs/outputs"}
     for k, fn in WEIGHT_FILES.items():
-        files[fn] = f"B2D-R test-config {k} weights (F32)"
+        files[fn] = f"{what} test-config {k} weights (F32)"
     for c in cases:
-        files[c["file"]] = (f"B2D-R components, prev-frame chain and {STEPS}-step guided frame(s), N = {c['cameras']}, "
+        files[c["file"]] = (f"{what} components, prev-frame chain and {STEPS}-step guided frame(s), N = {c['cameras']}, "
                             f"latent {c['latent_hw'][0]}x{c['latent_hw'][1]} (F32)")
     manifest["files"].update(files)
     with open(man_path, "w") as f:

@@ -253,8 +253,10 @@ class B2DRControlNetModel(ControlNetModel):
     ):
         n_blocks = len(block_out_channels)
         # ---- validation of the values the B2D-R forward relies on ----
-        if in_channels != 8:
-            raise ConfigError(f"{CLASS_NAME} config: in_channels must be 8 ([x_t, z_prev]), got {in_channels}")
+        # [x_t, z_prev]: twice the latent channels (8 for SD1.5's 4-channel VAE)
+        if in_channels < 2 or in_channels % 2:
+            raise ConfigError(f"{CLASS_NAME} config: in_channels must be 2 x the latent channels ([x_t, z_prev]), "
+                              f"got {in_channels}")
         mask_channels = list(mask_channels)
         if conditioning_channels != len(mask_channels):
             raise ConfigError(f"{CLASS_NAME} config: conditioning_channels {conditioning_channels} != "
@@ -305,7 +307,8 @@ class B2DRControlNetModel(ControlNetModel):
 
         c0 = block_out_channels[0]
         self.noise_embedding = TimestepEmbedding(c0, 4 * c0, act_fn=act_fn)
-        self.ref_encoder = ReferenceEncoder(ref_encoder_channels, norm_num_groups, norm_eps, act_fn)
+        self.ref_encoder = ReferenceEncoder(ref_encoder_channels, norm_num_groups, norm_eps, act_fn,
+                                            latent_channels=in_channels // 2)
         heads = num_attention_heads or attention_head_dim
         if isinstance(heads, int):
             heads = [heads] * n_blocks
@@ -322,13 +325,19 @@ class B2DRControlNetModel(ControlNetModel):
         self.ref_attn = nn.ModuleList(attn)
         self.zero_init_new_outputs()
 
+    @property
+    def latent_channels(self) -> int:
+        """C: the VAE's latent channels (x_t and z_prev each have C; in_channels = 2 C)."""
+        return int(self.config.in_channels) // 2
+
     # -----------------------------------------------------------------------------------------------------------
 
     @torch.no_grad()
     def zero_init_new_outputs(self):
-        """Contract section 1: conv_in's weights for input channels 4..8, noise_embedding.linear_2, every
-        ref_attn.{j}.to_out.0 are zero, so a fresh model equals the plain ControlNet on x_t."""
-        self.conv_in.weight[:, 4:].zero_()
+        """Contract section 1: conv_in's weights for input channels C..2C (z_prev; C = 4 for SD1.5),
+        noise_embedding.linear_2, every ref_attn.{j}.to_out.0 are zero, so a fresh model equals the plain
+        ControlNet on x_t."""
+        self.conv_in.weight[:, self.latent_channels:].zero_()
         nn.init.zeros_(self.noise_embedding.linear_2.weight)
         nn.init.zeros_(self.noise_embedding.linear_2.bias)
         for a in self.ref_attn_modules:
@@ -444,24 +453,24 @@ class B2DRControlNetModel(ControlNetModel):
         plain = ControlNetModel.from_unet(unet, conditioning_embedding_out_channels=conditioning_embedding_out_channels,
                                           load_weights_from_unet=load_weights_from_unet, conditioning_channels=n_masks)
         cfg = {k: v for k, v in plain.config.items() if not k.startswith("_")}
-        cfg.update(in_channels=8, **b2dr_keys)
+        cfg.update(in_channels=2 * int(unet.config.in_channels), **b2dr_keys)
         model = cls.from_config(cfg)
         model.load_plain_weights(plain.state_dict())
         return model
 
     def plain_config(self) -> Dict[str, Any]:
-        """The diffusers ControlNetModel config of the standard part on x_t alone (in_channels 4)."""
+        """The diffusers ControlNetModel config of the standard part on x_t alone (in_channels C)."""
         d = {k: self.config[k] for k in PLAIN_KEYS}
-        d["in_channels"] = 4
+        d["in_channels"] = self.latent_channels
         return d
 
     @torch.no_grad()
     def load_plain_weights(self, plain_state_dict: Dict[str, torch.Tensor]):
-        """Copies a plain (in_channels 4) ControlNet's weights in; conv_in's channels 4..8 stay as they are."""
+        """Copies a plain (in_channels C) ControlNet's weights in; conv_in's channels C..2C stay as they are."""
         own = self.state_dict()
         for k, v in plain_state_dict.items():
             if k == "conv_in.weight":
-                own[k][:, :4].copy_(v)
+                own[k][:, :self.latent_channels].copy_(v)
             else:
                 own[k].copy_(v)
 

@@ -31,8 +31,15 @@ TEST_CONFIGS = {
 }
 
 
-def configs():
-    return copy.deepcopy(TEST_CONFIGS)
+def configs(latent_channels: int = 4):
+    """The test configs; ``latent_channels`` C != 4: the VAE's latent, the UNet's in / out and the ControlNet's
+    in_channels (2 C) follow (the design variant with more latent channels)."""
+    c = copy.deepcopy(TEST_CONFIGS)
+    if latent_channels != 4:
+        c["vae"]["latent_channels"] = latent_channels
+        c["unet"]["in_channels"] = c["unet"]["out_channels"] = latent_channels
+        c["controlnet"]["in_channels"] = 2 * latent_channels
+    return c
 
 
 def is_norm(name: str) -> bool:
@@ -44,7 +51,7 @@ def is_norm(name: str) -> bool:
 @torch.no_grad()
 def nontrivial_init(model, seed: int):
     """As tools/make_golden_models.py: every all-zero tensor drawn uniform +-1/sqrt(fan_in), norm parameters
-    perturbed by U(+-0.1). For a B2DRControlNetModel also conv_in's zeroed input channels 4..8 are drawn."""
+    perturbed by U(+-0.1). For a B2DRControlNetModel also conv_in's zeroed input channels C..2C are drawn."""
     g = torch.Generator().manual_seed(seed)
     sd = model.state_dict()
     for name, p in sd.items():
@@ -58,14 +65,15 @@ def nontrivial_init(model, seed: int):
     if isinstance(model, B2DRControlNetModel):
         w = sd["conv_in.weight"]
         fan_in = int(np.prod(w.shape[1:]))
-        u = torch.rand(w[:, 4:].shape, generator=g) * 2 - 1
-        w[:, 4:].copy_(u / np.sqrt(fan_in))
+        c = model.latent_channels
+        u = torch.rand(w[:, c:].shape, generator=g) * 2 - 1
+        w[:, c:].copy_(u / np.sqrt(fan_in))
 
 
-def build_models(seed: int = 0, nontrivial: bool = True) -> Dict[str, torch.nn.Module]:
+def build_models(seed: int = 0, nontrivial: bool = True, latent_channels: int = 4) -> Dict[str, torch.nn.Module]:
     from diffusers import AutoencoderKL, UNet2DConditionModel
 
-    cfg = configs()
+    cfg = configs(latent_channels)
     torch.manual_seed(seed)
     models = {"unet": UNet2DConditionModel(**cfg["unet"]).eval(),
               "controlnet": B2DRControlNetModel.from_config(cfg["controlnet"]).eval(),

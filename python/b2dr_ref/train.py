@@ -35,6 +35,7 @@ import torch.nn.functional as F
 
 from . import nano
 from .controlnet import B2DRControlNetModel, MASK_CHANNELS
+from .fastpath import AUTOCASTS, PLAIN, FastPath, Prefetcher
 from .frame import SD15_SCHEDULE, gaussian_blur
 from .pe import PeConfig, PixelGrid, cam2cur, depth_bins, location_sizes
 
@@ -445,7 +446,7 @@ class Batcher:
                 es = [s for _, s in new]
                 x0 = self._encode(np.stack([s.target for s in es]), False)
                 zp = self._encode(np.stack([s.prev for s in es]), True)
-                zr = self._encode(np.concatenate([s.refs for s in es]), False).reshape(len(es), 2, 4, *x0.shape[-2:])
+                zr = self._encode(np.concatenate([s.refs for s in es]), False).reshape(len(es), 2, *x0.shape[-3:])
                 for m, (i, _) in enumerate(new):
                     lat[i] = (x0[m], zp[m], zr[m])
                     if self.latents:
@@ -499,12 +500,14 @@ PREDICTIONS = ("epsilon", "v_prediction")
 
 def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: torch.Tensor, p_noprev: float = 0.1,
                    ref_dropout: Optional[float] = None, weighting: str = "eps", max_weight: float = 0.0,
-                   prediction: str = "epsilon", object_weight: float = 0.0):
+                   prediction: str = "epsilon", object_weight: float = 0.0, fast: FastPath = PLAIN):
     """One batch's (weighted) MSE of the model's prediction (all random draws from ``gen``, on the CPU, then moved to
     the device). ``prediction``: the model predicts epsilon, or v = sqrt(abar) eps - sqrt(1 - abar) x_0
     (diffusers' v_prediction; the sampler then reads x_0 = sqrt(abar) x_t - sqrt(1 - abar) v).
     ``object_weight`` W > 0: latent pixels whose 8x8 image cell holds an object (mask channels car .. bicycle)
-    weigh 1 + W in the MSE (small vehicles cover ~5 % of the pixels and otherwise barely move the loss)."""
+    weigh 1 + W in the MSE (small vehicles cover ~5 % of the pixels and otherwise barely move the loss).
+    ``fast`` (fastpath.py): memory format and autocast of the forward; ``unet`` / ``controlnet`` may then be the
+    compiled wrappers of ``FastPath.prepare``. The random draws and the loss are the same in every mode."""
     cfg = controlnet.config
     dev = b["x0"].device
     B = b["x0"].shape[0]
@@ -525,14 +528,17 @@ def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: tor
     z = z * keep
     n = torch.where(noprev, torch.full_like(n, NO_PREV_NOISE_LEVEL), n)
     ctx = context.to(dev)[b["cams"].to(dev)]
-    refs = None
-    if bool(ref_mask.any()):
-        m = ref_mask.to(dev)
-        refs = controlnet.prepare_references(b["ref_latents"][m], [p[m] for p in b["pe_cur"]],
-                                             [p[m] for p in b["pe_ref"]])
-    down, mid = controlnet(x_t, t.to(dev), ctx, b["masks"], z, n.to(dev), refs=refs,
-                           ref_mask=ref_mask.to(dev) if refs is not None else None)
-    pred = unet(x_t, t.to(dev), ctx, down_block_additional_residuals=down, mid_block_additional_residual=mid).sample
+    with fast.autocast_ctx(dev):
+        refs = None
+        if bool(ref_mask.any()):
+            m = ref_mask.to(dev)
+            refs = controlnet.prepare_references(fast.inputs(b["ref_latents"][m]), [p[m] for p in b["pe_cur"]],
+                                                 [p[m] for p in b["pe_ref"]])
+        xi = fast.inputs(x_t)
+        down, mid = controlnet(xi, t.to(dev), ctx, fast.inputs(b["masks"]), fast.inputs(z), n.to(dev), refs=refs,
+                               ref_mask=ref_mask.to(dev) if refs is not None else None)
+        pred = unet(xi, t.to(dev), ctx, down_block_additional_residuals=down,
+                    mid_block_additional_residual=mid).sample
     if prediction == "v_prediction":
         target = at.sqrt() * eps - (1 - at).sqrt() * b["x0"]
     elif prediction == "epsilon":
@@ -565,6 +571,18 @@ def run_config(args) -> Dict:
     return cfg
 
 
+def load_matching(model: torch.nn.Module, sd: Dict[str, torch.Tensor]) -> List[str]:
+    """Loads the tensors of ``sd`` whose names and shapes match the model's (every name must exist); returns the
+    names left at the model's own initialisation because their shapes differ."""
+    own = model.state_dict()
+    missing = sorted(set(own) ^ set(sd))
+    if missing:
+        raise SystemExit(f"--init-from: the package's {type(model).__name__} differs in its tensors: {missing[:6]}")
+    fresh = [k for k, v in sd.items() if own[k].shape != v.shape]
+    model.load_state_dict({k: v for k, v in sd.items() if k not in fresh}, strict=False)
+    return fresh
+
+
 def train(args):
     device = torch.device(args.device)
     set_threads(args.device, args.threads)
@@ -592,11 +610,15 @@ def train(args):
         from .package import load_package
 
         pkg = load_package(init)
-        unet.load_state_dict(pkg.unet.state_dict())
-        controlnet.load_state_dict(pkg.controlnet.state_dict())
-        if list(pkg.meta["cameras"]) != cameras:
-            raise SystemExit(f"--init-from {init}: cameras {pkg.meta['cameras']} != the data's {cameras}")
-        context = pkg.context.clone()
+        fresh = load_matching(unet, pkg.unet.state_dict()) + load_matching(controlnet, pkg.controlnet.state_dict())
+        if fresh:
+            # a design with another latent width: the tensors that touch the latent start fresh
+            print(f"--init-from {init}: fresh (other shapes): {', '.join(fresh)}", flush=True)
+        pcams = list(pkg.meta["cameras"])
+        if not set(cameras) <= set(pcams):
+            raise SystemExit(f"--init-from {init}: the data's cameras {cameras} are not among the package's {pcams}")
+        # the package's per-camera context rows, in the data's camera order (a subset: e.g. CAM_FRONT only)
+        context = pkg.context[[pcams.index(c) for c in cameras]].clone()
     unet.to(device).train()
     controlnet.to(device).train()
     params = list(unet.parameters()) + list(controlnet.parameters())
@@ -644,25 +666,49 @@ def train(args):
     log = CsvLog(os.path.join(args.out, "log.csv"), ["step", "loss", "lr", "grad_norm", "sec"], step)
     losses = []
 
+    fast = FastPath(channels_last=args.channels_last, compile=args.compile, autocast=args.autocast)
+    unet_f, controlnet_f = fast.prepare(unet, controlnet)     # state_dict from the originals
+    prefetch = Prefetcher(batcher.batch) if args.prefetch else None
+    pending = dict(gen_state=None, batch=None)   # the prefetched step: gen state before its index draw, its batch
+
     def checkpoint():
+        if prefetch is not None and prefetch.busy:     # the batcher (latents file) must be idle
+            pending["batch"] = prefetch.take()
+        # with a prefetched step, the generator as it was before that step's index draw: a resume draws it again
+        g_state = pending["gen_state"] if pending["gen_state"] is not None else gen.get_state()
         save_checkpoint(ck_path, dict(
             run_meta, step=step, unet=unet.state_dict(), controlnet=controlnet.state_dict(),
-            optimizer=opt.state_dict(), lr_scheduler=sched.state_dict(), generator=gen.get_state(),
+            optimizer=opt.state_dict(), lr_scheduler=sched.state_dict(), generator=g_state,
             torch_rng=torch.get_rng_state(), ema=ema.shadow if ema is not None else None, context=context))
         batcher.save_latents()
 
+    def draw_idx():
+        return list(range(args.batch)) if args.fixed_batch else \
+            torch.randint(0, len(source), (args.batch,), generator=gen).tolist()
+
     if args.precache:
         batcher.precache()
+    if not fast.plain:
+        print(f"fast path: {fast.describe()}", flush=True)
     t_start = time.perf_counter()
     try:
         while step < steps:
             t0 = time.perf_counter()
-            idx = list(range(args.batch)) if args.fixed_batch else \
-                torch.randint(0, len(source), (args.batch,), generator=gen).tolist()
-            b = batcher.batch(idx)
-            loss = diffusion_loss(unet, controlnet, context, b, gen, abar, p_noprev=args.p_noprev,
+            if prefetch is not None and prefetch.busy:
+                b = prefetch.take()
+            elif pending["batch"] is not None:
+                b, pending["batch"] = pending["batch"], None
+            else:
+                b = batcher.batch(draw_idx())
+            loss = diffusion_loss(unet_f, controlnet_f, context, b, gen, abar, p_noprev=args.p_noprev,
                                   weighting=args.loss_weight, max_weight=args.max_weight, prediction=prediction,
-                                  object_weight=args.object_weight)
+                                  object_weight=args.object_weight, fast=fast)
+            pending["gen_state"] = None
+            if prefetch is not None and step + 1 < steps:
+                # the next step's indices are drawn now, after this step's noise: the generator's sequence is
+                # that of a run without prefetch
+                pending["gen_state"] = gen.get_state()
+                prefetch.submit(draw_idx())
             opt.zero_grad(set_to_none=True)
             loss.backward()
             gn = torch.nn.utils.clip_grad_norm_(params, args.clip)
@@ -685,6 +731,8 @@ def train(args):
                       f"lr {sched.get_last_lr()[0]:.3e}: the schedule did not end)", flush=True)
                 break
     finally:
+        if prefetch is not None and prefetch.busy:
+            prefetch.take()
         log.close()
     return losses
 
@@ -728,52 +776,10 @@ def export(args):
 
 
 def bench(args):
-    """Seconds per optimizer step (UNet + B2D-R ControlNet, forward + backward + AdamW) on random inputs at the
-    config's render size, with references (dropout as configured) and the previous frame; the VAE / PE work is
-    not timed (the trainer caches it per sample)."""
-    from .vae_train import build_vae
+    """``train bench``: b2dr_ref.train_bench (throughput per setting, sweep, profile, data preparation)."""
+    from .train_bench import bench as run_bench
 
-    set_threads(args.device, args.threads)
-    device = torch.device(args.device)
-    cfg = run_config(args)
-    src = SyntheticSource(n=args.batch, render_size=cfg["render_size"])
-    vae = build_vae(cfg).to(device).eval().requires_grad_(False)
-    unet, controlnet = build_diffusion_models(cfg)
-    unet.to(device).train()
-    controlnet.to(device).train()
-    params = list(unet.parameters()) + list(controlnet.parameters())
-    n_unet = sum(p.numel() for p in unet.parameters())
-    n_cn = sum(p.numel() for p in controlnet.parameters())
-    opt = torch.optim.AdamW(params, lr=1e-4)
-    ctx = make_context(cfg, src.cameras)
-    t0 = time.perf_counter()
-    b = Batcher(src, vae, controlnet, device).batch(list(range(args.batch)))
-    t_prep = time.perf_counter() - t0
-    gen = torch.Generator().manual_seed(0)
-    abar = make_noise_scheduler().alphas_cumprod.to(torch.float32)
-    times, cpu = [], []
-    for i in range(args.steps):
-        t0 = time.perf_counter()
-        c0 = time.process_time()
-        loss = diffusion_loss(unet, controlnet, ctx, b, gen, abar, ref_dropout=args.ref_dropout)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(params, 1.0)
-        opt.step()
-        if device.type == "cuda":
-            torch.cuda.synchronize()
-        times.append(time.perf_counter() - t0)
-        cpu.append(time.process_time() - c0)
-    warm = times[1:] if len(times) > 1 else times
-    wcpu = cpu[1:] if len(cpu) > 1 else cpu
-    res = dict(config=cfg["name"], batch=args.batch, threads=torch.get_num_threads(), device=args.device,
-               render_size=cfg["render_size"], unet_params=n_unet, controlnet_params=n_cn,
-               step_s_median=float(np.median(warm)), step_s_min=float(min(warm)), first_step_s=times[0],
-               cpu_s_per_step_median=float(np.median(wcpu)),
-               cpu_s_per_step_per_thread=float(np.median(wcpu)) / torch.get_num_threads(),
-               prep_s_per_sample=t_prep / args.batch, ref_dropout=args.ref_dropout)
-    print(json.dumps(res))
-    return res
+    return run_bench(args)
 
 
 def add_common(p: argparse.ArgumentParser):
@@ -815,6 +821,14 @@ def main(argv=None):
         p.add_argument("--threads", type=int, default=None)
         p.add_argument("--device", default="cpu")
         p.add_argument("--ref-dropout", type=float, default=0.0, help="0 = every row uses references (worst case)")
+        p.add_argument("--channels-last", action="store_true")
+        p.add_argument("--compile", action="store_true")
+        p.add_argument("--autocast", default="none", choices=AUTOCASTS)
+        p.add_argument("--sweep", action="store_true",
+                       help="the documented set-up, eager f32 at --batch / --threads and each fast path, in one run")
+        p.add_argument("--profile", action="store_true", help="CPU self time per op class of each setting")
+        p.add_argument("--data-prep", action="store_true", help="also time the per-sample data preparation")
+        p.add_argument("--json", default=None, help="write the results here")
         return bench(p.parse_args(argv[1:]))
     p = argparse.ArgumentParser(prog="python -m b2dr_ref.train")
     add_common(p)
@@ -842,6 +856,11 @@ def main(argv=None):
     p.add_argument("--object-weight", type=float, default=0.0,
                    help="extra MSE weight on latent cells holding an object (vehicles, pedestrians, two-wheelers): "
                         "1 + this there (0 = plain)")
+    p.add_argument("--channels-last", action="store_true", help="NHWC memory format (fastpath.py)")
+    p.add_argument("--compile", action="store_true", help="torch.compile the UNet and ControlNet forward")
+    p.add_argument("--autocast", default="none", choices=AUTOCASTS, help="autocast dtype of the forward")
+    p.add_argument("--prefetch", action="store_true",
+                   help="prepare the next batch on a background thread during backward + optimizer")
     p.add_argument("--prediction", default="epsilon", choices=PREDICTIONS,
                    help="what the UNet predicts: epsilon, or v (exported as b2dr.json prediction_type)")
     return train(p.parse_args(argv))

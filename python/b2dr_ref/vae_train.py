@@ -38,10 +38,26 @@ def images(source, idx, device) -> torch.Tensor:
     return torch.from_numpy(x).float().div(255.0).mul(2.0).sub(1.0).to(device)
 
 
-def object_masks(source, idx, device) -> torch.Tensor:
-    """(B, 1, H, W) float {0,1}: pixels covered by any object class (vehicles, pedestrians, two-wheelers)."""
-    m = np.stack([source[i].masks[OBJECT_CHANNELS].max(0) for i in idx])
+def object_masks(source, idx, device, channels=OBJECT_CHANNELS) -> torch.Tensor:
+    """(B, 1, H, W) float {0,1}: pixels covered by any of the mask ``channels`` (default the objects: vehicles,
+    pedestrians, two-wheelers)."""
+    m = np.stack([source[i].masks[channels].max(0) for i in idx])
     return torch.from_numpy(m).float()[:, None].to(device)
+
+
+# the painted structures of the road: lane dividers and crosswalks (controlnet.MASK_CHANNELS order)
+MARKING_CHANNELS = [12, 13]
+
+
+def pixel_weights(source, idx, device, object_weight: float, marking_weight: float):
+    """(B, 1, H, W) L1 weights 1 + object_weight [object pixel] + marking_weight [marking pixel], or None."""
+    w = None
+    if object_weight > 0:
+        w = 1.0 + object_weight * object_masks(source, idx, device)
+    if marking_weight > 0:
+        m = marking_weight * object_masks(source, idx, device, MARKING_CHANNELS)
+        w = 1.0 + m if w is None else w + m
+    return w
 
 
 def parse_crop(text: str):
@@ -191,11 +207,19 @@ def train_vae(args):
         from .train import load_vae
 
         init = load_vae(args.init_from)
-        if dict(init.config)["block_out_channels"] != list(cfg["vae"]["block_out_channels"]) or \
-                init.config.latent_channels != cfg["vae"]["latent_channels"]:
-            raise SystemExit(f"--init-from {args.init_from}: its architecture differs from config {cfg['name']!r}")
-        vae.load_state_dict(init.state_dict())
-        print(f"vae: initialised from {args.init_from}", flush=True)
+        if dict(init.config)["block_out_channels"] != list(cfg["vae"]["block_out_channels"]):
+            raise SystemExit(f"--init-from {args.init_from}: its blocks differ from config {cfg['name']!r}")
+        if init.config.latent_channels == cfg["vae"]["latent_channels"]:
+            vae.load_state_dict(init.state_dict())
+            print(f"vae: initialised from {args.init_from}", flush=True)
+        else:
+            # another latent width (a design with more latent channels): the body is taken, the tensors that touch
+            # the latent (encoder.conv_out, quant_conv, post_quant_conv, decoder.conv_in) start fresh
+            own = vae.state_dict()
+            fresh = [k for k, v in init.state_dict().items() if own[k].shape != v.shape]
+            vae.load_state_dict({k: v for k, v in init.state_dict().items() if k not in fresh}, strict=False)
+            print(f"vae: body initialised from {args.init_from} ({init.config.latent_channels} -> "
+                  f"{cfg['vae']['latent_channels']} latent channels; fresh: {', '.join(fresh)})", flush=True)
     opt = torch.optim.AdamW(vae.parameters(), lr=args.lr, weight_decay=args.weight_decay)
     total = ck["total_steps"] if ck else args.steps
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_lambda(args.warmup, total))
@@ -219,7 +243,7 @@ def train_vae(args):
             idx = list(range(args.batch)) if args.fixed_batch else \
                 torch.randint(0, len(source), (args.batch,), generator=gen).tolist()
             x = images(source, idx, device)
-            w = 1.0 + args.object_weight * object_masks(source, idx, device) if args.object_weight > 0 else None
+            w = pixel_weights(source, idx, device, args.object_weight, args.marking_weight)
             if args.crop:
                 x, w = random_crop(x, args.crop, gen, w) if w is not None else (random_crop(x, args.crop, gen), None)
             loss, l1, kl = vae_loss(vae, x, gen, args.kl_weight, w)
@@ -259,6 +283,9 @@ def main(argv=None):
     p.add_argument("--object-weight", type=float, default=0.0,
                    help="extra L1 weight on pixels of objects (vehicles, pedestrians, two-wheelers; the export's "
                         "masks): the loss weight there is 1 + this (0 = plain L1)")
+    p.add_argument("--marking-weight", type=float, default=0.0,
+                   help="extra L1 weight on lane-divider and crosswalk pixels (the export's masks), added to the "
+                        "object weight")
     return train_vae(p.parse_args(argv))
 
 

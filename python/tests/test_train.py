@@ -432,6 +432,48 @@ def test_vae_object_weight_and_init_from(vae_run, tmp_path):
     with open(tmp_path / "c" / "log.csv") as f:
         l1 = [float(r["l1"]) for r in csv.DictReader(f)]
     assert abs(l1[0] - warm[0]) < 0.05 * warm[0]     # the logged L1 is unweighted (KL term ~1e-6)
-    with pytest.raises(SystemExit, match="architecture differs"):
+    with pytest.raises(SystemExit, match="blocks differ"):
         V.main(["--data", "synthetic:4", "--steps", "1", "--batch", "2", "--out", str(tmp_path / "d"),
                 "--config", "nano", "--threads", "1", "--init-from", os.path.join(out, "vae")])
+
+
+def test_more_latent_channels_train_export_and_init(vae_run, tmp_path):
+    """The design variant with 8 latent channels (nano.TEST_Z8): the VAE body starts from a 4-channel VAE (the
+    latent-facing tensors fresh), the diffusion stage trains on its latents, the package exports and loads with
+    UNet in / out 8 and ControlNet in_channels 16, and a 4-channel package initialises everything but those."""
+    from b2dr_ref.package import load_package
+
+    vae8 = str(tmp_path / "vae8")
+    V.main(["--data", "synthetic:4", "--out", vae8, "--steps", "2", "--batch", "2", "--ckpt-every", "1000",
+            "--config", "test-z8", "--init-from", os.path.join(vae_run[0], "vae"), "--marking-weight", "2",
+            "--threads", "1", "--log-every", "1000"])
+    v = T.load_vae(os.path.join(vae8, "vae"))
+    assert v.config.latent_channels == 8
+    run = str(tmp_path / "run8")
+    losses = T.main(["--data", "synthetic:4", "--vae", os.path.join(vae8, "vae"), "--out", run, "--steps", "2",
+                     "--batch", "2", "--config", "test-z8", "--threads", "1", "--log-every", "1000"])
+    assert all(np.isfinite(losses))
+    model = str(tmp_path / "model8")
+    T.main(["export", "--run", run, "--out", model, "--dtype", "f32"])
+    pkg = load_package(model)
+    assert pkg.unet.config.in_channels == pkg.unet.config.out_channels == 8
+    assert pkg.controlnet.config.in_channels == 16 and pkg.controlnet.latent_channels == 8
+    assert pkg.controlnet.ref_encoder.conv_in.weight.shape[1] == 8
+    # a 4-channel package initialises an 8-channel run: all but the latent-facing tensors
+    run4 = str(tmp_path / "run4")
+    diffusion(os.path.join(vae_run[0], "vae"), run4, "--steps", "1")
+    m4 = str(tmp_path / "m4")
+    T.main(["export", "--run", run4, "--out", m4, "--dtype", "f32"])
+    cont = str(tmp_path / "cont8")
+    T.main(["--data", "synthetic:4", "--vae", os.path.join(vae8, "vae"), "--out", cont, "--steps", "1",
+            "--batch", "2", "--lr", "0", "--config", "test-z8", "--init-from", m4, "--threads", "1",
+            "--log-every", "1000"])
+    p4 = load_package(m4)
+    ck = torch.load(os.path.join(cont, T.CKPT), weights_only=False)
+    fresh = {"conv_in.weight", "conv_out.weight", "conv_out.bias", "ref_encoder.conv_in.weight"}
+    for part, sd in (("unet", p4.unet.state_dict()), ("controlnet", p4.controlnet.state_dict())):
+        for k, val in sd.items():
+            if ck[part][k].shape != val.shape:
+                assert k in fresh, (part, k)
+            else:
+                torch.testing.assert_close(ck[part][k], val, rtol=0, atol=0)

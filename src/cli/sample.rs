@@ -113,7 +113,7 @@ pub fn run(device: Option<String>, a: SampleArgs) -> Result<()> {
         (None, None) => None,
     };
     let mut r = rand_chacha::ChaCha8Rng::seed_from_u64(a.seed);
-    let x_t: Vec<f32> = (0..4 * h * w)
+    let x_t: Vec<f32> = (0..uc.enc.in_channels * h * w)
         .map(|_| StandardNormal.sample(&mut r))
         .collect();
     let bar = indicatif::ProgressBar::new(a.steps as u64);

@@ -33,7 +33,10 @@ pub fn expected_b2dr(cfg: &B2drConfig) -> Vec<Spec> {
     add("noise_embedding.linear_2.weight".into(), &[t, t]);
     add("noise_embedding.linear_2.bias".into(), &[t]);
     let r = &cfg.ref_encoder_channels;
-    add("ref_encoder.conv_in.weight".into(), &[r[0], 4, 3, 3]);
+    add(
+        "ref_encoder.conv_in.weight".into(),
+        &[r[0], cfg.latent_channels(), 3, 3],
+    );
     add("ref_encoder.conv_in.bias".into(), &[r[0]]);
     let mut prev = r[0];
     for (i, &c) in r.iter().enumerate() {
@@ -83,6 +86,7 @@ pub fn expected_b2dr(cfg: &B2drConfig) -> Vec<Spec> {
 pub struct RefEncoder {
     conv_in: Conv,
     blocks: Vec<(Resnet, Option<Conv>)>,
+    latent_channels: usize,
 }
 
 impl RefEncoder {
@@ -113,15 +117,17 @@ impl RefEncoder {
         Ok(Self {
             conv_in: Conv::same3(dw, "ref_encoder.conv_in", 1)?,
             blocks,
+            latent_channels: cfg.latent_channels(),
         })
     }
 
-    /// z: (M, 4, h, w) -> the features after each block, `F_i: (M, C_i, h_i, w_i)`.
+    /// z: (M, C, h, w) -> the features after each block, `F_i: (M, C_i, h_i, w_i)`.
     pub fn forward(&self, f: &mut Fwd, z: &Tensor) -> Result<Vec<Tensor>> {
         let s = z.shape();
+        let c = self.latent_channels;
         ensure!(
-            s.len() == 4 && s[1] == 4,
-            "ref encoder: reference latents {s:?} must be (M, 4, h, w)"
+            s.len() == 4 && s[1] == c,
+            "ref encoder: reference latents {s:?} must be (M, {c}, h, w)"
         );
         let mut x = self.conv_in.forward(f, z)?;
         let mut out: Vec<Tensor> = vec![];
@@ -379,7 +385,7 @@ impl B2drControlNet {
             Some((lat, pe_cur, pe_ref)) => {
                 ensure!(
                     lat.shape().len() == 4 && lat.shape()[0] == 2 * n,
-                    "b2dr controlnet: reference latents {:?} must be (2 x {n} cameras, 4, h, w)",
+                    "b2dr controlnet: reference latents {:?} must be (2 x {n} cameras, C, h, w)",
                     lat.shape()
                 );
                 let locs = self.cfg.ref_attn.len();
@@ -475,7 +481,7 @@ impl B2drControlNet {
         }
     }
 
-    /// One step. sample: (B, 8, h, w) = [x_t, z_prev] in the model dtype, t: (B) f32, context: (B, L, D);
+    /// One step. sample: (B, 2C, h, w) = [x_t, z_prev] in the model dtype, t: (B) f32, context: (B, L, D);
     /// B = N, or 2N for `RefRows::SecondHalf` (the frame's tensors cover N cameras and are added to each half).
     #[allow(clippy::too_many_arguments)] // the step's inputs, named as diffusers' ControlNetModel.forward
     pub fn forward(

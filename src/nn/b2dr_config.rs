@@ -45,7 +45,7 @@ impl RefAttnAt {
 /// A B2D-R ControlNet config.
 #[derive(Clone, Debug, PartialEq)]
 pub struct B2drConfig {
-    /// The diffusers ControlNetModel part (`in_channels` 8, `conditioning_channels` 15).
+    /// The diffusers ControlNetModel part (`in_channels` 2 C = 8 for SD1.5, `conditioning_channels` 15).
     pub base: ControlNetConfig,
     pub mask_channels: Vec<String>,
     /// The previous frame's noise level `n` at inference (a training timestep, 0..999).
@@ -188,8 +188,9 @@ impl B2drConfig {
         let base = ControlNetConfig::from_json(Value::Object(m))
             .map_err(|e| anyhow::anyhow!("{e}").context(format!("{CLASS_NAME} config")))?;
         ensure!(
-            base.enc.in_channels == 8,
-            "{CLASS_NAME} config: key `in_channels` = {} must be 8 ([x_t, noised previous-frame latent])",
+            base.enc.in_channels >= 2 && base.enc.in_channels % 2 == 0,
+            "{CLASS_NAME} config: key `in_channels` = {} must be twice the latent channels ([x_t, noised \
+             previous-frame latent]; 8 for SD1.5's 4-channel VAE)",
             base.enc.in_channels
         );
         ensure!(
@@ -274,10 +275,16 @@ impl B2drConfig {
         }
     }
 
-    /// A B2D-R ControlNet on a UNet's encoder (in_channels 8, 15 mask channels), default B2D-R keys.
+    /// C: the VAE's latent channels (`in_channels` = 2 C: x_t and the previous-frame latent).
+    pub fn latent_channels(&self) -> usize {
+        self.base.enc.in_channels / 2
+    }
+
+    /// A B2D-R ControlNet on a UNet's encoder (in_channels 2 x the UNet's, 15 mask channels), default B2D-R
+    /// keys.
     pub fn from_unet(unet: &UNetConfig, embed: Vec<usize>) -> Self {
         let mut base = ControlNetConfig::from_unet(unet, NUM_MASK_CHANNELS, embed);
-        base.enc.in_channels = 8;
+        base.enc.in_channels = 2 * unet.enc.in_channels;
         let blocks = base.enc.block_out_channels.len();
         Self {
             ref_encoder_channels: base.enc.block_out_channels.clone(),

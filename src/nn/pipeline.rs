@@ -38,7 +38,7 @@ pub struct PipelineShape {
 
 /// What a run returns.
 pub struct SampleOutput {
-    /// The latent after every step, (N, 4, h, w) each.
+    /// The latent after every step, (N, C, h, w) each.
     pub latents: Vec<Vec<f32>>,
     /// The decoded image (N, 3, 8h, 8w), clamp(x / 2 + 0.5, 0, 1); empty without a VAE.
     pub image: Vec<f32>,
@@ -47,7 +47,7 @@ pub struct SampleOutput {
 /// The model half of a sampling loop: records the noise prediction of one batch. Everything it reads beyond
 /// `x` and `t` (context, conditioning, per-frame tensors) is its own, allocated before planning.
 pub trait Denoiser {
-    /// x: (mb, 4, h, w) in the model dtype, t: (mb) f32 -> eps (mb, 4, h, w) in the model dtype.
+    /// x: (mb, C, h, w) in the model dtype, t: (mb) f32 -> eps (mb, C, h, w) in the model dtype.
     fn record(&self, f: &mut Fwd, x: &Tensor, t: &Tensor) -> Result<Tensor>;
 }
 
@@ -57,7 +57,7 @@ pub trait Denoiser {
 pub struct Sampler {
     ctx: Context,
     plan: SamplerPlan,
-    /// Sampler buffers, f32 (N, 4, h, w); EpsUncond/EpsCond/Eps are views (offsets) into `eps32`.
+    /// Sampler buffers, f32 (N, C, h, w); EpsUncond/EpsCond/Eps are views (offsets) into `eps32`.
     bufs: BTreeMap<Buf, Tensor>,
     t: Tensor,
     model: Recording,
@@ -67,7 +67,7 @@ pub struct Sampler {
 }
 
 impl Sampler {
-    /// Plans the loop for `batch` images of latent `(h, w)`; `guidance` doubles the model batch
+    /// Plans the loop for `batch` images of latent `(c, h, w)` (c: the VAE's latent channels, 4 for SD1.5); `guidance` doubles the model batch
     /// ([uncond; cond] halves, combined by the plan). `ws` is the model-dtype workspace the denoiser records in.
     #[allow(clippy::too_many_arguments)]
     pub fn new(
@@ -76,15 +76,15 @@ impl Sampler {
         denoiser: &dyn Denoiser,
         vae: Option<(&VaeDecoder, f64)>,
         batch: usize,
-        latent: (usize, usize),
+        latent: (usize, usize, usize),
         guidance: Option<f64>,
         plan: SamplerPlan,
     ) -> Result<Self> {
-        let (h, w) = latent;
+        let (c, h, w) = latent;
         let n = batch;
         ensure!(
-            n > 0 && h > 0 && w > 0,
-            "sampler: empty shape {n} x {h} x {w}"
+            n > 0 && c > 0 && h > 0 && w > 0,
+            "sampler: empty shape {n} x {c} x {h} x {w}"
         );
         let guided = guidance.is_some();
         let plan = match guidance {
@@ -92,9 +92,9 @@ impl Sampler {
             None => plan,
         };
         let mb = if guided { 2 * n } else { n };
-        let lat = [n, 4, h, w];
-        let per = n * 4 * h * w;
-        let eps32 = Tensor::empty(ctx, &[mb, 4, h, w], DType::F32, "eps32")?;
+        let lat = [n, c, h, w];
+        let per = n * c * h * w;
+        let eps32 = Tensor::empty(ctx, &[mb, c, h, w], DType::F32, "eps32")?;
         let mut bufs = BTreeMap::new();
         for b in plan.buffers() {
             match b {
@@ -113,7 +113,7 @@ impl Sampler {
 
         // The model pass.
         let mut rec = ctx.recorder()?;
-        let x32 = Tensor::empty(ctx, &[mb, 4, h, w], DType::F32, "x32")?;
+        let x32 = Tensor::empty(ctx, &[mb, c, h, w], DType::F32, "x32")?;
         for k in 0..mb / n {
             lincomb(
                 &mut rec,
@@ -127,7 +127,7 @@ impl Sampler {
                 per,
             )?;
         }
-        let x = ws.alloc(&[mb, 4, h, w])?;
+        let x = ws.alloc(&[mb, c, h, w])?;
         cast::cast(&mut rec, &x32, &x)?;
         let eps = denoiser.record(&mut Fwd { rec: &mut rec, ws }, &x, &t)?;
         cast::cast(&mut rec, &eps, &eps32)?;
@@ -226,7 +226,7 @@ impl Sampler {
         v
     }
 
-    /// The current latent (N, 4, h, w), read back.
+    /// The current latent (N, C, h, w), read back.
     pub fn latent(&self) -> Result<Vec<f32>> {
         self.bufs[&Buf::Sample].to_f32(&self.ctx)
     }
@@ -244,7 +244,7 @@ impl Sampler {
         self.decode.as_ref().map(|(_, t)| t)
     }
 
-    /// Runs the planned loop from `x_t` (N, 4, h, w); the denoiser's inputs must be written (and any
+    /// Runs the planned loop from `x_t` (N, C, h, w); the denoiser's inputs must be written (and any
     /// per-run preparation submitted) before. `keep_latents` keeps every step's latent; `decode` runs the VAE
     /// (its output stays on the device, see [`Self::image`]).
     pub fn run(
@@ -401,7 +401,8 @@ impl Pipeline {
             context: &context,
             conditioning_scale: shape.conditioning_scale,
         };
-        let sampler = Sampler::new(ctx, &mut ws, &den, vae, n, (h, w), shape.guidance, plan)?;
+        let c = unet.cfg.enc.in_channels;
+        let sampler = Sampler::new(ctx, &mut ws, &den, vae, n, (c, h, w), shape.guidance, plan)?;
         drop(den);
         let planned_bytes = ctx.allocated_bytes().saturating_sub(before);
         Ok(Self {
@@ -416,7 +417,7 @@ impl Pipeline {
         })
     }
 
-    /// Runs the planned loop from the initial latent `x_t` (N, 4, h, w). `context_uncond`/`context_cond`:
+    /// Runs the planned loop from the initial latent `x_t` (N, C, h, w) (C: the UNet's input channels). `context_uncond`/`context_cond`:
     /// (N, L, D) each (uncond ignored without guidance); `cond_image`: (N, C, 8h, 8w) when a ControlNet is used.
     /// `keep_latents` keeps every step's latent; `progress(done, total)` is called after each step.
     pub fn run(

@@ -81,9 +81,9 @@ pub struct FrameInputs<'a> {
     pub prev: Prev<'a>,
     /// Required iff the shape has references.
     pub refs: Option<RefInputs<'a>>,
-    /// Initial latent (N, 4, h, w).
+    /// Initial latent (N, C, h, w).
     pub x_t: &'a [f32],
-    /// The noise of the previous-frame latent (N, 4, h, w).
+    /// The noise of the previous-frame latent (N, C, h, w).
     pub eps_prev: &'a [f32],
 }
 
@@ -107,12 +107,13 @@ struct B2drDenoiser<'a> {
 impl Denoiser for B2drDenoiser<'_> {
     fn record(&self, f: &mut Fwd, x: &Tensor, t: &Tensor) -> Result<Tensor> {
         let s = x.shape();
-        let x8 = f.ws.alloc(&[s[0], 8, s[2], s[3]])?;
-        ew::concat_channels(f.rec, x, self.zprev, &x8)?;
+        // [x_t, z_prev]: (B, 2C, h, w)
+        let xz = f.ws.alloc(&[s[0], 2 * s[1], s[2], s[3]])?;
+        ew::concat_channels(f.rec, x, self.zprev, &xz)?;
         let res = self
             .control
-            .forward(f, &x8, t, self.context, self.frame, self.rows, 1.0)?;
-        f.ws.release(x8);
+            .forward(f, &xz, t, self.context, self.frame, self.rows, 1.0)?;
+        f.ws.release(xz);
         self.unet.forward(
             f,
             x,
@@ -130,7 +131,8 @@ impl Denoiser for B2drDenoiser<'_> {
 pub struct FrameRenderer {
     ctx: Context,
     shape: FrameShape,
-    latent: (usize, usize),
+    /// (C, h, w): the VAE's latent channels and the latent size.
+    latent: (usize, usize, usize),
     noise_level: usize,
     abar: Vec<f64>,
     // host-written inputs
@@ -141,9 +143,9 @@ pub struct FrameRenderer {
     ref_imgs: Option<Tensor>,
     pe_cur: Vec<Tensor>,
     pe_ref: Vec<Tensor>,
-    /// The repeated, noised previous-frame latent in the model dtype (mb, 4, h, w).
+    /// The repeated, noised previous-frame latent in the model dtype (mb, C, h, w).
     zprev: Tensor,
-    /// The noised latent before the cast (N, 4, h, w) f32 (kept for checks).
+    /// The noised latent before the cast (N, C, h, w) f32 (kept for checks).
     zprev32: Tensor,
     prev_rec: Recording,
     cond_rec: Recording,
@@ -192,10 +194,11 @@ impl FrameRenderer {
         let f32t = |s: &[usize], name: &str| Tensor::zeros(ctx, s, DType::F32, name);
         let masks32 = f32t(&[n, 15, ih, iw], "masks")?;
         let prev_img = f32t(&[n, 3, ih, iw], "prev image")?;
-        let eps_prev = f32t(&[n, 4, h, w], "eps prev")?;
+        let lc = m.vae_decoder.cfg().latent_channels;
+        let eps_prev = f32t(&[n, lc, h, w], "eps prev")?;
         let noise_t = f32t(&[1], "noise level")?;
-        let zprev32 = f32t(&[n, 4, h, w], "z prev")?;
-        let zprev = Tensor::zeros(ctx, &[mb, 4, h, w], dt, "z prev (model dtype)")?;
+        let zprev32 = f32t(&[n, lc, h, w], "z prev")?;
+        let zprev = Tensor::zeros(ctx, &[mb, lc, h, w], dt, "z prev (model dtype)")?;
         let uc = &m.unet.cfg.enc;
         let l = context.len() / (n * uc.cross_attention_dim).max(1);
         ensure!(
@@ -232,7 +235,7 @@ impl FrameRenderer {
             "render: previous-frame blur sigma {blur_sigma} must be a finite number >= 0"
         );
 
-        // VAE encode of images in [0, 1] -> (M, 4, h, w) f32 = posterior mean x scaling.
+        // VAE encode of images in [0, 1] -> (M, C, h, w) f32 = posterior mean x scaling.
         let encode = |rec: &mut crate::vk::Recorder,
                       vws: &mut Workspace,
                       img: &Tensor|
@@ -263,12 +266,13 @@ impl FrameRenderer {
             vws.release(x);
             let ms = mom.shape().to_vec();
             ensure!(
-                ms[1] == 8 && ms[2] == h && ms[3] == w,
-                "render: the VAE encodes {ih}x{iw} to {ms:?}; the model needs (M, 8, {h}, {w}) (a VAE that \
-                 downsamples by 8 with 4 latent channels)"
+                ms[1] == 2 * lc && ms[2] == h && ms[3] == w,
+                "render: the VAE encodes {ih}x{iw} to {ms:?}; the model needs (M, {}, {h}, {w}) (a VAE that \
+                 downsamples by 8 with {lc} latent channels: mean and log-variance)",
+                2 * lc
             );
-            let z = vws.alloc(&[s[0], 4, h, w])?;
-            let plane = 4 * h * w;
+            let z = vws.alloc(&[s[0], lc, h, w])?;
+            let plane = lc * h * w;
             for k in 0..s[0] {
                 lincomb(
                     rec,
@@ -320,7 +324,7 @@ impl FrameRenderer {
                 z.numel(),
             )?;
             vws.release(z);
-            let zc = ws.alloc(&[n, 4, h, w])?;
+            let zc = ws.alloc(&[n, lc, h, w])?;
             cast::cast(&mut rec, &zprev32, &zc)?;
             for k in 0..mb / n {
                 lincomb(
@@ -351,7 +355,7 @@ impl FrameRenderer {
             let lat = if shape.refs {
                 let imgs = f32t(&[2 * n, 3, ih, iw], "reference images")?;
                 let z = encode(&mut rec, &mut vws, &imgs)?;
-                let zc = Tensor::zeros(ctx, &[2 * n, 4, h, w], dt, "reference latents")?;
+                let zc = Tensor::zeros(ctx, &[2 * n, lc, h, w], dt, "reference latents")?;
                 cast::cast(&mut rec, &z, &zc)?;
                 vws.release(z);
                 ref_imgs = Some(imgs);
@@ -405,7 +409,7 @@ impl FrameRenderer {
             &den,
             Some((m.vae_decoder, m.scaling_factor)),
             n,
-            (h, w),
+            (lc, h, w),
             guided.then_some(shape.ref_guidance),
             plan,
         )?;
@@ -444,7 +448,7 @@ impl FrameRenderer {
         Ok(Self {
             ctx: ctx.clone(),
             shape,
-            latent: (h, w),
+            latent: (lc, h, w),
             noise_level,
             abar,
             masks: masks32,
@@ -472,8 +476,8 @@ impl FrameRenderer {
         &self.shape
     }
 
-    /// Latent (h, w).
-    pub fn latent_size(&self) -> (usize, usize) {
+    /// Latent (C, h, w): channels (the VAE's latent channels), height, width.
+    pub fn latent_size(&self) -> (usize, usize, usize) {
         self.latent
     }
 
@@ -504,7 +508,7 @@ impl FrameRenderer {
         self.write(
             &self.eps_prev,
             x.eps_prev,
-            "previous-frame noise (N, 4, h, w)",
+            "previous-frame noise (N, C, h, w)",
         )?;
         let level = match x.prev {
             Prev::None => NO_PREV_NOISE_LEVEL,
@@ -593,12 +597,12 @@ impl FrameRenderer {
         v
     }
 
-    /// The last frame's final latent (N, 4, h, w), read back.
+    /// The last frame's final latent (N, C, h, w), read back.
     pub fn latent(&self) -> Result<Vec<f32>> {
         self.sampler.latent()
     }
 
-    /// The noised previous-frame latent of the last frame (N, 4, h, w), read back (checks).
+    /// The noised previous-frame latent of the last frame (N, C, h, w), read back (checks).
     pub fn prev_latent(&self) -> Result<Vec<f32>> {
         self.zprev32.to_f32(&self.ctx)
     }

@@ -178,17 +178,18 @@ pub fn write_exr(path: &std::path::Path, chw: &[f32], size: (usize, usize)) -> R
         .with_context(|| format!("writing {}", path.display()))
 }
 
-/// The seeded noise of frame `frame` of a run with seed `seed`: x_T and eps_prev, each (N, 4, h, w). Stable
-/// across runs, threads and machines (ChaCha8 seeded from (seed, frame)).
+/// The seeded noise of frame `frame` of a run with seed `seed`: x_T and eps_prev, each (N, C, h, w) for
+/// `latent` = (C, h, w). Stable across runs, threads and machines (ChaCha8 seeded from (seed, frame)); the
+/// draws are one sequence, so a 4-channel model gets the values it always got.
 pub fn frame_noise(
     seed: u64,
     frame: u64,
     n: usize,
-    latent: (usize, usize),
+    latent: (usize, usize, usize),
 ) -> (Vec<f32>, Vec<f32>) {
     let mut r =
         rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ frame.wrapping_mul(0x9E37_79B9_7F4A_7C15));
-    let len = n * 4 * latent.0 * latent.1;
+    let len = n * latent.0 * latent.1 * latent.2;
     let mut draw = || -> Vec<f32> { (0..len).map(|_| StandardNormal.sample(&mut r)).collect() };
     let x_t = draw();
     let eps = draw();

@@ -316,9 +316,20 @@ impl ModelPackage {
             ue.layers_per_block,
             ue.cross_attention_dim
         );
+        // the UNet denoises the VAE's latent; the ControlNet reads [x_t, z_prev]: twice that
+        let lc = self.vae_cfg.latent_channels;
         ensure!(
-            self.vae_cfg.latent_channels == 4 && ue.in_channels == 4,
-            "the VAE must have 4 latent channels and the UNet 4 input channels"
+            lc >= 1 && ue.in_channels == lc && self.unet_cfg.out_channels == lc,
+            "unet/config.json: in_channels {} and out_channels {} must be the VAE's {lc} latent channels",
+            ue.in_channels,
+            self.unet_cfg.out_channels
+        );
+        ensure!(
+            ce.in_channels == 2 * lc,
+            "controlnet/config.json: in_channels {} must be {} (x_t and the previous-frame latent, {lc} channels \
+             each)",
+            ce.in_channels,
+            2 * lc
         );
         ensure!(
             self.vae_cfg.block_out_channels.len() == 4,

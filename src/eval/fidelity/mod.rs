@@ -21,7 +21,7 @@
 pub mod metrics;
 pub mod plot;
 mod report;
-pub use report::{scored_classes, VEHICLE};
+pub use report::{scored_classes, LANE_MARKING, VEHICLE};
 pub mod scene;
 
 use std::collections::BTreeMap;
@@ -141,6 +141,8 @@ pub struct Score {
     pub psnr: Option<f64>,
     pub ssim: f64,
     pub vehicle_iou: Option<f64>,
+    /// IoU of the lane-marking class (None: no marking in the truth nor in the image).
+    pub marking_iou: Option<f64>,
     pub mean_iou: Option<f64>,
     #[serde(skip)]
     iou: IouCounts,
@@ -595,6 +597,7 @@ pub fn eval_render(ctx: &Context, cfg: &EvalConfig, out: &Path) -> Result<Result
                 let mut s = k.score;
                 s.iou.add(&clf.classify(&k.rgb), &truths[k.truth].1);
                 s.vehicle_iou = s.iou.iou(report::VEHICLE);
+                s.marking_iou = s.iou.iou(report::LANE_MARKING);
                 s.mean_iou = s.iou.mean_iou(&classes);
                 s
             })

@@ -14,6 +14,8 @@ use super::{Results, Score};
 use crate::world::palette::SemanticClass;
 
 pub const VEHICLE: u8 = SemanticClass::Vehicle as u8;
+/// Painted lane markings (dividers, edge lines, stop lines and crosswalk stripes of the synthetic world).
+pub const LANE_MARKING: u8 = SemanticClass::LaneMarking as u8;
 
 /// PSNR and SSIM of one image (the layout score is added once the classifier is fitted).
 #[allow(clippy::too_many_arguments)]
@@ -38,6 +40,7 @@ pub fn score(
         psnr: psnr(rgb, truth)?,
         ssim: ssim(rgb, truth, size.0, size.1)?,
         vehicle_iou: None,
+        marking_iou: None,
         mean_iou: None,
         iou: IouCounts::default(),
     })
@@ -74,6 +77,7 @@ struct Agg {
     psnr: Option<f64>,
     ssim: f64,
     vehicle: Option<f64>,
+    marking: Option<f64>,
     miou: Option<f64>,
 }
 
@@ -93,6 +97,7 @@ fn agg<'a>(v: impl Iterator<Item = &'a Score>, classes: &[u8]) -> Option<Agg> {
         psnr: (!finite.is_empty()).then(|| finite.iter().sum::<f64>() / finite.len() as f64),
         ssim: v.iter().map(|s| s.ssim).sum::<f64>() / v.len() as f64,
         vehicle: iou.iou(VEHICLE),
+        marking: iou.iou(LANE_MARKING),
         miou: iou.mean_iou(classes),
     })
 }
@@ -242,7 +247,8 @@ pub fn write(
     writeln!(
         md,
         "## Logged path (ego on the log, logged agents; previous frame = ground truth 0.5 s earlier)\n\n\
-         | setting | images | PSNR dB | SSIM | vehicle IoU | mean IoU |\n|---|---|---|---|---|---|"
+         | setting | images | PSNR dB | SSIM | vehicle IoU | lane-marking IoU | mean IoU |\n\
+         |---|---|---|---|---|---|---|"
     )?;
     for s in &settings {
         if let Some(a) = agg(
@@ -253,11 +259,12 @@ pub fn write(
         ) {
             writeln!(
                 md,
-                "| {s} | {} | {} | {:.4} | {} | {} |",
+                "| {s} | {} | {} | {:.4} | {} | {} | {} |",
                 a.n,
                 psnr_cell(&a),
                 a.ssim,
                 f3(a.vehicle),
+                f3(a.marking),
                 f3(a.miou)
             )?;
         }

@@ -1,0 +1,132 @@
+"""The training fast paths (b2dr_ref.fastpath) give the eager f32 step's loss and gradients on a fixed batch, and
+the prefetching trainer draws and computes exactly what the plain one does (test config, synthetic data)."""
+
+import os
+import shutil
+
+import pytest
+import torch
+
+from b2dr_ref import nano
+from b2dr_ref import train as T
+from b2dr_ref import train_bench as TB
+from b2dr_ref.fastpath import FastPath, Prefetcher
+
+from test_train import COMMON, read_log, vae_run  # noqa: F401  (module fixture)
+
+# relative L2 error of the loss and of all gradients (flattened) against eager f32
+TOL = {
+    "channels_last": (1e-5, 1e-4),        # the same arithmetic in another memory order
+    "compile": (1e-5, 1e-4),              # fused loops: other summation orders, f32
+    "bf16": (3e-2, 1.5e-1),               # 8-bit mantissa in the forward; backward through the casts
+}
+
+
+def step_grads(fast: FastPath, seed: int = 0):
+    torch.manual_seed(0)
+    torch.set_num_threads(1)
+    cfg = nano.get_config("test")
+    unet, controlnet = TB.build(cfg, torch.device("cpu"))
+    b, src, _ = TB.make_batch(cfg, 4, torch.device("cpu"))
+    unet_f, cn_f = fast.prepare(unet, controlnet)
+    ctx = T.make_context(cfg, src.cameras)
+    # the zero-initialised outputs give zero gradients to most of the model: perturb them so every gradient lives
+    with torch.no_grad():
+        g = torch.Generator().manual_seed(1)
+        for p in list(unet.parameters()) + list(controlnet.parameters()):
+            if p.abs().max() == 0:
+                p.copy_(1e-2 * torch.randn(p.shape, generator=g))
+    gen = torch.Generator().manual_seed(seed)
+    abar = T.make_noise_scheduler().alphas_cumprod.to(torch.float32)
+    loss = T.diffusion_loss(unet_f, cn_f, ctx, b, gen, abar, ref_dropout=0.5, prediction="v_prediction",
+                            object_weight=4.0, fast=fast)
+    loss.backward()
+    grads = torch.cat([p.grad.reshape(-1) for p in list(unet.parameters()) + list(controlnet.parameters())
+                       if p.grad is not None])
+    return float(loss.detach()), grads
+
+
+def rel(a, b):
+    return float((a - b).norm() / b.norm())
+
+
+@pytest.fixture(scope="module")
+def reference():
+    return step_grads(FastPath())
+
+
+@pytest.mark.parametrize("name,fast", [
+    ("channels_last", FastPath(channels_last=True)),
+    ("compile", FastPath(compile=True)),
+    ("bf16", FastPath(autocast="bf16")),
+])
+def test_fast_path_step_matches_eager_f32(reference, name, fast):
+    loss0, g0 = reference
+    loss, g = step_grads(fast)
+    assert g.shape == g0.shape and torch.isfinite(g).all()
+    tl, tg = TOL[name]
+    assert abs(loss - loss0) / abs(loss0) < tl, (name, loss, loss0)
+    assert rel(g, g0) < tg, (name, rel(g, g0))
+    if name != "bf16":
+        # and not trivially: the bf16 forward IS measurably different, so the tolerances above can fail
+        assert rel(g, g0) < 1e-2 * TOL["bf16"][1]
+
+
+def test_bf16_is_distinguishable(reference):
+    """The check above can fail: bf16's gradients differ from f32's by far more than the f32 tolerances."""
+    _, g0 = reference
+    _, g = step_grads(FastPath(autocast="bf16"))
+    assert rel(g, g0) > 10 * TOL["compile"][1]
+
+
+def test_prefetch_gives_the_same_run_and_resumes_exactly(vae_run, tmp_path, monkeypatch):
+    vae = os.path.join(vae_run[0], "vae")
+    base = ["--data", "synthetic:12", "--vae", vae, "--steps", "6", "--batch", "2", "--ckpt-every", "2",
+            "--prediction", "v_prediction"] + COMMON
+    plain = str(tmp_path / "plain")
+    T.main(base + ["--out", plain])
+    # keep the step-2 checkpoint of the prefetching run: it was written while step 3's batch was being prepared
+    part = tmp_path / "part"
+    part.mkdir()
+    save = T.save_checkpoint
+
+    def keep(path, state):
+        save(path, state)
+        if path.endswith(T.CKPT) and state.get("step") == 2:
+            shutil.copy(path, part / T.CKPT)
+    monkeypatch.setattr(T, "save_checkpoint", keep)
+    pre = str(tmp_path / "pre")
+    T.main(base + ["--out", pre, "--prefetch"])
+    assert read_log(pre) == read_log(plain)
+    monkeypatch.setattr(T, "save_checkpoint", save)
+    # a run killed after that checkpoint, resumed: the same losses as the uninterrupted plain run
+    shutil.copy(os.path.join(pre, "log.csv"), part / "log.csv")
+    T.main(base + ["--out", str(part), "--prefetch", "--resume"])
+    assert read_log(str(part)) == read_log(plain)
+
+
+def test_prefetcher_reraises_and_refuses_two_jobs():
+    p = Prefetcher(lambda x: 1 / x)
+    p.submit(2)
+    with pytest.raises(RuntimeError):
+        p.submit(3)
+    assert p.take() == 0.5
+    p.submit(0)
+    with pytest.raises(ZeroDivisionError):
+        p.take()
+    with pytest.raises(RuntimeError):
+        p.take()
+
+
+def test_fast_path_rejects_unknown_autocast():
+    with pytest.raises(ValueError):
+        FastPath(autocast="int8")
+
+
+def test_profile_classes():
+    assert TB.classify("aten::mkldnn_convolution") == "convolution"
+    assert TB.classify("aten::native_group_norm_backward") == "group_norm"
+    assert TB.classify("aten::silu_backward") == "silu"
+    assert TB.classify("aten::_foreach_mul_") == "optimizer"
+    assert TB.classify("aten::bmm") == "attention"
+    assert TB.classify("aten::copy_") == "copies"
