@@ -80,9 +80,14 @@ def with_latent_channels(cfg: Dict[str, Any], c: int, name: str) -> Dict[str, An
 NANO_Z8 = with_latent_channels(NANO, 8, "b2dr-nano-z8")
 NANO_Z16 = with_latent_channels(NANO, 16, "b2dr-nano-z16")
 TEST_Z8 = with_latent_channels(TEST, 8, "b2dr-test-z8")
+# ... and a VAE four times as wide at full resolution (64 channels instead of 16): the committed VAE's own
+# reconstructions lose lane markings and vehicles whatever its latent width (docs/training.md "Designs")
+NANO_Z16_WVAE = copy.deepcopy(NANO_Z16)
+NANO_Z16_WVAE["name"] = "b2dr-nano-z16-wvae"
+NANO_Z16_WVAE["vae"]["block_out_channels"] = [64, 128, 128, 128]
 
 CONFIGS = {"nano": NANO, "b2dr-nano": NANO, "test": TEST, "b2dr-test": TEST, "nano-z8": NANO_Z8,
-           "nano-z16": NANO_Z16, "test-z8": TEST_Z8}
+           "nano-z16": NANO_Z16, "test-z8": TEST_Z8, "nano-z16-wvae": NANO_Z16_WVAE}
 
 
 def get_config(name: str) -> Dict[str, Any]:

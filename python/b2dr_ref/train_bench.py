@@ -12,10 +12,7 @@ per-sample preparation (VAE encodes + PE) with and without the latents cache. Th
 from __future__ import annotations
 
 import json
-import os
 import re
-import subprocess
-import sys
 import time
 from collections import defaultdict
 from dataclasses import dataclass
@@ -70,18 +67,20 @@ def classify(name: str) -> str:
     return "other"
 
 
-def onednn_isa() -> str:
-    """The ISA oneDNN dispatches to on this CPU (from ONEDNN_VERBOSE in a child process), e.g. 'Intel AVX2' or
-    'Intel AVX-512 with AVX512BW, AVX512VL, AVX512DQ and Intel AMX'."""
-    code = ("import torch; c = torch.nn.Conv2d(16, 16, 3).to(memory_format=torch.channels_last); "
-            "c(torch.randn(1, 16, 16, 16).to(memory_format=torch.channels_last))")
-    env = dict(os.environ, ONEDNN_VERBOSE="1", DNNL_VERBOSE="1")
-    try:
-        out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120).stdout
-    except (OSError, subprocess.TimeoutExpired) as e:
-        return f"unknown ({e})"
-    m = re.search(r"isa:([^\n]*)", out)
-    return m.group(1).strip() if m else "unknown (no oneDNN verbose output)"
+def conv_backend() -> str:
+    """Which ATen kernel runs the step's convolutions on this CPU (from the profiler's op names): oneDNN
+    (``aten::mkldnn_convolution``, its AVX2 / AVX-512 / AMX path chosen by the CPU) or a fallback."""
+    from torch.profiler import ProfilerActivity, profile
+
+    c = torch.nn.Conv2d(32, 32, 3, padding=1)
+    x = torch.randn(2, 32, 14, 25, requires_grad=True)
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        c(x).sum().backward()
+    names = [e.key for e in prof.key_averages()]
+    for k in ("aten::mkldnn_convolution", "aten::_slow_conv2d_forward", "aten::thnn_conv2d"):
+        if k in names:
+            return k
+    return "unknown"
 
 
 def cpu_flags() -> Dict[str, bool]:
@@ -203,7 +202,7 @@ def bench(args) -> Dict:
                 cpu_capability=torch.backends.cpu.get_cpu_capability(), cpu_flags=cpu_flags(),
                 ref_dropout=args.ref_dropout)
     if device.type == "cpu":
-        info["onednn_isa"] = onednn_isa()
+        info["conv_kernel"] = conv_backend()
     print(json.dumps(info), flush=True)
     if args.sweep:
         settings = sweep_settings(args.batch, threads)
@@ -240,7 +239,7 @@ def bench(args) -> Dict:
 
 def print_table(res: Dict):
     print(f"\n{res['config']} {res['render_size'][0]}x{res['render_size'][1]}, {res['device']}, torch {res['torch']}, "
-          f"oneDNN ISA: {res.get('onednn_isa', '-')}")
+          f"CPU capability {res['cpu_capability']}, convolutions: {res.get('conv_kernel', '-')}")
     print("| setting | batch | threads | s / step | samples / s | first steps (s) |")
     print("|---|---|---|---|---|---|")
     for r in res["rows"]:

@@ -12,7 +12,7 @@ from b2dr_ref import train as T
 from b2dr_ref import train_bench as TB
 from b2dr_ref.fastpath import FastPath, Prefetcher
 
-from test_train import COMMON, read_log, vae_run  # noqa: F401  (module fixture)
+from test_train import COMMON, read_log, vae_run  # noqa: F401,F811  (module fixture)
 
 # relative L2 error of the loss and of all gradients (flattened) against eager f32
 TOL = {
@@ -55,9 +55,16 @@ def reference():
     return step_grads(FastPath())
 
 
+# torch.compile's first step compiles C++ kernels for the forward and the backward: 10 minutes on the 2-core CI
+# machine (measured 2026-12-03, 608 s, machine shared), so it runs only when asked for
+SLOW = os.environ.get("B2DR_SLOW_TESTS") == "1"
+COMPILE = pytest.param("compile", FastPath(compile=True), marks=pytest.mark.skipif(
+    not SLOW, reason="torch.compile takes ~10 min to compile on 2 cores: B2DR_SLOW_TESTS=1 runs it"))
+
+
 @pytest.mark.parametrize("name,fast", [
     ("channels_last", FastPath(channels_last=True)),
-    ("compile", FastPath(compile=True)),
+    COMPILE,
     ("bf16", FastPath(autocast="bf16")),
 ])
 def test_fast_path_step_matches_eager_f32(reference, name, fast):
