@@ -66,6 +66,8 @@ pub struct SimArgs {
 fn run_one(src: &Source, args: &SimArgs, cfg: &SimConfig, dir: &Path) -> Result<Value> {
     let t0 = Instant::now();
     let sc = b2dr::world::load(src)?;
+    sc.map
+        .require_lanes("b2dr sim (IDM agents, the route and the closed-loop score)")?;
     let mut planner = args
         .planner
         .build(Duration::from_secs_f64(args.planner_timeout))?;

@@ -177,6 +177,16 @@ fn run_one(
 ) -> Result<Value> {
     let t0 = Instant::now();
     let sc = crate::world::load(src)?;
+    // Without lanes (a nuScenes scene without its map expansion) the loop runs with replayed or no agents and
+    // a planner that needs no map; the score then says why it is missing (`metrics_error`).
+    if cfg.agents == AgentMode::Idm {
+        sc.map.require_lanes(
+            "--agents idm (IDM agents drive along lanes; --agents replay or none do not)",
+        )?;
+    }
+    if matches!(cfg.planner, PlannerSpec::Idm) {
+        sc.map.require_lanes("--planner idm")?;
+    }
     let base = src.image_dir();
     let store = ImageStore::new(&sc, base);
     let sim_cfg = SimConfig {
