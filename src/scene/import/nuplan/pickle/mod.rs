@@ -10,8 +10,10 @@
 //!   Size, Bbox): `cls` + `NEWOBJ` + `APPENDS` (protocol 2+, what `pickle.dumps(Translation([...]))` writes), or
 //!   `copyreg._reconstructor(cls, list, [...])` / `cls([...])` by `REDUCE`, each optionally followed by
 //!   `APPEND(S)` / `SETITEM(S)` and a `BUILD` of the instance dict (ignored: `list()` does not read it).
+//!
 //! Protocols 0-5 (protocol 0's text opcodes for numbers, strings and the memo; protocols 0-2's bytes as
-//! `_codecs.encode(str, "latin1")`); only the opcodes those objects need. Anything else is an error naming the opcode and its offset, or the object found.
+//! `_codecs.encode(str, "latin1")`); only the opcodes those objects need. Anything else is an error naming the
+//! opcode and its offset, or the object found.
 use anyhow::{anyhow, bail, Result};
 
 /// A decoded pickle object (only what lists and numpy arrays are made of).
