@@ -141,19 +141,11 @@ fn frame_views(
     let mut views = Vec::new();
     for (cam, img) in &frame.cameras {
         let img_path = frame.image_path(img);
-        let photo = image::open(&img_path)
-            .with_context(|| format!("reading {}", img_path.display()))?
-            .to_rgb8();
-        if photo.dimensions() != (cam.width, cam.height) {
-            bail!(
-                "{}: image is {:?} but cameras.{}.width/height say {}x{}",
-                img_path.display(),
-                photo.dimensions(),
-                cam.name,
-                cam.width,
-                cam.height
-            );
-        }
+        let photo = b2dr::world::images::read_recorded_image(
+            &img_path,
+            (cam.width, cam.height),
+            &format!("cameras.{}", cam.name),
+        )?;
         views.push(View {
             cam: cam.clone(),
             img: img.clone(),

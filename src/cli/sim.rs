@@ -112,7 +112,7 @@ pub fn run(args: SimArgs) -> Result<()> {
     // Build the planner once before doing any work (an external command line that cannot start fails here).
     args.planner
         .build(Duration::from_secs_f64(args.planner_timeout))?;
-    let sources = batch::select(resolve(&args.scenario)?, args.shard)?;
+    let (sources, list) = batch::select_listed(resolve(&args.scenario)?, args.shard)?;
     let cfg = SimConfig {
         agents,
         controller: args.controller,
@@ -127,8 +127,8 @@ pub fn run(args: SimArgs) -> Result<()> {
         o.insert("shard".into(), serde_json::to_value(s)?);
     }
     batch::check_out_outside_scenarios(&args.out, &sources)?;
-    let config = batch::with_inputs(config, &sources, &args.planner.to_string(), &[])?;
-    batch::prepare_out(&args.out, &config, args.resume)?;
+    let config = batch::with_inputs(config, &sources, &list, &args.planner.to_string(), &[])?;
+    let out = batch::prepare_out(&args.out, &config, args.resume)?;
     let bar = (sources.len() > 1).then(|| {
         let b = indicatif::ProgressBar::new(sources.len() as u64);
         b.set_style(
@@ -140,9 +140,8 @@ pub fn run(args: SimArgs) -> Result<()> {
         b
     });
     let results = batch::for_each_scenario(
-        &args.out,
+        &out,
         &sources,
-        args.resume,
         |_, src, dir| {
             if let Some(b) = &bar {
                 b.set_message(src.name());

@@ -309,7 +309,7 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
         "--size {h}x{w}: each side in 8..=4096"
     );
     planner(cfg, out)?;
-    let sources = batch::select(resolve(&cfg.scenario)?, cfg.shard)?;
+    let (sources, list) = batch::select_listed(resolve(&cfg.scenario)?, cfg.shard)?;
     batch::check_out_outside_scenarios(out, &sources)?;
     let model_files = if cfg.renderer.uses_model() {
         crate::render::package::package_files(cfg.model.as_deref())?
@@ -319,10 +319,11 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
     let config = batch::with_inputs(
         serde_json::to_value(cfg)?,
         &sources,
+        &list,
         &cfg.planner.to_string(),
         &model_files,
     )?;
-    batch::prepare_out(out, &config, resume)?;
+    let batch_out = batch::prepare_out(out, &config, resume)?;
     let mut engine = if cfg.renderer.uses_model() {
         let ctx = ctx.context("the b2dr renderer needs a Vulkan device")?;
         let pkg = crate::render::package::resolve_model(cfg.model.as_deref())?;
@@ -354,9 +355,8 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
     );
     let n = sources.len();
     let results = batch::for_each_scenario(
-        out,
+        &batch_out,
         &sources,
-        resume,
         |i, src, dir| {
             bar.set_prefix(format!("scenario {}/{n}", i + 1));
             run_one(src, cfg, engine.as_mut(), dir, &bar)

@@ -329,6 +329,16 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
         .iter()
         .map(|r| r.timestamp("timestamp"))
         .collect::<Result<_>>()?;
+    // Time order (issue #36): sorted by the query, so only duplicates can remain; two sweeps at one instant
+    // would make a zero time step (as the nuScenes importer, increasing strictly).
+    if let Some(w) = ts.windows(2).position(|w| w[1] <= w[0]) {
+        bail!(
+            "{}: column `timestamp`: {} us, the same instant as {}: lidar_pc timestamps must increase strictly",
+            pcs[w + 1].at(),
+            ts[w + 1],
+            pcs[w].at()
+        );
+    }
     let (a, b) = match &spec.token {
         None => (0, pcs.len()),
         Some(t) => {
@@ -376,15 +386,43 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
         .collect();
 
     // Ego.
-    let ego_cols = ["token", "x", "y", "qw", "qx", "qy", "qz", "vx", "vy"];
+    let ego_cols = [
+        "token",
+        "x",
+        "y",
+        "qw",
+        "qx",
+        "qy",
+        "qz",
+        "vx",
+        "vy",
+        "timestamp",
+    ];
     let ep_tokens: Vec<String> = sel
         .iter()
         .map(|r| r.token("ego_pose_token"))
         .collect::<Result<_>>()?;
     let eps = by_token(&db, "ego_pose", &ego_cols, &ep_tokens)?;
     let mut ego = Vec::with_capacity(n);
+    let mut prev_pose: Option<(&Rec, i64)> = None;
     for r in &sel {
         let e = follow(r, "ego_pose_token", "ego_pose", &eps)?;
+        // the steps' ego poses in the steps' order: strictly increasing time too (a reversed or shared pose
+        // would make the ego jump back or stand still for a step)
+        let te = e.timestamp("timestamp")?;
+        if let Some((p, tp)) = prev_pose {
+            if te <= tp {
+                bail!(
+                    "{}: column `timestamp`: {te} us is {} {tp} us of {}, the previous step's ego pose \
+                     (the ego pose of {}): ego pose timestamps must increase strictly with the lidar_pc's",
+                    e.at(),
+                    if te == tp { "the same instant as" } else { "before" },
+                    p.at(),
+                    r.at()
+                );
+            }
+        }
+        prev_pose = Some((e, te));
         let yaw = yaw_of(quat(e)?);
         let v_local = DVec2::new(e.speed("vx")?, e.speed("vy")?);
         let (s, c) = yaw.sin_cos();
