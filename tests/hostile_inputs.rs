@@ -1008,12 +1008,11 @@ fn nuplan_timestamps_must_increase_strictly() {
         m.contains("table `lidar_pc`") && m.contains("increase strictly") && m.contains("same instant"),
         "{m}"
     );
-    // the first and second steps' ego poses (sweeps 0 and 2) swap their timestamps
+    // the first step's ego pose moved after the second's (sweeps 0 and 2, 100 ms apart)
     let m = format!(
         "{:#}",
         load(
-            "UPDATE ego_pose SET timestamp = CASE rowid WHEN 1 THEN (SELECT timestamp FROM ego_pose WHERE rowid = 3) \
-             ELSE (SELECT timestamp FROM ego_pose WHERE rowid = 1) END WHERE rowid IN (1, 3)"
+            "UPDATE ego_pose SET timestamp = timestamp + 150000 WHERE rowid = 1"
         )
         .unwrap_err()
     );
@@ -1177,7 +1176,7 @@ fn guidance_and_offsets_are_bounded_on_every_command() {
             "--ref-guidance",
         ),
         (
-            vec!["render", "--frame", "nowhere.json", "--ref-guidance", "-2", "--out", out],
+            vec!["render", "--frame", "nowhere.json", "--ref-guidance=-2", "--out", out],
             "--ref-guidance",
         ),
         // a model that does not exist: without the bound the command fails on it, not on the flag

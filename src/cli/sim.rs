@@ -4,7 +4,8 @@
 //! Layout of `--out`:
 //!   <out>/<scenario>/trace.jsonl    one line per step (ego state, command, plan, objects)
 //!   <out>/<scenario>/metrics.json   the scenario's score, every metric, the failure reason (written last:
-//!                                   its presence marks the scenario done for --resume)
+//!                                   its presence marks the scenario done for --resume, which re-checks it
+//!                                   against the configuration: `config_fingerprint`)
 //!   <out>/<scenario>/bev_<step>.png frames every --bev-every steps
 //!   <out>/config.json               the flags that decide the results (not --bev-every); a `--resume`
 //!                                   with others is refused
@@ -14,7 +15,7 @@
 //! Scenarios run in folder-name order; `--shard K/N` runs every N-th of them, and `b2dr merge` combines shard
 //! folders (`b2dr::eval::batch`, shared with `b2dr run`).
 use anyhow::{bail, Context, Result};
-use b2dr::eval::batch::{self, write_atomic, Shard};
+use b2dr::eval::batch::{self, Shard};
 use b2dr::metrics::ScoreParams;
 use b2dr::scene::import::{resolve, Source};
 use b2dr::sim::{self, AgentMode, Controller, PlannerSpec, SimConfig};
@@ -94,10 +95,7 @@ fn run_one(src: &Source, args: &SimArgs, cfg: &SimConfig, dir: &Path) -> Result<
         "metrics_error": metrics_error,
         "wall_ms": sim_ms,
     });
-    write_atomic(
-        &dir.join("metrics.json"),
-        serde_json::to_string_pretty(&v)?.as_bytes(),
-    )?;
+    // metrics.json is written by the batch loop, with the configuration's fingerprint, last
     Ok(v)
 }
 

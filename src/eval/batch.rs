@@ -693,7 +693,7 @@ pub fn for_each_scenario(
                 let mut v = run_one(i, src, &dir).unwrap_or_else(|e| {
                     json!({ "scenario": name, "failure": format!("{e:#}"), "score": 0.0 })
                 });
-                // the record is finished only once it carries its configuration's fingerprint
+                // written here, once, last: a record carries its configuration's fingerprint
                 if let Some(o) = v.as_object_mut() {
                     o.insert(FINGERPRINT_KEY.into(), json!(batch.fingerprint));
                 }

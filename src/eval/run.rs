@@ -20,7 +20,7 @@ use anyhow::{bail, ensure, Context as _, Result};
 use serde_json::{json, Value};
 
 pub use super::batch::folder_name;
-use super::batch::{self, write_atomic, Shard};
+use super::batch::{self, Shard};
 use super::sensors::{B2dr, B2drEngine, GroundTruth, LogReplay};
 use crate::metrics::ScoreParams;
 use crate::scene::import::{resolve, Source};
@@ -289,10 +289,7 @@ fn run_one(
         "metrics": metrics, "metrics_error": metrics_error, "wall_ms": wall_ms,
         "timing_ms": totals.json(), "timing_per_frame": per_frame,
     });
-    write_atomic(
-        &dir.join("metrics.json"),
-        serde_json::to_string_pretty(&v)?.as_bytes(),
-    )?;
+    // metrics.json is written by the batch loop, with the configuration's fingerprint, last
     Ok(v)
 }
 
