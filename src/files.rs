@@ -41,8 +41,8 @@ fn not_regular(meta: &std::fs::Metadata) -> Option<&'static str> {
 /// Checks that `path` names a regular file (symbolic links followed); returns its size in bytes. `what` says
 /// what the file is for, in errors.
 pub fn regular_file(path: &Path, what: &str) -> Result<u64> {
-    let meta =
-        std::fs::metadata(path).with_context(|| format!("{what} {}: cannot stat", path.display()))?;
+    let meta = std::fs::metadata(path)
+        .with_context(|| format!("{what} {}: cannot stat", path.display()))?;
     if let Some(kind) = not_regular(&meta) {
         bail!(
             "{what} {} is {kind}, not a regular file: refused (b2dr reads only regular files)",

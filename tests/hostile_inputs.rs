@@ -955,7 +955,10 @@ fn safetensors_ranges_must_tile_the_data_section() {
     assert!(e([8, 16], [0, 8], 16).is_ok());
     // overlap: both tensors read bytes 4..8
     let m = format!("{:#}", e([0, 8], [4, 12], 12).unwrap_err());
-    assert!(m.contains("overlaps") && m.contains("`a`") && m.contains("`b`"), "{m}");
+    assert!(
+        m.contains("overlaps") && m.contains("`a`") && m.contains("`b`"),
+        "{m}"
+    );
     // two tensors on the same bytes
     let m = format!("{:#}", e([0, 8], [0, 8], 8).unwrap_err());
     assert!(m.contains("overlaps"), "{m}");
@@ -978,7 +981,10 @@ fn safetensors_ranges_must_tile_the_data_section() {
     let spec = [("a".to_string(), vec![2usize])];
     assert!(Weights::load(&d.join("ok.safetensors"), &spec).is_ok());
     std::fs::write(d.join("tail.safetensors"), safetensors(&h, &[0u8; 4096])).unwrap();
-    let m = format!("{:#}", Weights::load(&d.join("tail.safetensors"), &spec).unwrap_err());
+    let m = format!(
+        "{:#}",
+        Weights::load(&d.join("tail.safetensors"), &spec).unwrap_err()
+    );
     assert!(m.contains("8..4096"), "{m}");
 }
 
@@ -1005,16 +1011,15 @@ fn nuplan_timestamps_must_increase_strictly() {
         load("UPDATE lidar_pc SET timestamp = timestamp - 50000 WHERE rowid = 5").unwrap_err()
     );
     assert!(
-        m.contains("table `lidar_pc`") && m.contains("increase strictly") && m.contains("same instant"),
+        m.contains("table `lidar_pc`")
+            && m.contains("increase strictly")
+            && m.contains("same instant"),
         "{m}"
     );
     // the first step's ego pose moved after the second's (sweeps 0 and 2, 100 ms apart)
     let m = format!(
         "{:#}",
-        load(
-            "UPDATE ego_pose SET timestamp = timestamp + 150000 WHERE rowid = 1"
-        )
-        .unwrap_err()
+        load("UPDATE ego_pose SET timestamp = timestamp + 150000 WHERE rowid = 1").unwrap_err()
     );
     assert!(
         m.contains("table `ego_pose`") && m.contains("increase strictly") && m.contains("before"),
@@ -1073,9 +1078,7 @@ fn special_files_are_refused_at_once() {
     let q = p.clone();
     check(
         "scenario",
-        within_bound("scenario", move || {
-            scenarionet::load_file(&q).map(|_| ())
-        }),
+        within_bound("scenario", move || scenarionet::load_file(&q).map(|_| ())),
         &p,
     );
     let p = fifo("frame.json").unwrap();
@@ -1132,12 +1135,23 @@ fn recorded_images_must_have_their_tables_size() {
     image::RgbImage::new(1, 1)
         .write_to(&mut std::io::Cursor::new(&mut one), image::ImageFormat::Png)
         .unwrap();
-    let p1 = if path(1).is_file() { path(1) } else { PathBuf::from(&imgs[1].path) };
+    let p1 = if path(1).is_file() {
+        path(1)
+    } else {
+        PathBuf::from(&imgs[1].path)
+    };
     std::fs::write(&p1, &one).unwrap();
     let m = format!("{:#}", store.image(&imgs[1], 64, 36).unwrap_err());
-    assert!(m.contains("1x1") && m.contains(&*p1.to_string_lossy()), "{m}");
+    assert!(
+        m.contains("1x1") && m.contains(&*p1.to_string_lossy()),
+        "{m}"
+    );
     // a FIFO in place of the third
-    let p2 = if path(2).is_file() { path(2) } else { PathBuf::from(&imgs[2].path) };
+    let p2 = if path(2).is_file() {
+        path(2)
+    } else {
+        PathBuf::from(&imgs[2].path)
+    };
     std::fs::remove_file(&p2).unwrap();
     if !mkfifo(&p2) {
         return;
@@ -1146,7 +1160,10 @@ fn recorded_images_must_have_their_tables_size() {
     let img = imgs[2].clone();
     let m = within_bound("image FIFO", move || {
         let store = b2dr::world::images::ImageStore::new(&sc2, None);
-        store.image(&img, 64, 36).map(|_| ()).map_err(|e| format!("{e:#}"))
+        store
+            .image(&img, 64, 36)
+            .map(|_| ())
+            .map_err(|e| format!("{e:#}"))
     })
     .unwrap_err();
     assert!(m.contains("FIFO"), "{m}");
@@ -1172,24 +1189,62 @@ fn guidance_and_offsets_are_bounded_on_every_command() {
     let out = out.to_str().unwrap();
     for (args, flag) in [
         (
-            vec!["render", "--frame", "nowhere.json", "--ref-guidance", "1e9", "--out", out],
+            vec![
+                "render",
+                "--frame",
+                "nowhere.json",
+                "--ref-guidance",
+                "1e9",
+                "--out",
+                out,
+            ],
             "--ref-guidance",
         ),
         (
-            vec!["render", "--frame", "nowhere.json", "--ref-guidance=-2", "--out", out],
+            vec![
+                "render",
+                "--frame",
+                "nowhere.json",
+                "--ref-guidance=-2",
+                "--out",
+                out,
+            ],
             "--ref-guidance",
         ),
         // a model that does not exist: without the bound the command fails on it, not on the flag
         (
-            vec!["sample", "--model", "/nonexistent", "--guidance", "1e300", "--out", out],
+            vec![
+                "sample",
+                "--model",
+                "/nonexistent",
+                "--guidance",
+                "1e300",
+                "--out",
+                out,
+            ],
             "--guidance",
         ),
         (
-            vec!["sample", "--model", "/nonexistent", "--conditioning-scale", "1e30", "--out", out],
+            vec![
+                "sample",
+                "--model",
+                "/nonexistent",
+                "--conditioning-scale",
+                "1e30",
+                "--out",
+                out,
+            ],
             "--conditioning-scale",
         ),
         (
-            vec!["bench", "frame", "--model", "/nonexistent", "--ref-guidance", "0"],
+            vec![
+                "bench",
+                "frame",
+                "--model",
+                "/nonexistent",
+                "--ref-guidance",
+                "0",
+            ],
             "--ref-guidance",
         ),
     ] {
@@ -1266,5 +1321,8 @@ fn bev_of_a_million_vertex_polygon_is_fast() {
             wrong += 1;
         }
     }
-    assert!(checked > 100_000 && wrong == 0, "{wrong} of {checked} pixels wrong");
+    assert!(
+        checked > 100_000 && wrong == 0,
+        "{wrong} of {checked} pixels wrong"
+    );
 }

@@ -586,7 +586,10 @@ fn one_writer_per_out_folder_and_stale_locks_are_taken_over() {
     );
     let o = ok(sim_at(&d, "builtin:straight:1", "expert").output().unwrap());
     let e = String::from_utf8_lossy(&o.stderr);
-    assert!(e.contains("stale lock") && e.contains(&format!("pid {holder}")), "{e}");
+    assert!(
+        e.contains("stale lock") && e.contains(&format!("pid {holder}")),
+        "{e}"
+    );
     // a run that ends releases the lock: the next one finds nothing stale
     let o = ok(sim_at(&d, "builtin:straight:1", "expert").output().unwrap());
     assert!(!String::from_utf8_lossy(&o.stderr).contains("stale"));
@@ -624,7 +627,10 @@ fn resume_reruns_records_of_other_configurations() {
     std::fs::write(&p, v.to_string()).unwrap();
     let o = ok(sim_at(&d, sc, "expert").arg("--resume").output().unwrap());
     let e = String::from_utf8_lossy(&o.stderr);
-    assert!(e.contains("another configuration") && e.contains("`score`"), "{e}");
+    assert!(
+        e.contains("another configuration") && e.contains("`score`"),
+        "{e}"
+    );
     assert_same_results(
         &read(&good.join("metrics.json")),
         &read(&d.join("metrics.json")),

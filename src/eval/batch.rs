@@ -494,7 +494,10 @@ pub fn config_fingerprint(config: &Value) -> String {
             inputs.retain(|_, v| v["role"] != "scenario");
         }
     }
-    format!("{:032x}", xxhash_rust::xxh3::xxh3_128(c.to_string().as_bytes()))
+    format!(
+        "{:032x}",
+        xxhash_rust::xxh3::xxh3_128(c.to_string().as_bytes())
+    )
 }
 
 /// Checks one scenario record (a scenario's `metrics.json`, an entry of a summary's `scenarios`) before it is
@@ -574,7 +577,10 @@ fn check_totals(summary: &Value) -> std::result::Result<(), String> {
     if !finite(&summary["cls"]) {
         return Err(format!("`cls` is {}", summary["cls"]));
     }
-    for (group, obj) in [("metric_means", &summary["metric_means"]), ("timing_ms", &summary["timing_ms"])] {
+    for (group, obj) in [
+        ("metric_means", &summary["metric_means"]),
+        ("timing_ms", &summary["timing_ms"]),
+    ] {
         for (k, x) in obj.as_object().into_iter().flatten() {
             if !finite(x) {
                 return Err(format!("`{group}.{k}` is {x}"));
@@ -690,9 +696,9 @@ pub fn for_each_scenario(
         let v = match reuse {
             Some(v) => v,
             None => {
-                let mut v = run_one(i, src, &dir).unwrap_or_else(|e| {
-                    json!({ "scenario": name, "failure": format!("{e:#}"), "score": 0.0 })
-                });
+                let mut v = run_one(i, src, &dir).unwrap_or_else(
+                    |e| json!({ "scenario": name, "failure": format!("{e:#}"), "score": 0.0 }),
+                );
                 // written here, once, last: a record carries its configuration's fingerprint
                 if let Some(o) = v.as_object_mut() {
                     o.insert(FINGERPRINT_KEY.into(), json!(batch.fingerprint));
@@ -949,7 +955,9 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Value> {
     header.insert("merged_from".into(), Value::Array(shards));
     let summary = summarize(header, results);
     check_totals(&summary).map_err(|why| {
-        anyhow::anyhow!("merge: the merged summary's {why}: not a number b2dr writes; nothing was written")
+        anyhow::anyhow!(
+            "merge: the merged summary's {why}: not a number b2dr writes; nothing was written"
+        )
     })?;
     let (_, mut cfg) = first.context("merge: no shard")?;
     if let Some(o) = cfg.as_object_mut() {
@@ -982,11 +990,8 @@ fn check_shard(d: &Path, cfg: &Value, shard: Shard, summary: &Value, sc: &[Value
              must hold cannot be checked; rerun the shard"
         ),
     };
-    let want: std::collections::BTreeSet<String> = shard
-        .deal(list)
-        .iter()
-        .map(|n| folder_name(n))
-        .collect();
+    let want: std::collections::BTreeSet<String> =
+        shard.deal(list).iter().map(|n| folder_name(n)).collect();
     let fp = config_fingerprint(cfg);
     let mut got = std::collections::BTreeSet::new();
     for v in sc {

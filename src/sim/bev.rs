@@ -140,7 +140,10 @@ pub fn render_step(
             xs.sort_unstable_by(f64::total_cmp);
             // inside between the 1st and 2nd crossing, the 3rd and 4th, ... (even-odd), boundary included
             for pair in xs.chunks_exact(2) {
-                let (a, b) = (cv.to_px(DVec2::new(pair[0], 0.0)).x, cv.to_px(DVec2::new(pair[1], 0.0)).x);
+                let (a, b) = (
+                    cv.to_px(DVec2::new(pair[0], 0.0)).x,
+                    cv.to_px(DVec2::new(pair[1], 0.0)).x,
+                );
                 let x0 = (a - 0.5).ceil().max(0.0);
                 let x1 = (b - 0.5).floor().min(view.size as f64 - 1.0);
                 let mut x = x0;

@@ -146,8 +146,7 @@ fn light_of(s: &str) -> TrafficLightStatus {
 
 /// Loads one ScenarioNet JSON file.
 pub fn load_file(path: &Path) -> Result<Scenario> {
-    let text =
-        crate::files::read_regular_string(path, "scenario file", crate::files::JSON_LIMIT)?;
+    let text = crate::files::read_regular_string(path, "scenario file", crate::files::JSON_LIMIT)?;
     let v: Value = serde_json::from_str(&text)
         .with_context(|| format!("{}: not valid JSON", path.display()))?;
     let maps_dir = path
