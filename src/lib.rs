@@ -44,6 +44,7 @@
 //! typed [`vk::VkError`] (out of memory, device lost, other); `build.rs` checks kernels (naga validation)
 //! and parameter layouts at build time; tests run with the Khronos validation layer and fail on any error.
 pub mod eval;
+pub mod files;
 pub mod kernels;
 pub mod metrics;
 pub mod nn;

@@ -936,3 +936,393 @@ fn far_roads_build_a_bounded_world() {
         );
     }
 }
+
+// ------------------------------------------------------------------------------------------ issue #36: trust
+
+/// safetensors byte ranges must tile the data section (issue #36, item 4): overlaps, gaps and trailing bytes are
+/// errors naming the tensors, not silently shared or ignored bytes.
+#[test]
+fn safetensors_ranges_must_tile_the_data_section() {
+    let e = |a: [u64; 2], b: [u64; 2], data: usize| {
+        let h = json!({
+            "a": {"dtype": "F32", "shape": [(a[1] - a[0]) / 4], "data_offsets": a},
+            "b": {"dtype": "F32", "shape": [(b[1] - b[0]) / 4], "data_offsets": b},
+        });
+        Weights::from_bytes_unchecked(&safetensors(&h, &vec![0u8; data]), "t.safetensors")
+    };
+    // tiled: fine, in either order of the header
+    assert!(e([0, 8], [8, 16], 16).is_ok());
+    assert!(e([8, 16], [0, 8], 16).is_ok());
+    // overlap: both tensors read bytes 4..8
+    let m = format!("{:#}", e([0, 8], [4, 12], 12).unwrap_err());
+    assert!(
+        m.contains("overlaps") && m.contains("`a`") && m.contains("`b`"),
+        "{m}"
+    );
+    // two tensors on the same bytes
+    let m = format!("{:#}", e([0, 8], [0, 8], 8).unwrap_err());
+    assert!(m.contains("overlaps"), "{m}");
+    // gap: bytes 8..12 belong to no tensor
+    let m = format!("{:#}", e([0, 8], [12, 20], 20).unwrap_err());
+    assert!(m.contains("8..12") && m.contains("no tensor"), "{m}");
+    // a gap at the start
+    let m = format!("{:#}", e([4, 12], [12, 20], 20).unwrap_err());
+    assert!(m.contains("0..4"), "{m}");
+    // trailing bytes after the last tensor
+    let m = format!("{:#}", e([0, 8], [8, 16], 24).unwrap_err());
+    assert!(m.contains("16..24"), "{m}");
+    // past the end: truncated
+    let m = format!("{:#}", e([0, 8], [8, 16], 12).unwrap_err());
+    assert!(m.contains("truncated"), "{m}");
+    // the file reader: the same rules, and the data is read only when the sizes agree
+    let d = tmp("tiling");
+    let h = json!({"a": {"dtype": "F32", "shape": [2], "data_offsets": [0, 8]}});
+    std::fs::write(d.join("ok.safetensors"), safetensors(&h, &[0u8; 8])).unwrap();
+    let spec = [("a".to_string(), vec![2usize])];
+    assert!(Weights::load(&d.join("ok.safetensors"), &spec).is_ok());
+    std::fs::write(d.join("tail.safetensors"), safetensors(&h, &[0u8; 4096])).unwrap();
+    let m = format!(
+        "{:#}",
+        Weights::load(&d.join("tail.safetensors"), &spec).unwrap_err()
+    );
+    assert!(m.contains("8..4096"), "{m}");
+}
+
+/// nuPlan time order (issue #36, item 6): two lidar_pc sweeps at one instant, or ego poses whose timestamps go
+/// back while the sweeps go forward, are errors naming the rows (as nuScenes samples must increase strictly).
+#[test]
+fn nuplan_timestamps_must_increase_strictly() {
+    let Some(fx) = nuplan_fixture::write_fixture(&tmp("nuplan_time"), &["--seconds", "4"]) else {
+        return;
+    };
+    let pristine = std::fs::read(&fx.db).unwrap();
+    let load = |sql: &str| {
+        std::fs::write(&fx.db, &pristine).unwrap();
+        rusqlite::Connection::open(&fx.db)
+            .unwrap()
+            .execute_batch(sql)
+            .unwrap();
+        b2dr::scene::import::nuplan::load(&fx.spec(None)).map(|_| ())
+    };
+    load("").unwrap();
+    // the fifth sweep at the fourth's instant (rows are written 50 ms apart in time order)
+    let m = format!(
+        "{:#}",
+        load("UPDATE lidar_pc SET timestamp = timestamp - 50000 WHERE rowid = 5").unwrap_err()
+    );
+    assert!(
+        m.contains("table `lidar_pc`")
+            && m.contains("increase strictly")
+            && m.contains("same instant"),
+        "{m}"
+    );
+    // the first step's ego pose moved after the second's (sweeps 0 and 2, 100 ms apart)
+    let m = format!(
+        "{:#}",
+        load("UPDATE ego_pose SET timestamp = timestamp + 150000 WHERE rowid = 1").unwrap_err()
+    );
+    assert!(
+        m.contains("table `ego_pose`") && m.contains("increase strictly") && m.contains("before"),
+        "{m}"
+    );
+}
+
+/// Runs `f` on another thread; panics naming `what` when it has not returned within [`BOUND`] (a read of a FIFO
+/// blocks until a writer comes, forever here).
+fn within_bound<T: Send + 'static>(what: &str, f: impl FnOnce() -> T + Send + 'static) -> T {
+    let (tx, rx) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let _ = tx.send(f());
+    });
+    rx.recv_timeout(BOUND)
+        .unwrap_or_else(|_| panic!("{what}: no answer within {BOUND:?} (blocked on a FIFO?)"))
+}
+
+/// A FIFO at `path` (no writer ever opens it); false (skipping) where mkfifo is missing.
+fn mkfifo(path: &Path) -> bool {
+    let _ = std::fs::remove_file(path);
+    std::process::Command::new("mkfifo")
+        .arg(path)
+        .status()
+        .is_ok_and(|s| s.success())
+}
+
+/// Files that must be regular files (issue #36, item 3): a FIFO given as a model weight file, a scenario file,
+/// a keyframe file, a `--map` GeoJSON, a nuPlan log DB or a recorded image is refused at once, naming the
+/// path and what it is, instead of blocking forever on the read.
+#[test]
+fn special_files_are_refused_at_once() {
+    let d = tmp("fifo");
+    let fifo = |name: &str| {
+        let p = d.join(name);
+        mkfifo(&p).then_some(p)
+    };
+    let check = |what: &str, r: anyhow::Result<()>, path: &Path| {
+        let m = format!("{:#}", r.expect_err(what));
+        assert!(
+            m.contains("FIFO") && m.contains(&*path.to_string_lossy()),
+            "{what}: {m}"
+        );
+    };
+    let Some(p) = fifo("w.safetensors") else {
+        eprintln!("skipping: no mkfifo");
+        return;
+    };
+    let q = p.clone();
+    check(
+        "weights",
+        within_bound("weights", move || Weights::load(&q, &[]).map(|_| ())),
+        &p,
+    );
+    let p = fifo("s.json").unwrap();
+    let q = p.clone();
+    check(
+        "scenario",
+        within_bound("scenario", move || scenarionet::load_file(&q).map(|_| ())),
+        &p,
+    );
+    let p = fifo("frame.json").unwrap();
+    let q = p.clone();
+    check(
+        "keyframe",
+        within_bound("keyframe", move || KeyFrame::load(&q).map(|_| ())),
+        &p,
+    );
+    let p = fifo("map.geojson").unwrap();
+    let q = p.clone();
+    check(
+        "map",
+        within_bound("map", move || {
+            drivable_area_from_geojson(&q, 0.0).map(|_| ())
+        }),
+        &p,
+    );
+    let p = fifo("log.db").unwrap();
+    let q = p.clone();
+    check(
+        "nuPlan DB",
+        within_bound("nuPlan DB", move || {
+            let spec = b2dr::scene::import::nuplan::NuplanSpec {
+                db: q,
+                token: None,
+                maps_root: None,
+                map_version: "x".into(),
+                sensor_root: None,
+            };
+            b2dr::scene::import::nuplan::load(&spec).map(|_| ())
+        }),
+        &p,
+    );
+}
+
+/// Recorded images checked against their table (issue #36, items 3 and 5): an image file of another size than
+/// its camera's calibration (a 1x1 PNG where the table says the fixture's size), or a FIFO in its place, is an
+/// error naming the file in the image store that log replay, retrieval and export read through, not a resized
+/// blur.
+#[test]
+fn recorded_images_must_have_their_tables_size() {
+    let Some(fx) = nuplan_fixture::write_fixture(&tmp("nuplan_images"), &["--seconds", "2"]) else {
+        return;
+    };
+    let sc = b2dr::scene::import::nuplan::load(&fx.spec(None)).unwrap();
+    let imgs = &sc.rig.frames[0].images;
+    let path = |i: usize| fx.sensor_root.join(&imgs[i].path);
+    let store = b2dr::world::images::ImageStore::new(&sc, None);
+    // pristine: fine
+    store.image(&imgs[0], 64, 36).unwrap();
+    // a 1x1 PNG in place of the second image
+    let mut one = Vec::new();
+    image::RgbImage::new(1, 1)
+        .write_to(&mut std::io::Cursor::new(&mut one), image::ImageFormat::Png)
+        .unwrap();
+    let p1 = if path(1).is_file() {
+        path(1)
+    } else {
+        PathBuf::from(&imgs[1].path)
+    };
+    std::fs::write(&p1, &one).unwrap();
+    let m = format!("{:#}", store.image(&imgs[1], 64, 36).unwrap_err());
+    assert!(
+        m.contains("1x1") && m.contains(&*p1.to_string_lossy()),
+        "{m}"
+    );
+    // a FIFO in place of the third
+    let p2 = if path(2).is_file() {
+        path(2)
+    } else {
+        PathBuf::from(&imgs[2].path)
+    };
+    std::fs::remove_file(&p2).unwrap();
+    if !mkfifo(&p2) {
+        return;
+    }
+    let sc2 = sc.clone();
+    let img = imgs[2].clone();
+    let m = within_bound("image FIFO", move || {
+        let store = b2dr::world::images::ImageStore::new(&sc2, None);
+        store
+            .image(&img, 64, 36)
+            .map(|_| ())
+            .map_err(|e| format!("{e:#}"))
+    })
+    .unwrap_err();
+    assert!(m.contains("FIFO"), "{m}");
+}
+
+/// Bounds where the same value is bounded elsewhere (issue #36, item 7): guidance and conditioning scales of
+/// `render`, `sample` and `bench frame` as `b2dr.json`'s `ref_guidance` (0, 100]; export-planner's offsets as
+/// `world --offset` (|lateral| <= 100 m, |yaw| <= 180 degrees). Refused before any device or work, naming the
+/// flag.
+#[test]
+fn guidance_and_offsets_are_bounded_on_every_command() {
+    let d = tmp("bounds");
+    let b2dr = |args: &[&str]| {
+        let o = std::process::Command::new(env!("CARGO_BIN_EXE_b2dr"))
+            .args(args)
+            .env("B2DR_VALIDATION", "0")
+            .output()
+            .unwrap();
+        assert!(!o.status.success(), "{args:?} succeeded");
+        String::from_utf8_lossy(&o.stderr).to_string()
+    };
+    let out = d.join("o");
+    let out = out.to_str().unwrap();
+    for (args, flag) in [
+        (
+            vec![
+                "render",
+                "--frame",
+                "nowhere.json",
+                "--ref-guidance",
+                "1e9",
+                "--out",
+                out,
+            ],
+            "--ref-guidance",
+        ),
+        (
+            vec![
+                "render",
+                "--frame",
+                "nowhere.json",
+                "--ref-guidance=-2",
+                "--out",
+                out,
+            ],
+            "--ref-guidance",
+        ),
+        // a model that does not exist: without the bound the command fails on it, not on the flag
+        (
+            vec![
+                "sample",
+                "--model",
+                "/nonexistent",
+                "--guidance",
+                "1e300",
+                "--out",
+                out,
+            ],
+            "--guidance",
+        ),
+        (
+            vec![
+                "sample",
+                "--model",
+                "/nonexistent",
+                "--conditioning-scale",
+                "1e30",
+                "--out",
+                out,
+            ],
+            "--conditioning-scale",
+        ),
+        (
+            vec![
+                "bench",
+                "frame",
+                "--model",
+                "/nonexistent",
+                "--ref-guidance",
+                "0",
+            ],
+            "--ref-guidance",
+        ),
+    ] {
+        let e = b2dr(&args);
+        assert!(
+            e.contains(flag) && (e.contains("(0, 100]") || e.contains("[0, 100]")),
+            "{args:?}: {e}"
+        );
+    }
+    for off in [(500.0, 0.0), (0.0, 7.0), (f64::NAN, 0.0)] {
+        let e = b2dr::eval::planner_data::export(&b2dr::eval::planner_data::PlannerDataOptions {
+            scenarios: vec!["builtin:straight:3".into()],
+            out: d.join("planner"),
+            size: (16, 16),
+            cameras: vec![],
+            offsets: vec![(0.0, 0.0), off],
+            every: 50,
+            progress: false,
+        })
+        .expect_err("an offset beyond the bounds");
+        assert!(format!("{e:#}").contains("--offsets"), "{off:?}: {e:#}");
+    }
+}
+
+/// Work in proportion to what a frame shows (issue #36, item 8): the bird's-eye view of a scenario whose
+/// drivable area is one polygon of 10^6 vertices (a 30 m disc round the ego) is drawn in well under a second
+/// (it took about a minute: a point test per pixel over the tens of thousands of edges near each row), and
+/// the disc is where it should be.
+#[test]
+fn bev_of_a_million_vertex_polygon_is_fast() {
+    let mut sc = b2dr::world::load_all("builtin:straight:1:0")
+        .unwrap()
+        .remove(0);
+    let cfg = b2dr::sim::SimConfig {
+        agents: b2dr::sim::AgentMode::None,
+        steps: 1,
+        ..Default::default()
+    };
+    let run = b2dr::sim::run(&sc, &mut b2dr::sim::ExpertPlanner, &cfg);
+    let step = &run.steps[0];
+    let c = step.ego_center.pos();
+    let n = 1_000_000;
+    let disc: Vec<glam::DVec2> = (0..n)
+        .map(|i| {
+            let a = i as f64 / n as f64 * std::f64::consts::TAU;
+            c + 30.0 * glam::DVec2::new(a.cos(), a.sin())
+        })
+        .collect();
+    sc.map.drivable = b2dr::scene::index::PolygonSet::new(vec![disc]);
+    sc.map.crosswalks.clear();
+    let view = b2dr::sim::bev::BevView::default();
+    let t0 = Instant::now();
+    let img = b2dr::sim::bev::render_step(&sc, step, None, &view);
+    let took = t0.elapsed();
+    assert!(took < Duration::from_secs(2), "bev took {took:?}");
+    // pixels left as background or drivable agree with the disc away from its rim
+    let h = view.size as f64 / 2.0;
+    let (mut checked, mut wrong) = (0, 0);
+    for (x, y, p) in img.enumerate_pixels() {
+        let is_drivable = p.0 == [62, 62, 66];
+        if !(is_drivable || p.0 == [25, 25, 28]) {
+            continue;
+        }
+        let w = glam::DVec2::new(
+            c.x + (x as f64 + 0.5 - h) * view.metres_per_px,
+            c.y - (y as f64 + 0.5 - h) * view.metres_per_px,
+        );
+        let r = (w - c).length();
+        if (r - 30.0).abs() < 0.3 {
+            continue;
+        }
+        checked += 1;
+        if is_drivable != (r < 30.0) {
+            wrong += 1;
+        }
+    }
+    assert!(
+        checked > 100_000 && wrong == 0,
+        "{wrong} of {checked} pixels wrong"
+    );
+}

@@ -227,10 +227,14 @@ fn sim_shards_merge_to_the_single_run_and_a_killed_shard_resumes() {
     let e = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && e.contains("unfinished"), "{e}");
     let first_bytes = std::fs::read(&first_done).unwrap();
-    ok(sim_cmd(&d1, Some("1/3"), "expert")
+    let killed = !d1.join("metrics.json").is_file() && !second_done.is_file();
+    let o = ok(sim_cmd(&d1, Some("1/3"), "expert")
         .arg("--resume")
         .output()
         .unwrap());
+    // the killed run's lock was released by the system and is reported as stale (issue #36)
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(!killed || e.contains("stale lock"), "{e}");
     // the finished scenario was not rerun (same bytes, wall time included)
     assert_eq!(std::fs::read(&first_done).unwrap(), first_bytes);
     ok(merge_cli(&with_killed, &root.join("merged-killed")));
@@ -293,7 +297,8 @@ fn merge_refuses_other_configurations_and_incomplete_shard_sets() {
     c["shard"]["index"] = 1.into();
     std::fs::write(fake1.join("config.json"), c.to_string()).unwrap();
     std::fs::copy(a0.join("metrics.json"), fake1.join("metrics.json")).unwrap();
-    expect_err(&[&a0, &fake1], &["cross-0", "more than one shard"]);
+    // (refused as foreign to shard 1 before it could count twice: issue #36)
+    expect_err(&[&a0, &fake1], &["cross-0", "foreign"]);
     ok(merge_cli(&[a1.clone(), a0.clone()], &root.join("m")));
     expect_err(&[&a0, &a1, &a0], &["twice"]);
     // --out must be a new folder, not a shard
@@ -540,4 +545,168 @@ fn info_shows_uuids_and_follows_the_scheduler() {
         )
         .output()
         .unwrap());
+}
+
+// ---------------------------------------------------------------------------------- issue #36: trust nothing
+
+fn sim_at(out: &Path, scenarios: &str, planner: &str) -> Command {
+    let mut c = b2dr();
+    c.args(["sim", "--scenario", scenarios, "--planner", planner])
+        .args(["--steps", "10", "--bev-every", "0", "--out"])
+        .arg(out);
+    c
+}
+
+/// One writer per output folder (issue #36, item 1): a second `sim` on a folder a live run holds is refused,
+/// naming the holder's pid; after that run is killed, the next run reports the stale lock and goes on.
+#[test]
+fn one_writer_per_out_folder_and_stale_locks_are_taken_over() {
+    let root = tmp("lock");
+    let d = root.join("out");
+    // a planner that never answers holds the folder for a minute
+    let mut first = sim_at(&d, "builtin:straight:1", "cmd:sleep 60")
+        .args(["--planner-timeout", "60"])
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while !d.join("config.json").is_file() && Instant::now() < deadline {
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let o = sim_at(&d, "builtin:straight:1", "expert").output().unwrap();
+    let e = String::from_utf8_lossy(&o.stderr).to_string();
+    let holder = first.id();
+    first.kill().ok();
+    first.wait().unwrap();
+    assert!(
+        !o.status.success()
+            && e.contains("in use by another b2dr run")
+            && e.contains(&format!("pid {holder}")),
+        "{e}"
+    );
+    let o = ok(sim_at(&d, "builtin:straight:1", "expert").output().unwrap());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        e.contains("stale lock") && e.contains(&format!("pid {holder}")),
+        "{e}"
+    );
+    // a run that ends releases the lock: the next one finds nothing stale
+    let o = ok(sim_at(&d, "builtin:straight:1", "expert").output().unwrap());
+    assert!(!String::from_utf8_lossy(&o.stderr).contains("stale"));
+    std::fs::remove_dir_all(&root).ok();
+}
+
+/// `--resume` re-checks each finished record against the folder's configuration (issue #36, item 1): a record
+/// of another planner copied in, or one with a score out of [0, 1], is rerun (and named), so the resumed
+/// summary equals a clean run's.
+#[test]
+fn resume_reruns_records_of_other_configurations() {
+    let root = tmp("recheck");
+    let sc = "builtin:town:0,builtin:cross:0";
+    let good = root.join("good");
+    ok(sim_at(&good, sc, "expert").output().unwrap());
+    let cv = root.join("cv");
+    ok(sim_at(&cv, sc, "cv").output().unwrap());
+    let names: Vec<String> = std::fs::read_dir(&good)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| e.path().join("metrics.json").is_file())
+        .map(|e| e.file_name().to_string_lossy().to_string())
+        .collect();
+    assert_eq!(names.len(), 2, "{names:?}");
+    let d = root.join("tampered");
+    ok(sim_at(&d, sc, "expert").output().unwrap());
+    std::fs::copy(
+        cv.join(&names[0]).join("metrics.json"),
+        d.join(&names[0]).join("metrics.json"),
+    )
+    .unwrap();
+    let p = d.join(&names[1]).join("metrics.json");
+    let mut v = read(&p);
+    v["score"] = 7.0.into();
+    std::fs::write(&p, v.to_string()).unwrap();
+    let o = ok(sim_at(&d, sc, "expert").arg("--resume").output().unwrap());
+    let e = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        e.contains("another configuration") && e.contains("`score`"),
+        "{e}"
+    );
+    assert_same_results(
+        &read(&good.join("metrics.json")),
+        &read(&d.join("metrics.json")),
+    );
+    std::fs::remove_dir_all(&root).ok();
+}
+
+/// `merge` verifies what it merges (issue #36, item 2): a score or metric outside [0, 1] or missing, a record of
+/// another configuration, a dropped or foreign scenario, a shard summary that is not its records', totals that
+/// overflow: each refused naming the shard, the scenario and the field; nothing is written.
+#[test]
+fn merge_verifies_scores_scenario_sets_and_totals() {
+    let root = tmp("verify");
+    let sc = "builtin:town:0,builtin:cross:0,builtin:straight:1,builtin:curve:0";
+    let shard = |name: &str, k: usize, planner: &str| {
+        let d = root.join(name);
+        ok(sim_at(&d, sc, planner)
+            .args(["--shard", &format!("{k}/2")])
+            .output()
+            .unwrap());
+        d
+    };
+    let a0 = shard("a0", 0, "expert");
+    let a1 = shard("a1", 1, "expert");
+    let cv1 = shard("cv1", 1, "cv");
+    ok(merge_cli(&[a0.clone(), a1.clone()], &root.join("m")));
+    // a copy of a1 whose summary is edited by `edit`
+    let n = std::cell::Cell::new(0);
+    let tampered = |edit: &dyn Fn(&mut Value)| {
+        n.set(n.get() + 1);
+        let t = root.join(format!("t{}", n.get()));
+        std::fs::create_dir_all(&t).unwrap();
+        std::fs::copy(a1.join("config.json"), t.join("config.json")).unwrap();
+        let mut v = read(&a1.join("metrics.json"));
+        edit(&mut v);
+        std::fs::write(t.join("metrics.json"), v.to_string()).unwrap();
+        t
+    };
+    let refused = |t: &PathBuf, words: &[&str]| {
+        let out = root.join("m-bad");
+        let o = merge_cli(&[a0.clone(), t.clone()], &out);
+        let e = String::from_utf8_lossy(&o.stderr);
+        assert!(!o.status.success(), "merge with {t:?} succeeded");
+        for w in words {
+            assert!(e.contains(w), "expected {w:?} in: {e}");
+        }
+        assert!(!out.join("metrics.json").exists());
+    };
+    let first = |v: &Value| v["scenarios"][0]["scenario"].as_str().unwrap().to_string();
+    let s0 = first(&read(&a1.join("metrics.json")));
+    let t = tampered(&|v| v["scenarios"][0]["score"] = 1.5.into());
+    refused(&t, &[&t.display().to_string(), &s0, "`score`"]);
+    let t = tampered(&|v| v["scenarios"][0]["score"] = Value::Null);
+    refused(&t, &[&s0, "`score`"]);
+    let t = tampered(&|v| v["scenarios"][0]["metrics"]["ego_is_comfortable"] = (-0.1).into());
+    refused(&t, &[&s0, "metrics.ego_is_comfortable"]);
+    let cv_rec = read(&cv1.join("metrics.json"))["scenarios"][0].clone();
+    let t = tampered(&|v| v["scenarios"][0] = cv_rec.clone());
+    refused(&t, &[&s0, "another configuration"]);
+    let t = tampered(&|v| {
+        v["scenarios"].as_array_mut().unwrap().remove(0);
+    });
+    refused(&t, &[&s0, "dropped"]);
+    let t = tampered(&|v| {
+        let mut x = v["scenarios"][0].clone();
+        x["scenario"] = "elsewhere-9".into();
+        v["scenarios"].as_array_mut().unwrap().push(x);
+    });
+    refused(&t, &["elsewhere-9", "foreign"]);
+    let t = tampered(&|v| v["cls"] = 0.123.into());
+    refused(&t, &["`cls`"]);
+    let t = tampered(&|v| {
+        for s in v["scenarios"].as_array_mut().unwrap() {
+            s["wall_ms"] = 1.5e308.into();
+        }
+    });
+    refused(&t, &["timing_ms.wall"]);
+    std::fs::remove_dir_all(&root).ok();
 }

@@ -65,6 +65,7 @@ fn spec(db: &Path, token: Option<&str>) -> NuplanSpec {
         db: db.to_path_buf(),
         token: token.map(str::to_string),
         maps_root: None,
+        map_version: nuplan::maps_db::DEFAULT_MAP_VERSION.to_string(),
         sensor_root: None,
     }
 }
@@ -458,11 +459,13 @@ fn edited<T>(
     let _ = std::fs::remove_dir_all(&dst);
     let map_rel = format!(
         "maps/{}/{}/map.gpkg",
-        ex["location"].as_str().unwrap(),
+        ex["map_name"].as_str().unwrap(),
         ex["map_version"].as_str().unwrap()
     );
+    let manifest_rel = format!("maps/{}.json", ex["maps_manifest"].as_str().unwrap());
     std::fs::create_dir_all(dst.join(&map_rel).parent().unwrap()).unwrap();
     std::fs::copy(root.join(&map_rel), dst.join(&map_rel)).unwrap();
+    std::fs::copy(root.join(&manifest_rel), dst.join(&manifest_rel)).unwrap();
     let db = dst.join("log.db");
     std::fs::copy(db_path(root), &db).unwrap();
     {
@@ -657,7 +660,15 @@ fn malformed_inputs_give_clear_errors() {
         "{:#}",
         nuplan::load(&spec(&dir.join("log.db"), None)).unwrap_err()
     );
-    check(&e, &["no maps folder", "NUPLAN_MAPS_ROOT"]);
+    check(
+        &e,
+        &[
+            "table `log` row token ",
+            "column `map_version`",
+            "maps manifest nuplan-maps-v1.0.json",
+            "NUPLAN_MAPS_ROOT",
+        ],
+    );
     let e = format!(
         "{:#}",
         nuplan::load(&spec(&dir.join("missing.db"), None)).unwrap_err()
@@ -756,9 +767,13 @@ fn hostile_values_are_refused() {
             &["table `lidar_pc` row token ", "column `timestamp`"],
         ),
         (
-            "UPDATE log SET location = '../../etc'",
+            "UPDATE log SET map_version = '../../etc'",
             "",
-            &["table `log` row token ", "column `location`", "plain name"],
+            &[
+                "table `log` row token ",
+                "column `map_version`",
+                "plain name",
+            ],
         ),
         (
             "UPDATE camera SET width = 1000000 WHERE channel = 'CAM_R1'",

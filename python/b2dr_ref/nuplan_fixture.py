@@ -1,10 +1,27 @@
 """A small nuPlan log (SQLite DB), map (GeoPackage) and sensor_blobs folder written from a known, hand-made scenario
-(docs/nuplan.md, "Test fixture"). No nuPlan file can be downloaded here, so tests build one at test time:
+(docs/nuplan.md, "Test fixture"). No nuPlan file can be downloaded here, so tests build one at test time, laid out
+and pickled the way motional/nuplan-devkit lays out and writes the real dataset:
 
     OUT/nuplan-v1.1/splits/mini/<LOG>.db                 the log (tables of motional/nuplan-devkit docs/nuplan_schema.md)
     OUT/nuplan-v1.1/sensor_blobs/<LOG>/CAM_*/<tok>.jpg   camera images (small JPEGs; PNGs with --png)
-    OUT/maps/<LOCATION>/<MAP_VERSION>/map.gpkg           the map (GeoPackage: GPKG header + WKB geometry blobs)
+    OUT/maps/nuplan-maps-v1.0.json                       the maps manifest: {map name: {"version": ...}}
+    OUT/maps/<MAP_NAME>/<MAP_VERSION>/map.gpkg           the map (GeoPackage: GPKG header + WKB geometry blobs)
     OUT/expected.json                                    the known scenario at 10 Hz (for the round-trip test)
+
+Layouts and classes of the devkit:
+- maps as its GPKGMapsDB (nuplan/database/maps_db/gpkg_mapsdb.py) reads them: the manifest `<map_version>.json`
+  at the maps root (default NUPLAN_MAP_VERSION `nuplan-maps-v1.0`) gives each map name its version, and the
+  GeoPackage is `<map name>/<version>/map.gpkg`; the log's `map_version` column is the map name
+  (`us-nv-las-vegas-strip`) and its `location` a city (`las_vegas`) that names no folder;
+- calibration (`--calibration devkit`, the default) as its ORM writes it: `camera.translation`, `rotation`,
+  `intrinsic` and `lidar.translation`, `rotation` are SqlTranslation / SqlRotation / SqlCameraIntrinsic columns,
+  whose `process_bind_param` is `pickle.dumps(value)` (nuplan/database/common/sql_types.py `SimplePickleType`);
+  the values are the devkit's own `Translation`, `Rotation`, `CameraIntrinsic` (list subclasses of
+  nuplan.database.common.data_types, vendored unmodified with their licence in
+  python/tests/fixtures/nuplan_devkit); `camera.distortion` is a plain `PickleType` column (a list pickled with
+  the highest protocol). `--calibration lists` pickles plain lists, `--calibration numpy` numpy arrays (forms
+  other writers of the format produce; every form must import). `--pickle-protocol P` pickles the devkit
+  classes with protocol P instead of Python's default.
 
 The known scenario (`--seconds`, default 20 s, at 20 Hz in the DB):
 - a straight road along +x in UTM zone 11N (origin X0, Y0): lane group 1 (lanes 11 at y = 0 and 12 at y = 3.5,
@@ -20,11 +37,10 @@ The known scenario (`--seconds`, default 20 s, at 20 Hz in the DB):
   `roadblock_ids`: "1 2 3" and "3 7" (7: a roadblock beyond the fixture's map, as a route may run past the loaded
   region), `goal_ego_pose_token` = the ego pose of each scene's last lidar_pc; scenario_tag rows at t = 2 s and
   t = 4 s;
-- 8 cameras (CAM_F0 ... CAM_L2) with pickled calibration: translation and rotation as pickled lists, intrinsic and
-  distortion as pickled numpy arrays (both forms occur in logs), 64 x 36 px; images at 10 Hz each.
+- 8 cameras (CAM_F0 ... CAM_L2) with pickled calibration (above), 64 x 36 px; images at 10 Hz each.
 
 Tokens are 8-byte BLOBs (`--hex-tokens` is not offered: the devkit stores bytes). Standard library + numpy.
-`python3 -m b2dr_ref.nuplan_fixture --out DIR [--seconds S] [--png]`.
+`python3 -m b2dr_ref.nuplan_fixture --out DIR [--seconds S] [--png] [--calibration devkit|lists|numpy]`.
 """
 import argparse
 import io
@@ -33,6 +49,7 @@ import math
 import pickle
 import sqlite3
 import struct
+import sys
 import zlib
 from pathlib import Path
 
@@ -40,8 +57,14 @@ import numpy as np
 
 X0, Y0 = 664_400.0, 3_996_800.0
 LOG = "2021.07.16.20.45.29_veh-35_01095_01486"
-LOCATION = "us-nv-las-vegas-strip"
-MAP_VERSION = "9.15.1915"
+LOCATION = "las_vegas"  # log.location: a city, names no folder
+MAP_NAME = "us-nv-las-vegas-strip"  # log.map_version: the map's name (its folder under the maps root)
+MAP_VERSION = "9.15.1915"  # the manifest's version of MAP_NAME (the folder below it)
+MAPS_MANIFEST = "nuplan-maps-v1.0"  # the devkit's default NUPLAN_MAP_VERSION: OUT/maps/<MAPS_MANIFEST>.json
+# The other maps of the nuPlan maps download, listed in the manifest (their files are not written).
+OTHER_MAPS = {"sg-one-north": "9.17.1964", "us-ma-boston": "9.12.1817", "us-pa-pittsburgh-hazelwood": "9.17.1937"}
+CALIBRATIONS = ("devkit", "lists", "numpy")
+DEVKIT_VENDOR = Path(__file__).resolve().parents[1] / "tests" / "fixtures" / "nuplan_devkit"
 T0_US = 1_626_469_529_050_000
 EPSG = 32611
 CAMERAS = ["CAM_F0", "CAM_R0", "CAM_R1", "CAM_R2", "CAM_B0", "CAM_L0", "CAM_L1", "CAM_L2"]
@@ -90,6 +113,50 @@ _counter = [0]
 def token() -> bytes:
     _counter[0] += 1
     return struct.pack(">Q", 0x5A00_0000_0000_0000 + _counter[0] * 0x9E37)
+
+
+def devkit_data_types():
+    """nuplan.database.common.data_types of the devkit (vendored unmodified): pickles of its classes name that
+    module, exactly as the devkit's own writes do."""
+    if str(DEVKIT_VENDOR) not in sys.path:
+        sys.path.insert(0, str(DEVKIT_VENDOR))
+    from nuplan.database.common import data_types
+    return data_types
+
+
+def calibration_blobs(calibration, translation, rotation, intrinsic=None, distortion=None, protocol=None):
+    """The pickled calibration columns of one camera (or the lidar: no intrinsic / distortion).
+    devkit: SimplePickleType.process_bind_param = pickle.dumps(value) of the devkit's classes; distortion is a
+    PickleType column (SQLAlchemy's default protocol: pickle.HIGHEST_PROTOCOL) holding a list."""
+    if calibration == "devkit":
+        dt = devkit_data_types()
+        values = [dt.Translation(translation), dt.Rotation(rotation)]
+        if intrinsic is not None:
+            values.append(dt.CameraIntrinsic([list(r) for r in intrinsic]))
+        out = [pickle.dumps(v) if protocol is None else pickle.dumps(v, protocol=protocol) for v in values]
+        if distortion is not None:
+            out.append(pickle.dumps(list(distortion), protocol=pickle.HIGHEST_PROTOCOL))
+        return out
+    if calibration == "lists":
+        values = [list(translation), list(rotation)]
+        if intrinsic is not None:
+            values += [[list(r) for r in intrinsic], list(distortion)]
+        return [pickle.dumps(v) for v in values]
+    if calibration == "numpy":
+        values = [np.array(translation), np.array(rotation)]
+        if intrinsic is not None:
+            values += [np.array(intrinsic), np.array(distortion)]
+        return [pickle.dumps(v) for v in values]
+    raise ValueError(f"calibration {calibration!r}: expected one of {CALIBRATIONS}")
+
+
+def write_manifest(maps_root: Path):
+    """OUT/maps/<MAPS_MANIFEST>.json: what GPKGMapsDB reads (`metadata[map]["version"]`; "layers" holds the raster
+    layers' metadata, none here)."""
+    maps = {MAP_NAME: {"version": MAP_VERSION, "layers": {}}}
+    maps.update({m: {"version": v, "layers": {}} for m, v in OTHER_MAPS.items()})
+    maps_root.mkdir(parents=True, exist_ok=True)
+    (maps_root / f"{MAPS_MANIFEST}.json").write_text(json.dumps(maps, indent=2, sort_keys=True))
 
 
 def quat_z(yaw):
@@ -337,24 +404,27 @@ def write_map(path: Path, lonlat: bool = False):
 
 
 # ---------------------------------------------------------------- the log
-def write_fixture(out: Path, seconds: float = 20.0, png: bool = False, lonlat: bool = False) -> dict:
+def write_fixture(out: Path, seconds: float = 20.0, png: bool = False, lonlat: bool = False,
+                  calibration: str = "devkit", protocol=None) -> dict:
     _counter[0] = 0
     out = Path(out)
     db_path = out / "nuplan-v1.1" / "splits" / "mini" / f"{LOG}.db"
     db_path.parent.mkdir(parents=True, exist_ok=True)
     if db_path.exists():
         db_path.unlink()
-    write_map(out / "maps" / LOCATION / MAP_VERSION / "map.gpkg", lonlat)
+    map_path = out / "maps" / MAP_NAME / MAP_VERSION / "map.gpkg"
+    write_map(map_path, lonlat)
+    write_manifest(out / "maps")
     blobs = out / "nuplan-v1.1" / "sensor_blobs"
     db = sqlite3.connect(db_path)
     db.executescript(SCHEMA)
     log_tok = token()
     db.execute("INSERT INTO log VALUES (?,?,?,?,?,?,?)",
-               (log_tok, "veh-35", "2021-07-16", T0_US, LOG, LOCATION, MAP_VERSION))
+               (log_tok, "veh-35", "2021-07-16", T0_US, LOG, LOCATION, MAP_NAME))
     lidar_tok = token()
-    db.execute("INSERT INTO lidar VALUES (?,?,?,?,?,?)", (lidar_tok, log_tok, "MergedPointCloud", "merged",
-                                                          pickle.dumps([1.5, 0.0, 1.8]),
-                                                          pickle.dumps([1.0, 0.0, 0.0, 0.0])))
+    db.execute("INSERT INTO lidar VALUES (?,?,?,?,?,?)",
+               (lidar_tok, log_tok, "MergedPointCloud", "merged",
+                *calibration_blobs(calibration, [1.5, 0.0, 1.8], [1.0, 0.0, 0.0, 0.0], protocol=protocol)))
     cat_tok = {}
     for name in CATEGORIES:
         cat_tok[name] = token()
@@ -372,8 +442,8 @@ def write_fixture(out: Path, seconds: float = 20.0, png: bool = False, lonlat: b
         dist = np.array([-0.35, 0.15, 0.0001, -0.0002, -0.03])
         tok = token()
         db.execute("INSERT INTO camera VALUES (?,?,?,?,?,?,?,?,?,?)",
-                   (tok, log_tok, ch, "fixture", pickle.dumps(tr), pickle.dumps(q), pickle.dumps(intr),
-                    pickle.dumps(dist), CAM_W, CAM_H))
+                   (tok, log_tok, ch, "fixture",
+                    *calibration_blobs(calibration, tr, q, intr.tolist(), dist.tolist(), protocol), CAM_W, CAM_H))
         cams.append({"channel": ch, "token": tok, "translation": tr, "rotation": q, "intrinsic": intr.tolist(),
                      "distortion": dist.tolist(), "width": CAM_W, "height": CAM_H})
     n = int(round(seconds * 20)) + 1
@@ -445,7 +515,8 @@ def write_fixture(out: Path, seconds: float = 20.0, png: bool = False, lonlat: b
                       "lights": {"21": light_at(t), "22": "unknown"}})
     summary = {
         "db": str(db_path), "maps_root": str(out / "maps"), "sensor_root": str(blobs), "log": LOG,
-        "location": LOCATION, "map_version": MAP_VERSION, "t0_us": T0_US, "origin": [X0, Y0],
+        "location": LOCATION, "map_name": MAP_NAME, "map_version": MAP_VERSION, "maps_manifest": MAPS_MANIFEST,
+        "map": str(map_path), "calibration": calibration, "t0_us": T0_US, "origin": [X0, Y0],
         "lidar_pc": n, "tracks": {nm: track_tok[nm].hex() for nm in track_tok},
         "track_sizes": {"car": [4.8, 2.0, 1.6], "ped": [0.6, 0.6, 1.8], "cone": [0.4, 0.4, 0.7],
                         "bike": [1.8, 0.6, 1.5]},
@@ -488,8 +559,12 @@ def main():
     ap.add_argument("--png", action="store_true", help="PNG images (no Pillow needed)")
     ap.add_argument("--lonlat", action="store_true",
                     help="map layers in EPSG:4326 longitude / latitude (as the devkit reprojects with to_crs)")
+    ap.add_argument("--calibration", choices=CALIBRATIONS, default="devkit",
+                    help="how calibration is pickled: the devkit's data_types classes (default), lists, numpy")
+    ap.add_argument("--pickle-protocol", type=int, default=None,
+                    help="pickle protocol of the devkit classes (default: Python's, as the devkit's pickle.dumps)")
     a = ap.parse_args()
-    s = write_fixture(a.out, a.seconds, a.png, a.lonlat)
+    s = write_fixture(a.out, a.seconds, a.png, a.lonlat, a.calibration, a.pickle_protocol)
     print(json.dumps({k: s[k] for k in ("db", "maps_root", "sensor_root", "lidar_pc")}))
 
 

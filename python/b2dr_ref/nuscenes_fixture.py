@@ -33,6 +33,8 @@ road_divider records, `arcline_path_3`, `connectivity`). Where the values come f
   ROAD_LINE_BROKEN_SINGLE_WHITE -> lane_divider, ROAD_LINE_SOLID_SINGLE_YELLOW -> road_divider; a `stop_line`
   (TURN_STOP, a quadrilateral 1 m deep) across the end of every lane leading into a connector; the drivable area is
   `maps/<map>.drivable_area.geojson` cropped to 300 m around the scene.
+- `--no-map-expansion`: the dataset as the main nuScenes download alone lays it out (the map expansion pack is a
+  separate download, which the devkit needs only for its map API): no `maps/expansion/` folder at all.
 
 Only the Python standard library is needed (`python3 -m b2dr_ref.nuscenes_fixture --shared DIR --out DIR`).
 """
@@ -318,7 +320,8 @@ def _edge(p, q, flip=False, half=1.75):
     return [b, a] if flip else [a, b]
 
 
-def write_fixture(shared, out, scene_name="scene-0061", version="v1.0-mini", images="link", camera_sweeps=False):
+def write_fixture(shared, out, scene_name="scene-0061", version="v1.0-mini", images="link", camera_sweeps=False,
+                  map_expansion=True):
     """Writes the fixture for `scene_name` under `out`; returns a summary (counts, tokens, t0)."""
     shared, out = Path(shared), Path(out)
     scene = json.loads((shared / "scenes" / f"{scene_name}.json").read_text())
@@ -463,11 +466,12 @@ def write_fixture(shared, out, scene_name="scene-0061", version="v1.0-mini", ima
                 os.symlink(os.path.relpath(first[ch], dst.parent), dst)
             except OSError:
                 shutil.copyfile(first[ch], dst)
-    geo = json.loads((shared / "maps" / f"{map_name}.drivable_area.geojson").read_text())
-    centre = ego.pos[len(ego.pos) // 2]
-    mdir = out / "maps" / "expansion"
-    mdir.mkdir(parents=True, exist_ok=True)
-    (mdir / f"{map_name}.json").write_text(json.dumps(expansion_map(scene, geo, centre)))
+    if map_expansion:
+        geo = json.loads((shared / "maps" / f"{map_name}.drivable_area.geojson").read_text())
+        centre = ego.pos[len(ego.pos) // 2]
+        mdir = out / "maps" / "expansion"
+        mdir.mkdir(parents=True, exist_ok=True)
+        (mdir / f"{map_name}.json").write_text(json.dumps(expansion_map(scene, geo, centre)))
     return {"dataroot": str(out), "version": version, "scene": scene_name, "scene_token": scene_tok, "t0_us": t0,
             "samples": n_samples, "annotations": n_ann, "instances": len(tables["instance"]),
             "sample_data": len(tables["sample_data"]), "map": map_name}
@@ -481,8 +485,11 @@ def main(argv=None):
     ap.add_argument("--version", default="v1.0-mini")
     ap.add_argument("--images", choices=["link", "copy"], default="link")
     ap.add_argument("--camera-sweeps", action="store_true", help="also write 12 Hz non-key camera sample_data")
+    ap.add_argument("--no-map-expansion", action="store_true",
+                    help="leave out maps/expansion (the separate map expansion pack), as the main download alone")
     a = ap.parse_args(argv)
-    print(json.dumps(write_fixture(a.shared, a.out, a.scene, a.version, a.images, a.camera_sweeps)))
+    print(json.dumps(write_fixture(a.shared, a.out, a.scene, a.version, a.images, a.camera_sweeps,
+                                   not a.no_map_expansion)))
 
 
 if __name__ == "__main__":

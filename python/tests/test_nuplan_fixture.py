@@ -1,10 +1,13 @@
 """The nuPlan fixture writer (b2dr_ref.nuplan_fixture): the devkit's tables with 8-byte BLOB tokens that resolve,
-20 Hz lidar_pc, pickled camera calibration, a GeoPackage map whose geometry blobs parse back."""
+20 Hz lidar_pc, camera calibration pickled with the devkit's data_types classes (as its SimplePickleType does) or
+as plain lists / numpy arrays, a GeoPackage map laid out under the maps manifest as GPKGMapsDB finds it, whose
+geometry blobs parse back."""
 import json
 import pickle
 import sqlite3
 import struct
 
+import numpy as np
 import pytest
 
 from b2dr_ref import nuplan_fixture as nf
@@ -47,22 +50,53 @@ def test_tables_tokens_and_rates(fixture):
 
 
 def test_camera_calibration_is_pickled(fixture):
+    """Default: the devkit's classes, read back as the devkit reads them (`class_type(pickle.loads(blob))`)."""
     out, s = fixture
+    dt = nf.devkit_data_types()
     db = sqlite3.connect(s["db"])
     rows = db.execute("SELECT channel, translation, rotation, intrinsic, distortion FROM camera").fetchall()
     assert [r[0] for r in rows] == nf.CAMERAS
-    for ch, t, q, k, d in rows:
-        assert len(pickle.loads(t)) == 3 and len(pickle.loads(q)) == 4
-        assert pickle.loads(k).shape == (3, 3) and pickle.loads(d).shape == (5,)
+    for (ch, t, q, k, d), cam in zip(rows, s["cameras"]):
+        assert type(pickle.loads(t)) is dt.Translation and type(pickle.loads(q)) is dt.Rotation
+        assert type(pickle.loads(k)) is dt.CameraIntrinsic and type(pickle.loads(d)) is list
+        assert b"nuplan.database.common.data_types" in t and b"Translation" in t
+        assert dt.Translation(pickle.loads(t)) == cam["translation"]
+        assert dt.CameraIntrinsic(pickle.loads(k)) == cam["intrinsic"]
+        assert pickle.loads(d) == cam["distortion"]
+    lt, lq = db.execute("SELECT translation, rotation FROM lidar").fetchone()
+    assert type(pickle.loads(lt)) is dt.Translation and pickle.loads(lq) == [1.0, 0.0, 0.0, 0.0]
     files = db.execute("SELECT filename_jpg FROM image").fetchall()
     assert len(files) == 8 * s["images_per_camera"]
     for (f,) in files[:5]:
         assert (out / "nuplan-v1.1" / "sensor_blobs" / f).is_file()
 
 
+@pytest.mark.parametrize("calibration", ["lists", "numpy"])
+def test_hand_written_calibration_forms(tmp_path, calibration):
+    s = nf.write_fixture(tmp_path, seconds=1.0, png=True, calibration=calibration)
+    db = sqlite3.connect(s["db"])
+    want = type(np.zeros(1)) if calibration == "numpy" else list
+    for t, q, k, d in db.execute("SELECT translation, rotation, intrinsic, distortion FROM camera"):
+        assert all(type(pickle.loads(b)) is want for b in (t, q, k, d))
+        assert b"data_types" not in t
+
+
+def test_maps_laid_out_as_gpkg_mapsdb_reads_them(fixture):
+    """GPKGMapsDB: `<maps root>/<NUPLAN_MAP_VERSION>.json`, version of the log's map_version, then
+    `<map name>/<version>/map.gpkg`; log.location names no folder."""
+    out, s = fixture
+    db = sqlite3.connect(s["db"])
+    location, map_name = db.execute("SELECT location, map_version FROM log").fetchone()
+    assert (location, map_name) == ("las_vegas", "us-nv-las-vegas-strip")
+    manifest = json.loads((out / "maps" / "nuplan-maps-v1.0.json").read_text())
+    version = str(manifest[map_name]["version"])
+    assert (out / "maps" / map_name / version / "map.gpkg").is_file()
+    assert not (out / "maps" / location).exists()
+
+
 def test_map_geometries_parse(fixture):
     out, s = fixture
-    m = sqlite3.connect(out / "maps" / nf.LOCATION / nf.MAP_VERSION / "map.gpkg")
+    m = sqlite3.connect(out / "maps" / nf.MAP_NAME / nf.MAP_VERSION / "map.gpkg")
     layers = {r[0] for r in m.execute("SELECT table_name FROM gpkg_contents")}
     assert {"lanes_polygons", "lane_connectors", "baseline_paths", "lane_groups_polygons", "intersections",
             "crosswalks", "stop_polygons", "meta"} <= layers

@@ -145,3 +145,12 @@ def test_camera_sweeps(tmp_path):
         # A sweep belongs to the sample that follows it, within one sample period.
         assert 0 < ts[sd["sample_token"]] - sd["timestamp"] < 500000
         assert (tmp_path / sd["filename"]).is_file()
+
+
+def test_without_the_map_expansion(tmp_path):
+    """--no-map-expansion: the main download's layout alone (tables, images), no maps/expansion folder."""
+    if not (SHARED / "scenes" / "scene-0061.json").exists():
+        pytest.skip(f"shared nuScenes data absent ({SHARED})")
+    nf.write_fixture(SHARED, tmp_path, map_expansion=False)
+    assert (tmp_path / "v1.0-mini" / "sample_data.json").is_file()
+    assert not (tmp_path / "maps" / "expansion").exists()

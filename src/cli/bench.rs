@@ -121,6 +121,7 @@ pub struct FrameArgs {
 
 /// `b2dr bench frame`.
 pub fn run_frame(device: Option<String>, a: FrameArgs) -> Result<()> {
+    b2dr::sampling::check_guidance("--ref-guidance", a.ref_guidance)?;
     let ctx = Context::new(&ContextOptions {
         device,
         profile: a.profile,

@@ -30,16 +30,15 @@ pub struct ForwardArgs {
 }
 
 pub fn run(device: Option<String>, a: ForwardArgs) -> Result<()> {
-    let cfg: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(&a.config)
-            .with_context(|| format!("reading {}", a.config.display()))?,
-    )
+    let cfg: serde_json::Value = serde_json::from_str(&b2dr::files::read_regular_string(
+        &a.config,
+        "model config",
+        b2dr::files::JSON_LIMIT,
+    )?)
     .with_context(|| format!("{}: invalid JSON", a.config.display()))?;
-    let bytes =
-        std::fs::read(&a.weights).with_context(|| format!("reading {}", a.weights.display()))?;
-    let w = Weights::from_bytes_unchecked(&bytes, &a.weights.display().to_string())?;
-    let ib = std::fs::read(&a.inputs).with_context(|| format!("reading {}", a.inputs.display()))?;
-    let inputs = Weights::from_bytes_unchecked(&ib, &a.inputs.display().to_string())?.tensors;
+    // regular files only, read as far as their headers announce (issue #36)
+    let w = Weights::load_unchecked(&a.weights)?;
+    let inputs = Weights::load_unchecked(&a.inputs)?.tensors;
     let ctx = Context::new(&ContextOptions {
         device,
         profile: false,

@@ -1,13 +1,18 @@
-//! `b2dr project`: projects a keyframe's boxes (and optionally a drivable-area map) into each camera; writes
-//! per-class masks at render resolution, an overlay on the real image, and `projection.json` (native pixels).
+//! `b2dr project`: projects a keyframe's boxes (and optionally a drivable-area map), or those of one log step of
+//! any scenario with its map, into each camera; writes per-class masks at render resolution, an overlay on the
+//! real image, and `projection.json` (native pixels).
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
 use b2dr::projection::keyframe::drivable_area_from_geojson;
 use b2dr::projection::{
-    box_wireframe, channel_name, CameraProjector, KeyFrame, LayoutMasks, LayoutRenderer, MapLayer,
-    ProjectionConfig, NUM_MASK_CHANNELS,
+    box_wireframe, channel_name, Box3d, CameraProjector, KeyFrame, LayoutMasks, LayoutRenderer,
+    MapLayer, ProjectionConfig, NUM_MASK_CHANNELS,
 };
+use b2dr::scene::camera::{Camera, CameraImage};
+use b2dr::scene::import::resolve;
+use b2dr::world::images::ImageStore;
+use b2dr::world::step_views::step_views;
 use b2dr::world::view::MASK_COLOURS;
 use glam::DVec2;
 use image::{Rgb, RgbImage};
@@ -16,8 +21,21 @@ use serde_json::json;
 #[derive(clap::Args, Debug)]
 pub struct ProjectArgs {
     /// Keyframe JSON (format of nuscenes-mini/keyframe-scene-0061/frame.json); images are read next to it.
-    #[arg(long)]
-    pub frame: PathBuf,
+    #[arg(
+        long,
+        required_unless_present = "scenario",
+        conflicts_with = "scenario"
+    )]
+    pub frame: Option<PathBuf>,
+    /// A scenario instead of a keyframe: builtin:..., a ScenarioNet file, nuscenes:..., nuplan:... (one).
+    #[arg(long, requires = "step")]
+    pub scenario: Option<String>,
+    /// The log step of --scenario to project (its recorded frame: the one nearest the step's time).
+    #[arg(long, requires = "scenario")]
+    pub step: Option<usize>,
+    /// Cameras of --scenario (comma-separated; default: every camera of its rig).
+    #[arg(long, value_delimiter = ',', requires = "scenario")]
+    pub cameras: Vec<String>,
     /// Output directory (created).
     #[arg(long)]
     pub out: PathBuf,
@@ -27,8 +45,9 @@ pub struct ProjectArgs {
     /// Culling range in metres.
     #[arg(long, default_value_t = 80.0)]
     pub range: f64,
-    /// Optional drivable-area GeoJSON (global frame) drawn as the drivable_area channel.
-    #[arg(long)]
+    /// Optional drivable-area GeoJSON (global frame) drawn as the drivable_area channel (with --frame; a
+    /// scenario brings its own map).
+    #[arg(long, conflicts_with = "scenario")]
     pub map: Option<PathBuf>,
     /// Width of the overlay images (default: the camera's native width).
     #[arg(long)]
@@ -61,6 +80,15 @@ fn parse_size(s: &str) -> Result<(u32, u32)> {
     Ok((w, h))
 }
 
+/// One camera image to project: its camera, the image (with its ego pose), the boxes it shows and its pixels at
+/// the camera's native size.
+struct View {
+    cam: Camera,
+    img: CameraImage,
+    boxes: Vec<Box3d>,
+    photo: RgbImage,
+}
+
 pub fn run(args: ProjectArgs) -> Result<()> {
     let (rw, rh) = parse_size(&args.size)?;
     anyhow::ensure!(
@@ -73,7 +101,24 @@ pub fn run(args: ProjectArgs) -> Result<()> {
             "--overlay-width {w}: must be in 1..=8192"
         );
     }
-    let mut frame = KeyFrame::load(&args.frame)?;
+    let (views, map, about) = match (&args.frame, &args.scenario) {
+        (Some(f), None) => frame_views(&args, f)?,
+        (None, Some(s)) => scenario_views(s, args.step.unwrap_or(0), &args.cameras)?,
+        _ => bail!("give either --frame FRAME.json or --scenario S --step K"),
+    };
+    let cfg = ProjectionConfig {
+        range: args.range,
+        ..ProjectionConfig::default()
+    };
+    write_views(&args, &views, &map, &cfg, (rw, rh), about)
+}
+
+/// The views of a keyframe file (every camera shows the file's boxes) and the optional GeoJSON map.
+fn frame_views(
+    args: &ProjectArgs,
+    path: &std::path::Path,
+) -> Result<(Vec<View>, MapLayer, serde_json::Value)> {
+    let mut frame = KeyFrame::load(path)?;
     let top = match args.box_z.as_str() {
         "top" => true,
         "center" => false,
@@ -89,25 +134,94 @@ pub fn run(args: ProjectArgs) -> Result<()> {
     if top {
         frame.boxes_z_from_top();
     }
-    let cfg = ProjectionConfig {
-        range: args.range,
-        ..ProjectionConfig::default()
-    };
     let map = match &args.map {
         Some(p) => MapLayer::new(drivable_area_from_geojson(p, frame.ego2global.w_axis.z)?),
         None => MapLayer::default(),
     };
+    let mut views = Vec::new();
+    for (cam, img) in &frame.cameras {
+        let img_path = frame.image_path(img);
+        let photo = b2dr::world::images::read_recorded_image(
+            &img_path,
+            (cam.width, cam.height),
+            &format!("cameras.{}", cam.name),
+        )?;
+        views.push(View {
+            cam: cam.clone(),
+            img: img.clone(),
+            boxes: frame.boxes.clone(),
+            photo,
+        });
+    }
+    Ok((views, map, json!({ "frame": path.display().to_string() })))
+}
+
+/// The views of log step `step` of one scenario (`b2dr::world::step_views`), images through the scenario's
+/// image store (files read and undistorted, built-in ones rendered) at each camera's native size.
+fn scenario_views(
+    spec: &str,
+    step: usize,
+    cameras: &[String],
+) -> Result<(Vec<View>, MapLayer, serde_json::Value)> {
+    let srcs = resolve(spec)?;
+    let [src] = srcs.as_slice() else {
+        bail!(
+            "--scenario {spec:?} names {} scenarios; project takes one",
+            srcs.len()
+        );
+    };
+    let sv = step_views(src, step, cameras)?;
+    let store = ImageStore::new(&sv.scenario, src.image_dir());
+    let mut views = Vec::new();
+    for v in &sv.views {
+        let (w, h) = (v.camera.width, v.camera.height);
+        let px = store.image(&v.image, w as usize, h as usize)?;
+        let photo = RgbImage::from_raw(w, h, px.data.clone())
+            .with_context(|| format!("image {} of {}x{}", v.image.path, w, h))?;
+        views.push(View {
+            cam: v.camera.clone(),
+            img: v.image.clone(),
+            boxes: v.boxes.clone(),
+            photo,
+        });
+    }
+    let about = json!({
+        "scenario": sv.scenario.source, "step": sv.step, "frame": sv.frame, "frame_time_s": sv.frame_time_s,
+        "frame_step": sv.frame_step, "boxes_from": sv.boxes_from,
+        "map_missing": sv.scenario.map.missing,
+    });
+    if let Some(m) = &sv.scenario.map.missing {
+        eprintln!("no map channels: {m}");
+    }
+    Ok((views, sv.map, about))
+}
+
+/// Masks, overlays and `projection.json` of the views (module docs).
+fn write_views(
+    args: &ProjectArgs,
+    views: &[View],
+    map: &MapLayer,
+    cfg: &ProjectionConfig,
+    (rw, rh): (u32, u32),
+    about: serde_json::Value,
+) -> Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let mut renderer = LayoutRenderer::new(rw as usize, rh as usize);
     let mut masks = LayoutMasks::new(rw as usize, rh as usize);
     let mut cams_json = serde_json::Map::new();
-    for (cam, img) in &frame.cameras {
-        // camera names come from the frame file: never let one leave --out
+    for View {
+        cam,
+        img,
+        boxes,
+        photo,
+    } in views
+    {
+        // camera names come from the input: never let one leave --out
         let dir = args.out.join(b2dr::scene::safe_name(&cam.name));
         std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
         let render = CameraProjector::new(cam, &img.ego2global, rw, rh)?;
-        renderer.render(&render, &frame.boxes, &map, &cfg, &mut masks);
+        renderer.render(&render, boxes, map, cfg, &mut masks);
         for c in 0..NUM_MASK_CHANNELS {
             let data: Vec<u8> = masks.channel(c).iter().map(|&v| v * 255).collect();
             let p = dir.join(format!("{}.png", channel_name(c)));
@@ -120,7 +234,7 @@ pub fn run(args: ProjectArgs) -> Result<()> {
         let native = CameraProjector::new(cam, &img.ego2global, cam.width, cam.height)?;
         let mut entries = Vec::new();
         let mut wires = Vec::new();
-        for (i, b) in frame.boxes.iter().enumerate() {
+        for (i, b) in boxes.iter().enumerate() {
             let Some((center, depth)) = native.project(b.center) else {
                 continue;
             };
@@ -132,7 +246,7 @@ pub fn run(args: ProjectArgs) -> Result<()> {
                     None => serde_json::Value::Null,
                 })
                 .collect();
-            let wf = box_wireframe(&native, b, &cfg);
+            let wf = box_wireframe(&native, b, cfg);
             let in_view = wf
                 .as_ref()
                 .is_some_and(|segs| segs.iter().any(|s| segment_hits_image(&native, s)));
@@ -146,20 +260,7 @@ pub fn run(args: ProjectArgs) -> Result<()> {
         }
         cams_json.insert(cam.name.clone(), serde_json::Value::Array(entries));
 
-        let img_path = frame.image_path(img);
-        let mut photo = image::open(&img_path)
-            .with_context(|| format!("reading {}", img_path.display()))?
-            .to_rgb8();
-        if photo.dimensions() != (cam.width, cam.height) {
-            bail!(
-                "{}: image is {:?} but cameras.{}.width/height say {}x{}",
-                img_path.display(),
-                photo.dimensions(),
-                cam.name,
-                cam.width,
-                cam.height
-            );
-        }
+        let mut photo = photo.clone();
         blend_masks(&mut photo, &masks);
         for (cls, segs) in &wires {
             for (a, b) in segs {
@@ -188,12 +289,16 @@ pub fn run(args: ProjectArgs) -> Result<()> {
         }
     }
     let p = args.out.join("projection.json");
-    let text = serde_json::to_string_pretty(&json!({ "cameras": cams_json }))?;
+    let mut doc = json!({ "cameras": cams_json });
+    if let (Some(o), serde_json::Value::Object(a)) = (doc.as_object_mut(), about) {
+        o.extend(a);
+    }
+    let text = serde_json::to_string_pretty(&doc)?;
     std::fs::write(&p, text).with_context(|| format!("writing {}", p.display()))?;
     println!(
         "wrote masks, overlays and {} for {} cameras",
         p.display(),
-        frame.cameras.len()
+        views.len()
     );
     Ok(())
 }

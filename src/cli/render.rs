@@ -54,6 +54,9 @@ pub struct RenderArgs {
 }
 
 pub fn run(device: Option<String>, a: RenderArgs) -> Result<()> {
+    if let Some(w) = a.ref_guidance {
+        b2dr::sampling::check_guidance("--ref-guidance", w)?;
+    }
     let refs = match a.refs {
         Some(v) => {
             let [x, y]: [PathBuf; 2] = v

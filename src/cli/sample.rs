@@ -61,16 +61,8 @@ pub fn run(device: Option<String>, a: SampleArgs) -> Result<()> {
     let (ih, iw) = parse_size(&a.size)?;
     let (h, w) = (ih / 8, iw / 8);
     ensure!(a.steps >= 1, "--steps must be >= 1");
-    ensure!(
-        a.guidance.is_finite(),
-        "--guidance {}: must be a finite number",
-        a.guidance
-    );
-    ensure!(
-        a.conditioning_scale.is_finite(),
-        "--conditioning-scale {}: must be a finite number",
-        a.conditioning_scale
-    );
+    b2dr::sampling::check_guidance("--guidance", a.guidance)?;
+    b2dr::sampling::check_conditioning_scale("--conditioning-scale", a.conditioning_scale.into())?;
     if let Some(dir) = &a.model {
         // before the device (a VAE that does not downsample by 8 would decode images of another size)
         check_vae_folder(dir)?;

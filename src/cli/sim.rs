@@ -4,7 +4,8 @@
 //! Layout of `--out`:
 //!   <out>/<scenario>/trace.jsonl    one line per step (ego state, command, plan, objects)
 //!   <out>/<scenario>/metrics.json   the scenario's score, every metric, the failure reason (written last:
-//!                                   its presence marks the scenario done for --resume)
+//!                                   its presence marks the scenario done for --resume, which re-checks it
+//!                                   against the configuration: `config_fingerprint`)
 //!   <out>/<scenario>/bev_<step>.png frames every --bev-every steps
 //!   <out>/config.json               the flags that decide the results (not --bev-every); a `--resume`
 //!                                   with others is refused
@@ -14,7 +15,7 @@
 //! Scenarios run in folder-name order; `--shard K/N` runs every N-th of them, and `b2dr merge` combines shard
 //! folders (`b2dr::eval::batch`, shared with `b2dr run`).
 use anyhow::{bail, Context, Result};
-use b2dr::eval::batch::{self, write_atomic, Shard};
+use b2dr::eval::batch::{self, Shard};
 use b2dr::metrics::ScoreParams;
 use b2dr::scene::import::{resolve, Source};
 use b2dr::sim::{self, AgentMode, Controller, PlannerSpec, SimConfig};
@@ -66,6 +67,8 @@ pub struct SimArgs {
 fn run_one(src: &Source, args: &SimArgs, cfg: &SimConfig, dir: &Path) -> Result<Value> {
     let t0 = Instant::now();
     let sc = b2dr::world::load(src)?;
+    sc.map
+        .require_lanes("b2dr sim (IDM agents, the route and the closed-loop score)")?;
     let mut planner = args
         .planner
         .build(Duration::from_secs_f64(args.planner_timeout))?;
@@ -92,10 +95,7 @@ fn run_one(src: &Source, args: &SimArgs, cfg: &SimConfig, dir: &Path) -> Result<
         "metrics_error": metrics_error,
         "wall_ms": sim_ms,
     });
-    write_atomic(
-        &dir.join("metrics.json"),
-        serde_json::to_string_pretty(&v)?.as_bytes(),
-    )?;
+    // metrics.json is written by the batch loop, with the configuration's fingerprint, last
     Ok(v)
 }
 
@@ -110,7 +110,7 @@ pub fn run(args: SimArgs) -> Result<()> {
     // Build the planner once before doing any work (an external command line that cannot start fails here).
     args.planner
         .build(Duration::from_secs_f64(args.planner_timeout))?;
-    let sources = batch::select(resolve(&args.scenario)?, args.shard)?;
+    let (sources, list) = batch::select_listed(resolve(&args.scenario)?, args.shard)?;
     let cfg = SimConfig {
         agents,
         controller: args.controller,
@@ -125,8 +125,8 @@ pub fn run(args: SimArgs) -> Result<()> {
         o.insert("shard".into(), serde_json::to_value(s)?);
     }
     batch::check_out_outside_scenarios(&args.out, &sources)?;
-    let config = batch::with_inputs(config, &sources, &args.planner.to_string(), &[])?;
-    batch::prepare_out(&args.out, &config, args.resume)?;
+    let config = batch::with_inputs(config, &sources, &list, &args.planner.to_string(), &[])?;
+    let out = batch::prepare_out(&args.out, &config, args.resume)?;
     let bar = (sources.len() > 1).then(|| {
         let b = indicatif::ProgressBar::new(sources.len() as u64);
         b.set_style(
@@ -138,9 +138,8 @@ pub fn run(args: SimArgs) -> Result<()> {
         b
     });
     let results = batch::for_each_scenario(
-        &args.out,
+        &out,
         &sources,
-        args.resume,
         |_, src, dir| {
             if let Some(b) = &bar {
                 b.set_message(src.name());

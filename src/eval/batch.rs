@@ -96,6 +96,28 @@ pub fn select(mut sources: Vec<Source>, shard: Option<Shard>) -> Result<Vec<Sour
     })
 }
 
+/// The names of every scenario of a batch in folder-name order, before the shards are dealt (`config.json`'s
+/// [`LIST_KEY`]): what `merge` checks each shard's scenarios against (issue #36).
+#[derive(Clone, Debug, PartialEq)]
+pub struct ScenarioList(pub Vec<String>);
+
+/// Key of `config.json` holding the batch's whole scenario list ([`ScenarioList`]).
+pub const LIST_KEY: &str = "scenario_list";
+
+/// [`select`], also returning the whole list's names (before the shard is dealt).
+pub fn select_listed(
+    sources: Vec<Source>,
+    shard: Option<Shard>,
+) -> Result<(Vec<Source>, ScenarioList)> {
+    let all = select(sources, None)?;
+    let list = ScenarioList(all.iter().map(|s| s.name()).collect());
+    let mine = match shard {
+        Some(s) => s.deal(all),
+        None => all,
+    };
+    Ok((mine, list))
+}
+
 /// Writes a file through a temporary one and a rename (a reader never sees half a file).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
     let tmp = path.with_extension("tmp");
@@ -112,7 +134,8 @@ pub const INPUTS_KEY: &str = "input_files";
 /// missing one), not an adversary.
 pub fn file_fingerprint(path: &Path) -> Result<Value> {
     use std::io::Read;
-    let mut f = std::fs::File::open(path).with_context(|| format!("hashing {}", path.display()))?;
+    let (mut f, _) = crate::files::open_regular(path, "input file")
+        .with_context(|| format!("hashing {}", path.display()))?;
     let mut h = xxhash_rust::xxh3::Xxh3::new();
     let mut buf = vec![0u8; 1 << 20];
     let mut size = 0u64;
@@ -164,6 +187,7 @@ pub fn planner_files(planner: &str) -> Vec<PathBuf> {
 pub fn with_inputs(
     mut config: Value,
     sources: &[Source],
+    list: &ScenarioList,
     planner: &str,
     model: &[PathBuf],
 ) -> Result<Value> {
@@ -205,6 +229,7 @@ pub fn with_inputs(
     }
     if let Some(o) = config.as_object_mut() {
         o.insert(INPUTS_KEY.into(), Value::Object(inputs));
+        o.insert(LIST_KEY.into(), json!(list.0));
     }
     Ok(config)
 }
@@ -258,8 +283,7 @@ fn inputs_difference(old: &Value, new: &Value) -> Option<String> {
 }
 
 fn read_json(path: &Path) -> Result<Value> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let text = crate::files::read_regular_string(path, "file", crate::files::JSON_LIMIT)?;
     serde_json::from_str(&text).with_context(|| format!("{}: not valid JSON", path.display()))
 }
 
@@ -290,8 +314,10 @@ fn config_difference(a: &Value, b: &Value, ignore: &[&str]) -> Option<String> {
 /// Prepares `out` for a batch: with `resume`, a `config.json` there of another configuration is refused
 /// (naming the first differing field); then the configuration is written and the previous summary removed (a
 /// folder without `metrics.json` is an unfinished run, which `merge` refuses).
-pub fn prepare_out(out: &Path, config: &Value, resume: bool) -> Result<()> {
+pub fn prepare_out(out: &Path, config: &Value, resume: bool) -> Result<BatchOut> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    // one writer per folder: the lock is taken before anything there is read or written
+    let lock = lock_out(out)?;
     let cpath = out.join("config.json");
     if resume && !cpath.is_file() {
         // results without the configuration that made them cannot be checked: refuse to reuse them
@@ -325,6 +351,241 @@ pub fn prepare_out(out: &Path, config: &Value, resume: bool) -> Result<()> {
     if summary.is_file() {
         std::fs::remove_file(&summary)
             .with_context(|| format!("removing the old {}", summary.display()))?;
+    }
+    Ok(BatchOut {
+        dir: out.to_path_buf(),
+        resume,
+        fingerprint: config_fingerprint(config),
+        _lock: lock,
+    })
+}
+
+/// An output folder prepared for a batch ([`prepare_out`]): held for the batch's whole run (its lock is
+/// released when it is dropped, or by the system when the process dies).
+pub struct BatchOut {
+    pub dir: PathBuf,
+    pub resume: bool,
+    /// [`config_fingerprint`] of the folder's configuration, written into every scenario record.
+    pub fingerprint: String,
+    _lock: OutLock,
+}
+
+/// The lock file of an output folder ([`lock_out`]).
+pub const LOCK_FILE: &str = ".b2dr-lock";
+
+/// The lock on an output folder: an exclusive `flock` on `<out>/.b2dr-lock`, which holds who took it (pid,
+/// host, start time, command line). Dropping it empties the file and closes it (the system releases the lock);
+/// a process killed holding it leaves the file full but the lock free, which the next run detects as stale.
+pub struct OutLock {
+    file: std::fs::File,
+}
+
+impl Drop for OutLock {
+    fn drop(&mut self) {
+        // an empty file marks a clean release; the lock itself goes with the handle
+        let _ = self.file.set_len(0);
+    }
+}
+
+/// Takes the lock of `out` (issue #36, item 1: one writer per output folder). A folder another live run holds
+/// is refused, naming the holder; a lock left by a killed run (the system released it, its file still names
+/// the run) is reported as stale and taken over. On a filesystem without `flock` the run goes on unlocked,
+/// with a warning.
+pub fn lock_out(out: &Path) -> Result<OutLock> {
+    use std::io::{Read, Seek, Write};
+    let path = out.join(LOCK_FILE);
+    let mut file = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .create(true)
+        .truncate(false)
+        .open(&path)
+        .with_context(|| format!("--out {}: creating the lock file", out.display()))?;
+    ensure!(
+        file.metadata().map(|m| m.is_file()).unwrap_or(false),
+        "--out {}: {} is not a regular file",
+        out.display(),
+        path.display()
+    );
+    let mut holder = String::new();
+    let _ = file.read_to_string(&mut holder);
+    let holder = holder.trim().to_string();
+    #[cfg(unix)]
+    {
+        use std::os::unix::io::AsRawFd;
+        // SAFETY: flock on a file descriptor this function owns; no memory is passed
+        let r = unsafe { libc::flock(file.as_raw_fd(), libc::LOCK_EX | libc::LOCK_NB) };
+        if r != 0 {
+            let err = std::io::Error::last_os_error();
+            if err.raw_os_error() == Some(libc::EWOULDBLOCK) {
+                bail!(
+                    "--out {} is in use by another b2dr run ({}); one run writes a folder at a time: wait for it \
+                     to end, or give another --out (the lock: {})",
+                    out.display(),
+                    describe_holder(&holder),
+                    path.display()
+                );
+            }
+            eprintln!(
+                "warning: --out {}: cannot lock {} ({err}); the filesystem has no flock: nothing stops a second \
+                 run on this folder",
+                out.display(),
+                path.display()
+            );
+        }
+    }
+    if !holder.is_empty() {
+        eprintln!(
+            "note: --out {}: a stale lock ({}) was found: that run ended without releasing it (killed?); taken \
+             over",
+            out.display(),
+            describe_holder(&holder)
+        );
+    }
+    let me = json!({
+        "pid": std::process::id(),
+        "host": std::fs::read_to_string("/proc/sys/kernel/hostname")
+            .map(|h| h.trim().to_string())
+            .unwrap_or_default(),
+        "since_unix_s": std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map(|d| d.as_secs())
+            .unwrap_or(0),
+        "command": std::env::args().collect::<Vec<_>>().join(" "),
+    });
+    file.set_len(0)
+        .and_then(|_| file.rewind())
+        .and_then(|_| file.write_all(me.to_string().as_bytes()))
+        .and_then(|_| file.flush())
+        .with_context(|| format!("--out {}: writing the lock file", out.display()))?;
+    Ok(OutLock { file })
+}
+
+/// "pid P on host H since T: COMMAND" from a lock file's text (or the text itself when it is not ours).
+fn describe_holder(text: &str) -> String {
+    let Ok(v) = serde_json::from_str::<Value>(text) else {
+        return if text.is_empty() {
+            "holder unknown".into()
+        } else {
+            format!("holder {:?}", text.chars().take(200).collect::<String>())
+        };
+    };
+    format!(
+        "pid {} on host {} since unix time {} s: {}",
+        v["pid"],
+        v["host"].as_str().unwrap_or("?"),
+        v["since_unix_s"],
+        v["command"].as_str().unwrap_or("?")
+    )
+}
+
+/// Key of a scenario record (its `metrics.json`) holding [`config_fingerprint`] of the configuration that made
+/// it.
+pub const FINGERPRINT_KEY: &str = "config_fingerprint";
+
+/// The fingerprint of what decides a scenario's result in a batch configuration: the configuration without
+/// the shard and without the scenario files' entries of `input_files` (those differ between the shards of one
+/// batch), so with the planner, renderer, model and their files' fingerprints: XXH3-128 of its JSON text, hex.
+pub fn config_fingerprint(config: &Value) -> String {
+    let mut c = config.clone();
+    if let Some(o) = c.as_object_mut() {
+        o.remove("shard");
+        if let Some(Value::Object(inputs)) = o.get_mut(INPUTS_KEY) {
+            inputs.retain(|_, v| v["role"] != "scenario");
+        }
+    }
+    format!(
+        "{:032x}",
+        xxhash_rust::xxh3::xxh3_128(c.to_string().as_bytes())
+    )
+}
+
+/// Checks one scenario record (a scenario's `metrics.json`, an entry of a summary's `scenarios`) before it is
+/// trusted (issue #36): made by the configuration of `fingerprint`, a scenario name, the score and every metric
+/// a finite number in [0, 1] (a failed scenario may carry no metrics, and then scores 0), timings finite and
+/// non-negative. `Err` names the field.
+pub fn check_record(v: &Value, fingerprint: &str) -> std::result::Result<(), String> {
+    let unit = |x: &Value, field: &str| -> std::result::Result<f64, String> {
+        match x.as_f64() {
+            Some(f) if f.is_finite() && (0.0..=1.0).contains(&f) => Ok(f),
+            _ => Err(format!("field `{field}` is {x}, not a number in [0, 1]")),
+        }
+    };
+    let o = v.as_object().ok_or("not a JSON object")?;
+    if !matches!(o.get("scenario"), Some(Value::String(_))) {
+        return Err("field `scenario` is not a name".into());
+    }
+    match o.get(FINGERPRINT_KEY).and_then(Value::as_str) {
+        Some(f) if f == fingerprint => {}
+        Some(f) => {
+            return Err(format!(
+                "field `{FINGERPRINT_KEY}` is {f}, but this folder's configuration is {fingerprint}: the record \
+                 was made by another configuration (planner, renderer, model or their files)"
+            ))
+        }
+        None => {
+            return Err(format!(
+                "no field `{FINGERPRINT_KEY}`: the record was not finished by a run of this configuration"
+            ))
+        }
+    }
+    let score = unit(o.get("score").unwrap_or(&Value::Null), "score")?;
+    match o.get("metrics") {
+        Some(Value::Object(m)) => {
+            for k in METRICS {
+                unit(m.get(k).unwrap_or(&Value::Null), &format!("metrics.{k}"))?;
+            }
+        }
+        None | Some(Value::Null) => {
+            let failed = !o.get("failure").unwrap_or(&Value::Null).is_null()
+                || !o.get("metrics_error").unwrap_or(&Value::Null).is_null();
+            if !failed || score != 0.0 {
+                return Err(
+                    "field `metrics` is missing, but the record names no failure (or scores above 0)".into(),
+                );
+            }
+        }
+        Some(x) => return Err(format!("field `metrics` is {x}, not an object")),
+    }
+    let time = |x: &Value, field: &str| -> std::result::Result<(), String> {
+        match x.as_f64() {
+            Some(f) if f.is_finite() && f >= 0.0 => Ok(()),
+            _ => Err(format!(
+                "field `{field}` is {x}, not a finite non-negative time"
+            )),
+        }
+    };
+    if let Some(w) = o.get("wall_ms") {
+        time(w, "wall_ms")?;
+    }
+    match o.get("timing_ms") {
+        None | Some(Value::Null) => {}
+        Some(Value::Object(t)) => {
+            for (k, x) in t {
+                time(x, &format!("timing_ms.{k}"))?;
+            }
+        }
+        Some(x) => return Err(format!("field `timing_ms` is {x}, not an object")),
+    }
+    Ok(())
+}
+
+/// Checks a summary's totals (CLS, metric means, timing sums) are finite: a sum of finite timings can still
+/// overflow. `Err` names the field.
+fn check_totals(summary: &Value) -> std::result::Result<(), String> {
+    let finite = |x: &Value| x.as_f64().is_some_and(f64::is_finite);
+    if !finite(&summary["cls"]) {
+        return Err(format!("`cls` is {}", summary["cls"]));
+    }
+    for (group, obj) in [
+        ("metric_means", &summary["metric_means"]),
+        ("timing_ms", &summary["timing_ms"]),
+    ] {
+        for (k, x) in obj.as_object().into_iter().flatten() {
+            if !finite(x) {
+                return Err(format!("`{group}.{k}` is {x}"));
+            }
+        }
     }
     Ok(())
 }
@@ -398,28 +659,53 @@ pub fn score_line(name: &str, v: &Value) -> String {
 /// whose `metrics.json` exists is read back instead. A scenario that fails to load or write is recorded as a
 /// failure (score 0) and the batch goes on. `report` sees each scenario's value once it is done.
 pub fn for_each_scenario(
-    out: &Path,
+    batch: &BatchOut,
     sources: &[Source],
-    resume: bool,
     mut run_one: impl FnMut(usize, &Source, &Path) -> Result<Value>,
     mut report: impl FnMut(&str, &Value),
 ) -> Result<Vec<Value>> {
     let mut results = Vec::with_capacity(sources.len());
     for (i, src) in sources.iter().enumerate() {
         let name = src.name();
-        let dir = out.join(folder_name(&name));
+        let dir = batch.dir.join(folder_name(&name));
         let done = dir.join("metrics.json");
-        let v = if resume && done.is_file() {
-            read_json(&done).context("delete it to rerun the scenario")?
-        } else {
-            match run_one(i, src, &dir) {
-                Ok(v) => v,
-                Err(e) => {
-                    let v = json!({ "scenario": name, "failure": format!("{e:#}"), "score": 0.0 });
-                    std::fs::create_dir_all(&dir).ok();
-                    write_atomic(&done, serde_json::to_string_pretty(&v)?.as_bytes())?;
-                    v
+        // --resume re-checks a finished record instead of trusting it (issue #36): one of another
+        // configuration, another scenario, or with a value out of range is rerun, and named
+        let reuse = if batch.resume && done.is_file() {
+            let v = read_json(&done).context("delete it to rerun the scenario")?;
+            let why = check_record(&v, &batch.fingerprint).and_then(|_| {
+                if v["scenario"] == json!(name) {
+                    Ok(())
+                } else {
+                    Err(format!("it is the record of scenario {}", v["scenario"]))
                 }
+            });
+            match why {
+                Ok(()) => Some(v),
+                Err(why) => {
+                    eprintln!(
+                        "--resume: {}: {why}; the scenario {name} runs again",
+                        done.display()
+                    );
+                    None
+                }
+            }
+        } else {
+            None
+        };
+        let v = match reuse {
+            Some(v) => v,
+            None => {
+                let mut v = run_one(i, src, &dir).unwrap_or_else(
+                    |e| json!({ "scenario": name, "failure": format!("{e:#}"), "score": 0.0 }),
+                );
+                // written here, once, last: a record carries its configuration's fingerprint
+                if let Some(o) = v.as_object_mut() {
+                    o.insert(FINGERPRINT_KEY.into(), json!(batch.fingerprint));
+                }
+                std::fs::create_dir_all(&dir).ok();
+                write_atomic(&done, serde_json::to_string_pretty(&v)?.as_bytes())?;
+                v
             }
         };
         report(&name, &v);
@@ -516,6 +802,8 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Value> {
         "merge: --out {} is one of the shard folders; give a new folder",
         out.display()
     );
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let _lock = lock_out(out)?;
     let mut first: Option<(PathBuf, Value)> = None;
     // union of the shards' input files; one file with two fingerprints is an error
     let mut inputs = Map::new();
@@ -625,6 +913,7 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Value> {
         let sc = summary["scenarios"]
             .as_array()
             .with_context(|| format!("merge: {}: no \"scenarios\" list", spath.display()))?;
+        check_shard(d, &cfg, shard, &summary, sc)?;
         shards.push(
             json!({"folder": d, "shard": shard.to_string(), "scenarios": sc.len(),
             "device": h.get("device"), "device_bytes": h.get("device_bytes")}),
@@ -665,6 +954,11 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Value> {
     }
     header.insert("merged_from".into(), Value::Array(shards));
     let summary = summarize(header, results);
+    check_totals(&summary).map_err(|why| {
+        anyhow::anyhow!(
+            "merge: the merged summary's {why}: not a number b2dr writes; nothing was written"
+        )
+    })?;
     let (_, mut cfg) = first.context("merge: no shard")?;
     if let Some(o) = cfg.as_object_mut() {
         o.remove("shard");
@@ -679,6 +973,58 @@ pub fn merge(dirs: &[PathBuf], out: &Path) -> Result<Value> {
     Ok(summary)
 }
 
+/// Verifies what one shard folder holds before it is merged (issue #36, item 2): its scenarios are exactly those
+/// its configuration's scenario list and shard index deal it (nothing dropped, nothing foreign), each record
+/// passes [`check_record`] against the shard's configuration, and its own CLS and failure count are those of
+/// its records. Errors name the shard folder, the scenario and the field.
+fn check_shard(d: &Path, cfg: &Value, shard: Shard, summary: &Value, sc: &[Value]) -> Result<()> {
+    let at = format!("merge: {} (shard {shard})", d.display());
+    let list: Vec<String> = match cfg.get(LIST_KEY) {
+        Some(Value::Array(a)) => a
+            .iter()
+            .map(|x| x.as_str().map(str::to_string))
+            .collect::<Option<_>>()
+            .with_context(|| format!("{at}: config.json's `{LIST_KEY}` holds a non-name"))?,
+        _ => bail!(
+            "{at}: config.json has no `{LIST_KEY}` (written by an older b2dr), so which scenarios the shard \
+             must hold cannot be checked; rerun the shard"
+        ),
+    };
+    let want: std::collections::BTreeSet<String> =
+        shard.deal(list).iter().map(|n| folder_name(n)).collect();
+    let fp = config_fingerprint(cfg);
+    let mut got = std::collections::BTreeSet::new();
+    for v in sc {
+        let name = v["scenario"].as_str().unwrap_or("?");
+        check_record(v, &fp).map_err(|why| anyhow::anyhow!("{at}: scenario {name}: {why}"))?;
+        let f = folder_name(name);
+        ensure!(
+            want.contains(&f),
+            "{at}: scenario {name} is not one of the shard's scenarios (its configuration's `{LIST_KEY}` dealt \
+             {shard} does not name it): a foreign result"
+        );
+        got.insert(f);
+    }
+    if let Some(m) = want.iter().find(|n| !got.contains(*n)) {
+        bail!(
+            "{at}: scenario {m} is missing from its metrics.json ({} of {} scenarios there): a dropped result; \
+             rerun the shard with --resume",
+            got.len(),
+            want.len()
+        );
+    }
+    let own = summarize(Map::new(), sc.to_vec());
+    for k in ["cls", "failures"] {
+        ensure!(
+            summary[k] == own[k],
+            "{at}: metrics.json's `{k}` is {}, but its scenarios give {}: the summary does not match its records",
+            summary[k],
+            own[k]
+        );
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -691,7 +1037,11 @@ mod tests {
         let _ = std::fs::remove_dir_all(&root);
         let d = root.join("shard");
         std::fs::create_dir_all(&d).unwrap();
-        std::fs::write(d.join("metrics.json"), r#"{"scenarios": []}"#).unwrap();
+        std::fs::write(
+            d.join("metrics.json"),
+            r#"{"scenarios": [], "cls": 0.0, "failures": 0}"#,
+        )
+        .unwrap();
         for (shard, needle) in [
             (json!({"index": 0, "count": 0}), "0 <= K < N"),
             (json!({"index": 5, "count": 2}), "0 <= K < N"),
@@ -700,7 +1050,7 @@ mod tests {
                 "10/1000000000000000000 and 999999999999999989 more missing",
             ),
         ] {
-            let cfg = json!({"command": "sim", "shard": shard});
+            let cfg = json!({"command": "sim", "shard": shard, "scenario_list": []});
             std::fs::write(d.join("config.json"), cfg.to_string()).unwrap();
             let e = format!(
                 "{:#}",

@@ -100,6 +100,18 @@ fn speed(sc: &Scenario, step: usize) -> f64 {
 pub fn export(o: &PlannerDataOptions) -> Result<PlannerDataSummary> {
     ensure!(o.every >= 1, "--every must be >= 1");
     ensure!(!o.offsets.is_empty(), "--offsets: no offset given");
+    // the bounds of `world --offset` and `export-training --offsets` (issue #36, item 7)
+    use crate::world::view::{MAX_OFFSET_DEG, MAX_OFFSET_M};
+    for &(lat, yaw) in &o.offsets {
+        ensure!(
+            lat.is_finite()
+                && yaw.is_finite()
+                && lat.abs() <= MAX_OFFSET_M
+                && yaw.abs() <= MAX_OFFSET_DEG.to_radians(),
+            "--offsets {lat},{}: |LATERAL_M| must be <= {MAX_OFFSET_M} m and |YAW_DEG| <= {MAX_OFFSET_DEG} degrees",
+            yaw.to_degrees()
+        );
+    }
     let (h, w) = o.size;
     ensure!(
         (8..=4096).contains(&h) && (8..=4096).contains(&w),

@@ -20,7 +20,7 @@ use anyhow::{bail, ensure, Context as _, Result};
 use serde_json::{json, Value};
 
 pub use super::batch::folder_name;
-use super::batch::{self, write_atomic, Shard};
+use super::batch::{self, Shard};
 use super::sensors::{B2dr, B2drEngine, GroundTruth, LogReplay};
 use crate::metrics::ScoreParams;
 use crate::scene::import::{resolve, Source};
@@ -177,6 +177,16 @@ fn run_one(
 ) -> Result<Value> {
     let t0 = Instant::now();
     let sc = crate::world::load(src)?;
+    // Without lanes (a nuScenes scene without its map expansion) the loop runs with replayed or no agents and
+    // a planner that needs no map; the score then says why it is missing (`metrics_error`).
+    if cfg.agents == AgentMode::Idm {
+        sc.map.require_lanes(
+            "--agents idm (IDM agents drive along lanes; --agents replay or none do not)",
+        )?;
+    }
+    if matches!(cfg.planner, PlannerSpec::Idm) {
+        sc.map.require_lanes("--planner idm")?;
+    }
     let base = src.image_dir();
     let store = ImageStore::new(&sc, base);
     let sim_cfg = SimConfig {
@@ -279,10 +289,7 @@ fn run_one(
         "metrics": metrics, "metrics_error": metrics_error, "wall_ms": wall_ms,
         "timing_ms": totals.json(), "timing_per_frame": per_frame,
     });
-    write_atomic(
-        &dir.join("metrics.json"),
-        serde_json::to_string_pretty(&v)?.as_bytes(),
-    )?;
+    // metrics.json is written by the batch loop, with the configuration's fingerprint, last
     Ok(v)
 }
 
@@ -299,7 +306,7 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
         "--size {h}x{w}: each side in 8..=4096"
     );
     planner(cfg, out)?;
-    let sources = batch::select(resolve(&cfg.scenario)?, cfg.shard)?;
+    let (sources, list) = batch::select_listed(resolve(&cfg.scenario)?, cfg.shard)?;
     batch::check_out_outside_scenarios(out, &sources)?;
     let model_files = if cfg.renderer.uses_model() {
         crate::render::package::package_files(cfg.model.as_deref())?
@@ -309,10 +316,11 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
     let config = batch::with_inputs(
         serde_json::to_value(cfg)?,
         &sources,
+        &list,
         &cfg.planner.to_string(),
         &model_files,
     )?;
-    batch::prepare_out(out, &config, resume)?;
+    let batch_out = batch::prepare_out(out, &config, resume)?;
     let mut engine = if cfg.renderer.uses_model() {
         let ctx = ctx.context("the b2dr renderer needs a Vulkan device")?;
         let pkg = crate::render::package::resolve_model(cfg.model.as_deref())?;
@@ -344,9 +352,8 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
     );
     let n = sources.len();
     let results = batch::for_each_scenario(
-        out,
+        &batch_out,
         &sources,
-        resume,
         |i, src, dir| {
             bar.set_prefix(format!("scenario {}/{n}", i + 1));
             run_one(src, cfg, engine.as_mut(), dir, &bar)

@@ -391,6 +391,50 @@ fn parse_header(bytes: &[u8], what: &str) -> Result<(BTreeMap<String, Entry>, us
     Ok((out, 8 + n))
 }
 
+/// The tensors' byte ranges must tile the data section exactly, as the safetensors format says: sorted by
+/// offset, each begins where the previous ends, the first at 0, the last at the section's end (`data_len`). An
+/// overlap (two tensors sharing bytes), a gap (bytes no tensor owns) or bytes past the last tensor are errors
+/// naming the tensors; a range past the section's end is a truncated file.
+fn check_tiling(entries: &BTreeMap<String, Entry>, data_len: usize, what: &str) -> Result<()> {
+    let mut order: Vec<(&String, &Entry)> = entries.iter().collect();
+    order.sort_by_key(|(_, e)| (e.begin, e.end));
+    let mut cursor = 0usize;
+    let mut prev: Option<&str> = None;
+    for (name, e) in order {
+        ensure!(
+            e.end <= data_len,
+            "{what}: tensor `{name}` (bytes {}..{} of the data section) lies past the end of the file \
+             ({data_len} data bytes): the file is truncated",
+            e.begin,
+            e.end
+        );
+        let after = prev.map_or("the start of the data section".to_string(), |p| {
+            format!("the end of `{p}`")
+        });
+        ensure!(
+            e.begin >= cursor,
+            "{what}: tensor `{name}` (bytes {}..{}) overlaps the bytes before {after} (byte {cursor}): \
+             safetensors tensors must not share bytes",
+            e.begin,
+            e.end
+        );
+        ensure!(
+            e.begin == cursor,
+            "{what}: bytes {cursor}..{} between {after} and tensor `{name}` belong to no tensor: \
+             safetensors tensors must tile the data section without gaps",
+            e.begin
+        );
+        cursor = e.end;
+        prev = Some(name);
+    }
+    ensure!(
+        cursor == data_len,
+        "{what}: the data section holds {data_len} bytes but its tensors cover only {cursor} (bytes \
+         {cursor}..{data_len} belong to no tensor: trailing bytes or a missing header entry)"
+    );
+    Ok(())
+}
+
 fn decode(name: &str, e: &Entry, raw: &[u8], what: &str) -> Result<HostTensor> {
     let dtype = match e.dtype.as_str() {
         "F32" => FileDType::F32,
@@ -452,16 +496,9 @@ impl Weights {
     /// Reads every tensor of a safetensors buffer without checking names (`what` names the source in errors).
     pub fn from_bytes_unchecked(bytes: &[u8], what: &str) -> Result<Self> {
         let (entries, start) = parse_header(bytes, what)?;
-        let data_len = bytes.len() - start;
+        check_tiling(&entries, bytes.len() - start, what)?;
         let mut tensors = BTreeMap::new();
         for (name, e) in &entries {
-            ensure!(
-                e.end <= data_len,
-                "{what}: tensor `{name}` (bytes {}..{} of the data section) lies past the end of the file \
-                 ({data_len} data bytes): the file is truncated",
-                e.begin,
-                e.end
-            );
             let t = decode(name, e, &bytes[start + e.begin..start + e.end], what)?;
             tensors.insert(rename_legacy(name), t);
         }
@@ -485,8 +522,57 @@ impl Weights {
 
     /// Loads a `.safetensors` file and checks it against the expected list.
     pub fn load(path: &Path, expected: &[Spec]) -> Result<Self> {
-        let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+        let bytes = Self::read_file(path)?;
         Self::from_bytes(&bytes, expected, &path.display().to_string())
+    }
+
+    /// Loads a `.safetensors` file without checking names.
+    pub fn load_unchecked(path: &Path) -> Result<Self> {
+        let bytes = Self::read_file(path)?;
+        Self::from_bytes_unchecked(&bytes, &path.display().to_string())
+    }
+
+    /// Reads a safetensors file, bounded by what its header announces (issue #36): a FIFO, device or socket is
+    /// refused before it is opened; the header is read first, and the data section is read only when the file's
+    /// size is the size the header's byte ranges announce (they must tile it), so trailing bytes or a file that
+    /// keeps growing are never read.
+    pub fn read_file(path: &Path) -> Result<Vec<u8>> {
+        use std::io::Read;
+        let what = path.display().to_string();
+        let (f, len) = crate::files::open_regular(path, "safetensors file")?;
+        let mut f = f.take(len);
+        let mut head = [0u8; 8];
+        f.read_exact(&mut head).map_err(|_| {
+            anyhow!("{what}: {len} bytes, too short for a safetensors file (truncated?)")
+        })?;
+        let n = u64::from_le_bytes(head);
+        // the safetensors crate's own bound on a header (MAX_HEADER_SIZE)
+        ensure!(
+            n <= 100_000_000,
+            "{what}: a header of {n} bytes, more than the 100000000 the safetensors format allows"
+        );
+        ensure!(
+            n <= len - 8,
+            "{what}: header of {n} bytes runs past the end of the {len}-byte file (truncated?)"
+        );
+        let mut bytes = head.to_vec();
+        bytes.resize(8 + n as usize, 0);
+        f.read_exact(&mut bytes[8..])
+            .with_context(|| format!("reading {what}"))?;
+        let (entries, start) = parse_header(&bytes, &what)?;
+        let data_len = (len - start as u64) as usize;
+        // the ranges must tile exactly the file's data section (so the header announces the file's size):
+        // checked, naming what is wrong, before a data byte is read
+        check_tiling(&entries, data_len, &what)?;
+        bytes.reserve(data_len);
+        let got = f
+            .read_to_end(&mut bytes)
+            .with_context(|| format!("reading {what}"))?;
+        ensure!(
+            got == data_len,
+            "{what}: {got} data bytes read, the header announces {data_len} (the file changed while read)"
+        );
+        Ok(bytes)
     }
 
     /// Checks names and shapes: every expected tensor present with its shape, nothing else.

@@ -73,7 +73,7 @@ impl KeyFrame {
     /// Reads and validates `frame.json`; errors name the file and the field.
     pub fn load(path: &Path) -> Result<KeyFrame> {
         let text =
-            std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+            crate::files::read_regular_string(path, "keyframe file", crate::files::JSON_LIMIT)?;
         let text = nan_to_null(&text);
         let raw: RawFrame =
             serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
@@ -256,8 +256,7 @@ pub fn drivable_area_from_geojson(path: &Path, z: f64) -> Result<Vec<super::geom
         kind: String,
         coordinates: serde_json::Value,
     }
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let text = crate::files::read_regular_string(path, "map file", crate::files::JSON_LIMIT)?;
     let geo: Geo =
         serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
     let polys: Vec<Vec<Vec<[f64; 2]>>> = match geo.kind.as_str() {

@@ -27,6 +27,31 @@ pub mod unipc;
 
 pub use schedule::{NoiseSchedule, TimestepSpacing};
 
+/// Largest guidance scale accepted anywhere (a model package's `ref_guidance` in `b2dr.json`, `--ref-guidance`
+/// of `render` and `bench frame`, `--guidance` and `--conditioning-scale` of `sample`): beyond it the guided
+/// prediction is noise scaled past anything f16 holds.
+pub const MAX_GUIDANCE: f64 = 100.0;
+
+/// `Err` naming `flag` unless `w` is a guidance scale in (0, [`MAX_GUIDANCE`]] (issue #36, item 7: the same
+/// bound as `b2dr.json`'s `ref_guidance`).
+pub fn check_guidance(flag: &str, w: f64) -> Result<()> {
+    anyhow::ensure!(
+        w.is_finite() && w > 0.0 && w <= MAX_GUIDANCE,
+        "{flag} {w}: a guidance scale in (0, {MAX_GUIDANCE}]"
+    );
+    Ok(())
+}
+
+/// `Err` naming `flag` unless `s` is a ControlNet conditioning scale in [0, [`MAX_GUIDANCE`]] (0: the
+/// ControlNet off).
+pub fn check_conditioning_scale(flag: &str, s: f64) -> Result<()> {
+    anyhow::ensure!(
+        s.is_finite() && (0.0..=MAX_GUIDANCE).contains(&s),
+        "{flag} {s}: a conditioning scale in [0, {MAX_GUIDANCE}]"
+    );
+    Ok(())
+}
+
 use anyhow::{bail, Result};
 
 /// What the model predicts (diffusers' `prediction_type`).

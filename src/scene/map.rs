@@ -103,6 +103,10 @@ pub struct Map {
     pub drivable: PolygonSet,
     /// Painted lines of sources that have them (empty otherwise; set after [`Map::build`]).
     pub lines: Vec<MapLine>,
+    /// Why the map holds no lanes when its source has none to give: Some(the missing file and where it was looked
+    /// for), e.g. a nuScenes scene without the map expansion pack ([`Map::without_lanes`]). What needs lanes
+    /// (IDM agents, routes, the closed-loop score) refuses such a map with this text ([`Map::require_lanes`]).
+    pub missing: Option<String>,
     lane_by_id: HashMap<String, usize>,
     lane_tree: BoxIndex,
     intersection_tree: BoxIndex,
@@ -227,10 +231,37 @@ impl Map {
             intersections,
             drivable,
             lines: vec![],
+            missing: None,
             lane_by_id,
             lane_tree,
             intersection_tree,
         })
+    }
+
+    /// A map with no lanes, crosswalks or drivable area, and the reason (`missing`: what file is missing and
+    /// where it was looked for).
+    pub fn without_lanes(name: &str, missing: String) -> Map {
+        let mut m = Map::build(
+            name,
+            vec![],
+            vec![],
+            vec![],
+            vec![],
+            PolygonSet::default(),
+            false,
+        )
+        .expect("an empty map always builds");
+        m.missing = Some(missing);
+        m
+    }
+
+    /// `Err` naming the missing map file when the map is one of [`Map::without_lanes`]; `what` says what needs
+    /// the lanes.
+    pub fn require_lanes(&self, what: &str) -> anyhow::Result<()> {
+        match &self.missing {
+            Some(m) => anyhow::bail!("{what} needs lanes, and this scenario has none: {m}"),
+            None => Ok(()),
+        }
     }
 
     pub fn lane_index(&self, id: &str) -> Option<usize> {

@@ -53,6 +53,16 @@ impl Canvas {
     }
     fn line(&mut self, a: DVec2, b: DVec2, c: Rgb<u8>) {
         let (pa, pb) = (self.to_px(a), self.to_px(b));
+        // a segment wholly off the canvas draws nothing: skip its steps
+        let (w, h) = (self.img.width() as f64, self.img.height() as f64);
+        if pa.x.max(pb.x) < -1.0
+            || pa.x.min(pb.x) > w + 1.0
+            || pa.y.max(pb.y) < -1.0
+            || pa.y.min(pb.y) > h + 1.0
+            || !(pa.is_finite() && pb.is_finite())
+        {
+            return;
+        }
         let n = (pb - pa).abs().max_element().ceil().min(4000.0) as i64;
         for i in 0..=n.max(1) {
             let p = pa + (pb - pa) * (i as f64 / n.max(1) as f64);
@@ -113,20 +123,50 @@ pub fn render_step(
         mpp: view.metres_per_px,
     };
     let map = &sc.map;
-    // Drivable area (per pixel; the map's indices keep this cheap).
-    for y in 0..view.size {
-        for x in 0..view.size {
-            let p = cv.to_world(x as f64 + 0.5, y as f64 + 0.5);
-            if map.in_drivable_area(p) {
-                cv.img.put_pixel(x, y, Rgb([62, 62, 66]));
-            }
-        }
-    }
     let half = view.size as f64 / 2.0 * view.metres_per_px;
     let q = Aabb {
         min: cv.center - DVec2::splat(half),
         max: cv.center + DVec2::splat(half),
     };
+    // Drivable area: one scanline per pixel row over the edges near that row (work in proportion to the
+    // view, not to the polygons' vertex counts); a map without a drivable-area layer tests its lanes per pixel.
+    let drivable = Rgb([62, 62, 66]);
+    if !map.drivable.is_empty() {
+        let mut xs = Vec::new();
+        for y in 0..view.size {
+            xs.clear();
+            map.drivable
+                .row_crossings(cv.to_world(0.5, y as f64 + 0.5).y, &mut xs);
+            xs.sort_unstable_by(f64::total_cmp);
+            // inside between the 1st and 2nd crossing, the 3rd and 4th, ... (even-odd), boundary included
+            for pair in xs.chunks_exact(2) {
+                let (a, b) = (
+                    cv.to_px(DVec2::new(pair[0], 0.0)).x,
+                    cv.to_px(DVec2::new(pair[1], 0.0)).x,
+                );
+                let x0 = (a - 0.5).ceil().max(0.0);
+                let x1 = (b - 0.5).floor().min(view.size as f64 - 1.0);
+                let mut x = x0;
+                while x <= x1 {
+                    cv.img.put_pixel(x as u32, y, drivable);
+                    x += 1.0;
+                }
+            }
+        }
+    } else {
+        let mut lanes = Vec::new();
+        map.lanes_in(&q, |i| lanes.push(i));
+        if !lanes.is_empty() {
+            for y in 0..view.size {
+                for x in 0..view.size {
+                    let p = cv.to_world(x as f64 + 0.5, y as f64 + 0.5);
+                    if map.in_drivable_area(p) {
+                        cv.img.put_pixel(x, y, drivable);
+                    }
+                }
+            }
+        }
+    }
     let mut lanes = Vec::new();
     map.lanes_in(&q, |i| lanes.push(i as usize));
     lanes.sort_unstable();
@@ -141,7 +181,10 @@ pub fn render_step(
         cv.polyline(&l.centre.points, Rgb([150, 150, 90]), false);
     }
     for cw in &map.crosswalks {
-        cv.polyline(&cw.polygon, Rgb([220, 220, 220]), true);
+        // only those in view (each edge is culled again in `line`)
+        if Aabb::from_points(&cw.polygon).overlaps(&q) {
+            cv.polyline(&cw.polygon, Rgb([220, 220, 220]), true);
+        }
     }
     for &(li, s) in sc.lights_at(step.step) {
         let col = match s {

@@ -169,6 +169,9 @@ pub fn score_run(
     r: &SimResult,
     params: &ScoreParams,
 ) -> anyhow::Result<ScenarioScore> {
+    sc.map.require_lanes(
+        "the closed-loop score (drivable area, driving direction, route progress)",
+    )?;
     let trace = trace_of(sc, r);
     let map = MetricsMap::new(&sc.map);
     let mut s = score_scenario(&map, &trace, params)?;

@@ -127,12 +127,16 @@ impl<'a> ImageStore<'a> {
                     Some(d) => d.join(p),
                     None => PathBuf::from(p),
                 };
-                let mut im = image::open(&path)
-                    .with_context(|| format!("reading recorded image {}", path.display()))?
-                    .to_rgb8();
+                let Some(table) = sc.rig.camera(&img.camera) else {
+                    bail!(
+                        "recorded image {}: the rig has no camera {:?} to give its size",
+                        path.display(),
+                        img.camera
+                    );
+                };
+                let mut im = read_recorded_image(&path, (table.width, table.height), &table.name)?;
                 if let Some(cam) = sc.rig.camera(&img.camera).filter(|c| c.is_distorted()) {
-                    // a distorted lens: undistort at the file's own size, then resize (the file may be stored
-                    // at another size than the calibration's: the intrinsics follow it)
+                    // a distorted lens: undistort at the file's size (the calibration's), then resize
                     let (w0, h0) = im.dimensions();
                     let data =
                         cam.rescaled(w0, h0)
@@ -154,4 +158,51 @@ impl<'a> ImageStore<'a> {
             }
         }
     }
+}
+
+/// Reads a recorded camera image that its table (the log's camera calibration, a keyframe's `cameras`) says is
+/// `table` = (width, height) pixels (issue #36, items 3 and 5): the path must be a regular file of at most
+/// [`crate::files::IMAGE_LIMIT`] bytes; the image's own header is read first and must announce exactly the
+/// table's size (a 1x1 JPEG where the table says 1600x900 is an error naming both, not a blurred planner input
+/// or training target), and only then is it decoded, so decoding never allocates more than the table's size.
+pub fn read_recorded_image(
+    path: &std::path::Path,
+    table: (u32, u32),
+    camera: &str,
+) -> Result<image::RgbImage> {
+    let bytes = crate::files::read_regular(path, "recorded image", crate::files::IMAGE_LIMIT)?;
+    let reader = || {
+        image::ImageReader::new(std::io::Cursor::new(&bytes[..]))
+            .with_guessed_format()
+            .with_context(|| format!("recorded image {}: unknown format", path.display()))
+    };
+    let dims = reader()?
+        .into_dimensions()
+        .with_context(|| format!("recorded image {}: unreadable header", path.display()))?;
+    ensure!(
+        dims == table,
+        "recorded image {} is {}x{} pixels, but its table says camera {camera} records {}x{}",
+        path.display(),
+        dims.0,
+        dims.1,
+        table.0,
+        table.1
+    );
+    let mut r = reader()?;
+    let mut limits = image::Limits::default();
+    limits.max_image_width = Some(table.0);
+    limits.max_image_height = Some(table.1);
+    r.limits(limits);
+    let im = r
+        .decode()
+        .with_context(|| format!("decoding recorded image {}", path.display()))?
+        .to_rgb8();
+    ensure!(
+        im.dimensions() == table,
+        "recorded image {}: decoded {:?}, its header said {:?}",
+        path.display(),
+        im.dimensions(),
+        table
+    );
+    Ok(im)
 }

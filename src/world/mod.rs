@@ -7,6 +7,7 @@
 //! - [`render`]: the deterministic CPU renderer (RGB, depth, class id, instance id per camera).
 //! - [`images`]: the image store resolving a log's recorded images (`builtin://` paths are rendered on demand and
 //!   cached in memory; files are read from disk).
+//! - [`step_views`]: the projection inputs of one log step of any scenario (`b2dr project --scenario`).
 //! - [`view`]: the `b2dr world` command's logic (ground truth of any state, mosaics, mask overlays).
 //! - [`export`]: training samples (`b2dr export-training`, docs/training_data.md).
 pub mod export;
@@ -16,6 +17,7 @@ pub mod palette;
 pub mod render;
 pub mod scenery;
 pub mod shapes;
+pub mod step_views;
 pub mod town;
 pub mod view;
 

@@ -41,6 +41,12 @@ pub fn parse_size(s: &str) -> Result<(usize, usize)> {
     Ok((h, w))
 }
 
+/// Largest ego-frame displacement accepted (m) by `world --offset`, `export-training --offsets` and
+/// `export-planner --offsets`.
+pub const MAX_OFFSET_M: f64 = 100.0;
+/// Largest ego-frame yaw displacement accepted (degrees), as [`MAX_OFFSET_M`].
+pub const MAX_OFFSET_DEG: f64 = 180.0;
+
 /// Parses an ego-frame offset `DX,DY,DYAW` (metres, metres, degrees) into a local pose (radians).
 pub fn parse_offset(s: &str) -> Result<Pose2> {
     let v: Vec<&str> = s.split(',').collect();
@@ -58,8 +64,8 @@ pub fn parse_offset(s: &str) -> Result<Pose2> {
             .with_context(|| format!("--offset {s:?}: {p:?} is not a finite number"))?;
     }
     ensure!(
-        x[0].abs() <= 100.0 && x[1].abs() <= 100.0 && x[2].abs() <= 180.0,
-        "--offset {s:?}: |DX|, |DY| must be <= 100 m and |DYAW| <= 180 degrees"
+        x[0].abs() <= MAX_OFFSET_M && x[1].abs() <= MAX_OFFSET_M && x[2].abs() <= MAX_OFFSET_DEG,
+        "--offset {s:?}: |DX|, |DY| must be <= {MAX_OFFSET_M} m and |DYAW| <= {MAX_OFFSET_DEG} degrees"
     );
     Ok(Pose2::new(x[0], x[1], x[2].to_radians()))
 }

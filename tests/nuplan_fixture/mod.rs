@@ -27,11 +27,7 @@ pub fn write_fixture(out: &Path, extra: &[&str]) -> Option<Fixture> {
             let ex: Value =
                 serde_json::from_str(&std::fs::read_to_string(out.join("expected.json")).ok()?)
                     .ok()?;
-            let map = out
-                .join("maps")
-                .join(ex["location"].as_str()?)
-                .join(ex["map_version"].as_str()?)
-                .join("map.gpkg");
+            let map = PathBuf::from(ex["map"].as_str()?);
             Some(Fixture {
                 root: out.to_path_buf(),
                 db: PathBuf::from(ex["db"].as_str()?),
@@ -69,6 +65,7 @@ impl Fixture {
             db: self.db.clone(),
             token: token.map(str::to_string),
             maps_root: None,
+            map_version: b2dr::scene::import::nuplan::maps_db::DEFAULT_MAP_VERSION.to_string(),
             sensor_root: Some(self.sensor_root.clone()),
         }
     }

@@ -146,8 +146,7 @@ fn light_of(s: &str) -> TrafficLightStatus {
 
 /// Loads one ScenarioNet JSON file.
 pub fn load_file(path: &Path) -> Result<Scenario> {
-    let text = std::fs::read_to_string(path)
-        .with_context(|| format!("reading scenario file {}", path.display()))?;
+    let text = crate::files::read_regular_string(path, "scenario file", crate::files::JSON_LIMIT)?;
     let v: Value = serde_json::from_str(&text)
         .with_context(|| format!("{}: not valid JSON", path.display()))?;
     let maps_dir = path
@@ -496,7 +495,7 @@ pub fn route_from_ego(map: &Map, ego: &[EgoLogState], params: &VehicleParameters
 /// Reads a GeoJSON Polygon / MultiPolygon (or a FeatureCollection of them) into a polygon set.
 pub fn load_geojson_polygons(path: &Path) -> Result<PolygonSet> {
     let file = path.display().to_string();
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading {file}"))?;
+    let text = crate::files::read_regular_string(path, "map file", crate::files::JSON_LIMIT)?;
     let v: Value =
         serde_json::from_str(&text).with_context(|| format!("{file}: not valid JSON"))?;
     let c = Ctx { file: &file };

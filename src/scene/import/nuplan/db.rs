@@ -53,9 +53,11 @@ fn kind(v: &Value) -> String {
 impl Db {
     pub fn open(path: &Path, what: &str) -> Result<Db> {
         let what = format!("{what} {}", path.display());
-        if !path.is_file() {
+        if !path.exists() {
             bail!("{what}: no such file");
         }
+        // a FIFO, device or socket is refused before SQLite opens it
+        crate::files::regular_file(path, "file").with_context(|| what.clone())?;
         let conn = Connection::open_with_flags(
             path,
             OpenFlags::SQLITE_OPEN_READ_ONLY | OpenFlags::SQLITE_OPEN_NO_MUTEX,

@@ -1,5 +1,5 @@
-//! nuPlan maps: `MAPS_ROOT/<location>/<map_version>/map.gpkg` (GeoPackage; layouts of motional/nuplan-devkit
-//! common/maps/nuplan_map). Read: `lanes_polygons` (fid, geom, lane_group_fid, speed_limit_mps),
+//! nuPlan maps: the GeoPackage `MAPS_ROOT/<map name>/<version>/map.gpkg` found by [`super::maps_db`] (layouts of
+//! motional/nuplan-devkit common/maps/nuplan_map). Read: `lanes_polygons` (fid, geom, lane_group_fid, speed_limit_mps),
 //! `baseline_paths` (geom, lane_fid | lane_connector_fid: the centre lines), `lane_connectors` (fid,
 //! exit_lane_fid = predecessor, entry_lane_fid = successor, lane_group_connector_fid, speed_limit_mps,
 //! traffic_light_stop_line_fids), `gen_lane_connectors_scaled_width_polygons` (connector outlines, optional),
@@ -23,15 +23,10 @@ use anyhow::{anyhow, bail, Context, Result};
 use glam::DVec2;
 use std::cell::RefCell;
 use std::collections::HashMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 /// Width given to a connector without an outline (its centre line is buffered).
 pub const DEFAULT_LANE_WIDTH_M: f64 = 3.5;
-
-/// The GeoPackage of a location and map version.
-pub fn map_path(maps_root: &Path, location: &str, version: &str) -> PathBuf {
-    maps_root.join(location).join(version).join("map.gpkg")
-}
 
 fn overlaps(region: &Aabb, pts: &[DVec2]) -> bool {
     !pts.is_empty() && region.overlaps(&Aabb::from_points(pts))

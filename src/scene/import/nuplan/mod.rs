@@ -1,10 +1,12 @@
 //! nuPlan logs read from the log DB (SQLite): `--scenario nuplan:DB[:SCENARIO_TOKEN]` (docs/nuplan.md).
 //!
 //! - DB: one nuPlan log file (`<log>.db`); tables of motional/nuplan-devkit docs/nuplan_schema.md, tokens are
-//!   BLOBs written as lower-case hex. Map: `MAPS_ROOT/<log.location>/<log.map_version>/map.gpkg` ([`gpkg`]);
-//!   images: `SENSOR_ROOT/<image.filename_jpg>`. MAPS_ROOT is `$NUPLAN_MAPS_ROOT`, else the first `maps` folder
-//!   holding the location found in the DB's folder or one of its ancestors; SENSOR_ROOT is
-//!   `$NUPLAN_SENSOR_ROOT`, else the first `sensor_blobs` folder found the same way.
+//!   BLOBs written as lower-case hex. Map: found as the devkit's GPKGMapsDB finds it ([`maps_db`]):
+//!   `MAPS_ROOT/<log.map_version>/<version>/map.gpkg`, the version from the manifest
+//!   `MAPS_ROOT/<$NUPLAN_MAP_VERSION or nuplan-maps-v1.0>.json` (read with [`gpkg`]); images:
+//!   `SENSOR_ROOT/<image.filename_jpg>`. MAPS_ROOT is `$NUPLAN_MAPS_ROOT`, else the first `maps` folder holding
+//!   the manifest found in the DB's folder or one of its ancestors; SENSOR_ROOT is `$NUPLAN_SENSOR_ROOT`, else
+//!   the first `sensor_blobs` folder found the same way.
 //! - Window: with SCENARIO_TOKEN (a `lidar_pc` token, as the `scenario_tag` rows and the devkit's scenario tokens
 //!   are), [`WINDOW_S`] seconds starting [`OFFSET_S`] from that lidar_pc (clamped to the log); without, the whole
 //!   log. Steps: every second lidar_pc of the window (20 Hz -> 10 Hz), dt = 0.1 s.
@@ -33,6 +35,7 @@ use super::bounds;
 
 pub mod db;
 pub mod gpkg;
+pub mod maps_db;
 pub mod pickle;
 pub mod utm;
 pub mod wkb;
@@ -62,6 +65,9 @@ pub struct NuplanSpec {
     pub token: Option<String>,
     /// `$NUPLAN_MAPS_ROOT` when set (else searched from the DB's folder at load).
     pub maps_root: Option<PathBuf>,
+    /// The maps manifest's name (`MAPS_ROOT/<map_version>.json`): `$NUPLAN_MAP_VERSION`, else
+    /// [`maps_db::DEFAULT_MAP_VERSION`].
+    pub map_version: String,
     /// `$NUPLAN_SENSOR_ROOT` when set (else searched from the DB's folder at load).
     pub sensor_root: Option<PathBuf>,
 }
@@ -93,6 +99,10 @@ impl NuplanSpec {
             db: PathBuf::from(db),
             token,
             maps_root: env("NUPLAN_MAPS_ROOT"),
+            map_version: std::env::var("NUPLAN_MAP_VERSION")
+                .ok()
+                .filter(|v| !v.is_empty())
+                .unwrap_or_else(|| maps_db::DEFAULT_MAP_VERSION.to_string()),
             sensor_root: env("NUPLAN_SENSOR_ROOT"),
         })
     }
@@ -104,33 +114,41 @@ impl NuplanSpec {
         }
     }
 
-    /// The GeoPackage of `location` / `map_version` (`what` names the DB in errors).
-    fn map_file(&self, what: &str, location: &str, map_version: &str) -> Result<PathBuf> {
-        let maps_root = match &self.maps_root {
-            Some(m) => m.clone(),
-            None => search_up(&self.db, "maps", |p| p.join(location).is_dir()).ok_or_else(|| {
+    /// MAPS_ROOT: `$NUPLAN_MAPS_ROOT`, else the first `maps` folder holding the manifest
+    /// `<map_version>.json` next to the DB or above it.
+    fn maps_root(&self) -> Result<PathBuf> {
+        let manifest = format!("{}.json", self.map_version);
+        match &self.maps_root {
+            Some(m) => Ok(m.clone()),
+            None => search_up(&self.db, "maps", |p| p.join(&manifest).is_file()).ok_or_else(|| {
                 anyhow!(
-                    "{what}: no maps folder holding {location:?} found next to the DB or above it (set NUPLAN_MAPS_ROOT)"
+                    "no `maps` folder holding the maps manifest {manifest} found in the DB's folder or its 5 \
+                     ancestors (set NUPLAN_MAPS_ROOT to the maps folder, NUPLAN_MAP_VERSION to another manifest)"
                 )
-            })?,
-        };
-        Ok(gpkg::map_path(&maps_root, location, map_version))
+            }),
+        }
     }
 
-    /// The files an import of this spec reads whole (for `--resume`'s fingerprints): the log DB and its map.
+    /// The manifest and GeoPackage of the log whose `map_version` column is `log_map_version` ([`maps_db`]).
+    fn map_files(&self, log_map_version: &str) -> Result<(PathBuf, PathBuf)> {
+        let root = self.maps_root()?;
+        let gpkg = maps_db::locate(&root, &self.map_version, log_map_version)?;
+        Ok((maps_db::manifest_path(&root, &self.map_version), gpkg))
+    }
+
+    /// The files an import of this spec reads whole (for `--resume`'s fingerprints): the log DB, the maps
+    /// manifest and the map.
     pub fn input_files(&self) -> Result<Vec<PathBuf>> {
         let db = Db::open(&self.db, "nuPlan log DB")?;
         let log = db
-            .select("log", &["token", "location", "map_version"], "LIMIT 1", &[])?
+            .select("log", &["token", "map_version"], "LIMIT 1", &[])?
             .into_iter()
             .next()
             .ok_or_else(|| anyhow!("{}: table `log` is empty", db.what))?;
-        let map = self.map_file(
-            &format!("{}: columns `location`, `map_version`", log.at()),
-            log.plain_text("location")?,
-            log.plain_text("map_version")?,
-        )?;
-        Ok([self.db.clone(), map]
+        let (manifest, map) = self
+            .map_files(log.plain_text("map_version")?)
+            .with_context(|| format!("{}: column `map_version`", log.at()))?;
+        Ok([self.db.clone(), manifest, map]
             .into_iter()
             .filter(|p| p.is_file())
             .collect())
@@ -292,8 +310,8 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
         .into_iter()
         .next()
         .ok_or_else(|| anyhow!("{what}: table `log` is empty"))?;
-    // Both name folders of the map path.
-    let location = log.plain_text("location")?.to_string();
+    // `map_version` is the map's name (its folder under MAPS_ROOT); `location` (e.g. las_vegas) names no file.
+    let location = log.opt_text("location")?.unwrap_or("").to_string();
     let map_version = log.plain_text("map_version")?.to_string();
     let log_name = log.opt_text("logfile")?.unwrap_or("").to_string();
 
@@ -311,6 +329,16 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
         .iter()
         .map(|r| r.timestamp("timestamp"))
         .collect::<Result<_>>()?;
+    // Time order (issue #36): sorted by the query, so only duplicates can remain; two sweeps at one instant
+    // would make a zero time step (as the nuScenes importer, increasing strictly).
+    if let Some(w) = ts.windows(2).position(|w| w[1] <= w[0]) {
+        bail!(
+            "{}: column `timestamp`: {} us, the same instant as {}: lidar_pc timestamps must increase strictly",
+            pcs[w + 1].at(),
+            ts[w + 1],
+            pcs[w].at()
+        );
+    }
     let (a, b) = match &spec.token {
         None => (0, pcs.len()),
         Some(t) => {
@@ -358,15 +386,43 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
         .collect();
 
     // Ego.
-    let ego_cols = ["token", "x", "y", "qw", "qx", "qy", "qz", "vx", "vy"];
+    let ego_cols = [
+        "token",
+        "x",
+        "y",
+        "qw",
+        "qx",
+        "qy",
+        "qz",
+        "vx",
+        "vy",
+        "timestamp",
+    ];
     let ep_tokens: Vec<String> = sel
         .iter()
         .map(|r| r.token("ego_pose_token"))
         .collect::<Result<_>>()?;
     let eps = by_token(&db, "ego_pose", &ego_cols, &ep_tokens)?;
     let mut ego = Vec::with_capacity(n);
+    let mut prev_pose: Option<(&Rec, i64)> = None;
     for r in &sel {
         let e = follow(r, "ego_pose_token", "ego_pose", &eps)?;
+        // the steps' ego poses in the steps' order: strictly increasing time too (a reversed or shared pose
+        // would make the ego jump back or stand still for a step)
+        let te = e.timestamp("timestamp")?;
+        if let Some((p, tp)) = prev_pose {
+            if te <= tp {
+                bail!(
+                    "{}: column `timestamp`: {te} us is {} {tp} us of {}, the previous step's ego pose \
+                     (the ego pose of {}): ego pose timestamps must increase strictly with the lidar_pc's",
+                    e.at(),
+                    if te == tp { "the same instant as" } else { "before" },
+                    p.at(),
+                    r.at()
+                );
+            }
+        }
+        prev_pose = Some((e, te));
         let yaw = yaw_of(quat(e)?);
         let v_local = DVec2::new(e.speed("vx")?, e.speed("vy")?);
         let (s, c) = yaw.sin_cos();
@@ -458,12 +514,14 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
 
     // Map around the ego path.
     // Errors about the map name the log row that chose it.
-    let log_at = format!("{}: columns `location`, `map_version`", log.at());
-    let map_path = spec.map_file(&log_at, &location, &map_version)?;
+    let log_at = format!("{}: column `map_version`", log.at());
+    let (_, map_path) = spec.map_files(&map_version).with_context(|| {
+        format!("{log_at}: finding the map {map_version:?} (location {location:?})")
+    })?;
     let region = Aabb::from_points(&ego.iter().map(|e| e.rear_axle.pos()).collect::<Vec<_>>())
         .expand(MAP_MARGIN_M);
-    let map = gpkg::load(&map_path, &location, &region)
-        .with_context(|| format!("{log_at}: loading the map of {location:?} {map_version:?}"))?;
+    let map = gpkg::load(&map_path, &maps_db::map_name(&map_version), &region)
+        .with_context(|| format!("{log_at}: loading the map {map_version:?}"))?;
 
     // Traffic lights.
     let mut traffic_lights: Vec<Vec<(usize, TrafficLightStatus)>> = vec![vec![]; n];

@@ -13,7 +13,7 @@ use anyhow::{anyhow, bail, Context, Result};
 use glam::DVec2;
 use serde_json::Value;
 use std::collections::HashMap;
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 /// Spacing of centre-line points sampled from arcline paths (the devkit's default resolution).
 pub const ARCLINE_RESOLUTION_M: f64 = 0.5;
@@ -217,11 +217,16 @@ fn overlaps(region: &Aabb, pts: &[DVec2]) -> bool {
 }
 
 /// Loads the map of `location` from `<dataroot>/maps/expansion/<location>.json`, keeping what meets `region`.
-pub fn load(dataroot: &Path, location: &str, region: &Aabb) -> Result<Map> {
-    let path = dataroot
+/// `DATAROOT/maps/expansion/<location>.json`, where the devkit's `NuScenesMap` finds the expansion pack.
+pub fn path(dataroot: &Path, location: &str) -> PathBuf {
+    dataroot
         .join("maps")
         .join("expansion")
-        .join(format!("{location}.json"));
+        .join(format!("{location}.json"))
+}
+
+pub fn load(dataroot: &Path, location: &str, region: &Aabb) -> Result<Map> {
+    let path = path(dataroot, location);
     let file = path.display().to_string();
     let text = bounds::read_table_text(&path).map_err(|why| {
         anyhow!("nuScenes map expansion of {location:?}: {why} (the map expansion pack is needed for lanes)")

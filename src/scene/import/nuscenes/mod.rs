@@ -1,7 +1,8 @@
 //! nuScenes logs read from the official tables: `--scenario nuscenes:DATAROOT[:VERSION]:SCENE` (docs/nuscenes.md).
 //!
 //! - Tables: `DATAROOT/VERSION/*.json` ([`tables`]; VERSION defaults to `v1.0-mini`); SCENE is a scene name
-//!   (`scene-0061`) or token. Map: `DATAROOT/maps/expansion/<log.location>.json` ([`expansion`]).
+//!   (`scene-0061`) or token. Map: `DATAROOT/maps/expansion/<log.location>.json` ([`expansion`]); without
+//!   it (a separate download) a map without lanes that names the missing file (`Map::without_lanes`).
 //! - Time: the log starts at the scene's first sample; steps are 0.1 s up to the last sample. Keyframes
 //!   (samples) come at about 2 Hz.
 //! - Ego: the ego poses of the scene's LIDAR_TOP sample_data (all sample_data when there is no LIDAR_TOP),
@@ -18,6 +19,7 @@
 use super::bounds;
 use crate::scene::camera::{Camera, CameraImage, CameraRig, RecordedFrame};
 use crate::scene::geometry::{wrap_angle, Aabb, Pose2};
+use crate::scene::map::Map;
 use crate::scene::{
     EgoLogState, ObjectClass, ObjectState, Scenario, Track, TrafficLightStatus, VehicleParameters,
 };
@@ -147,6 +149,54 @@ pub struct NuscenesLog {
     /// Unix time of the first sample (us); every time in the scenario is relative to it.
     pub t0_us: i64,
     pub keyframes: Vec<Keyframe>,
+    /// Per recorded frame of `scenario.rig.frames`: the index of its sample in `keyframes` when it is a keyframe
+    /// frame (its images are keyframe sample_data), None for a frame of sweeps.
+    pub frame_sample: Vec<Option<usize>>,
+}
+
+/// The annotated boxes the devkit's `NuScenes.get_boxes(sample_data_token)` gives for an image taken at `t_us`
+/// (relative to the log start): for a keyframe image (`sample` = its sample index) the sample's annotations as
+/// stored; for a sweep, the annotations of the first sample at or after `t_us`, each interpolated from the same
+/// instance's annotation in the sample before (linear centre, quaternion slerp, fraction
+/// `(t - t_prev) / (t_next - t_prev)`), or taken as is without one.
+pub fn boxes_at_image(keyframes: &[Keyframe], sample: Option<usize>, t_us: i64) -> Vec<Annotation> {
+    if let Some(j) = sample {
+        return keyframes
+            .get(j)
+            .map(|k| k.annotations.clone())
+            .unwrap_or_default();
+    }
+    let Some(j) = keyframes
+        .iter()
+        .position(|k| k.time_us >= t_us)
+        .or(keyframes.len().checked_sub(1))
+    else {
+        return vec![];
+    };
+    let cur = &keyframes[j];
+    if j == 0 {
+        return cur.annotations.clone();
+    }
+    let prev = &keyframes[j - 1];
+    let span = (cur.time_us - prev.time_us).max(1) as f64;
+    let f = ((t_us - prev.time_us) as f64 / span).clamp(0.0, 1.0);
+    cur.annotations
+        .iter()
+        .map(
+            |a| match prev.annotations.iter().find(|p| p.instance == a.instance) {
+                Some(p) => {
+                    let rotation = p.rotation.slerp(a.rotation, f);
+                    Annotation {
+                        center: p.center.lerp(a.center, f),
+                        rotation,
+                        yaw: yaw_of(rotation),
+                        ..a.clone()
+                    }
+                }
+                None => a.clone(),
+            },
+        )
+        .collect()
 }
 
 /// The object class of a nuScenes category (ScenarioNet's mapping: bicycles and motorcycles are cyclists).
@@ -425,7 +475,21 @@ pub fn load_log(spec: &NuscenesSpec) -> Result<NuscenesLog> {
     // Map around the ego path.
     let mut region = Aabb::from_points(&ego_pose.iter().map(|p| p.pos()).collect::<Vec<_>>());
     region = region.expand(MAP_MARGIN_M);
-    let map = expansion::load(&spec.dataroot, &location, &region).with_context(ctx)?;
+    // The map expansion pack is a separate download that images, boxes and calibration do not need: without
+    // it the scene loads with a map of no lanes, and what needs lanes says so (`Map::require_lanes`).
+    let exp = expansion::path(&spec.dataroot, &location);
+    let map = if exp.symlink_metadata().is_ok() {
+        expansion::load(&spec.dataroot, &location, &region).with_context(ctx)?
+    } else {
+        Map::without_lanes(
+            &location,
+            format!(
+                "the nuScenes map expansion pack's {} is not there (lanes, connectors and the drivable area come \
+                 from it: a separate download, nuScenes-map-expansion-v1.3, unpacked into DATAROOT/maps)",
+                exp.display()
+            ),
+        )
+    };
 
     let ego_params = VehicleParameters {
         width: 1.73,
@@ -434,7 +498,7 @@ pub fn load_log(spec: &NuscenesSpec) -> Result<NuscenesLog> {
         ..VehicleParameters::PACIFICA
     };
     let route = super::scenarionet::route_from_ego(&map, &ego, &ego_params);
-    let rig = camera_rig(&t, &sds, &sample_ts, t0, &spec.dataroot)?;
+    let (rig, frame_sample) = camera_rig(&t, &sds, &sample_ts, t0, &spec.dataroot)?;
     let scenario = Scenario {
         name,
         source: spec.spec(),
@@ -452,6 +516,7 @@ pub fn load_log(spec: &NuscenesSpec) -> Result<NuscenesLog> {
         scene_token,
         t0_us: t0,
         keyframes,
+        frame_sample,
     })
 }
 
@@ -645,7 +710,7 @@ fn camera_rig(
     sample_ts: &[i64],
     t0: i64,
     dataroot: &std::path::Path,
-) -> Result<CameraRig> {
+) -> Result<(CameraRig, Vec<Option<usize>>)> {
     let mut cameras: Vec<Camera> = Vec::new();
     let max_px = bounds::MAX_IMAGE_SIDE_PX;
     for s in sds.iter().filter(|s| s.modality == "camera") {
@@ -722,24 +787,30 @@ fn camera_rig(
             .find(|s| s.sample == j && s.key && s.channel == "LIDAR_TOP");
         let e2g = lidar.map(|s| s.e2g).unwrap_or(images[0].ego2global);
         let step = ((ts - t0) as f64 * 1e-6 / DT).round();
-        frames.push(RecordedFrame {
-            timestamp_us: (step * DT * 1e6).round() as i64,
-            ego2global: e2g,
-            images,
-        });
+        frames.push((
+            RecordedFrame {
+                timestamp_us: (step * DT * 1e6).round() as i64,
+                ego2global: e2g,
+                images,
+            },
+            Some(j),
+        ));
     }
     // Sweeps: greedy groups in time order.
     let mut group: Vec<CameraImage> = Vec::new();
-    let flush = |g: &mut Vec<CameraImage>, frames: &mut Vec<RecordedFrame>| {
+    let flush = |g: &mut Vec<CameraImage>, frames: &mut Vec<(RecordedFrame, Option<usize>)>| {
         if g.is_empty() {
             return;
         }
         sort_images(g);
-        frames.push(RecordedFrame {
-            timestamp_us: g.iter().map(|i| i.timestamp_us).min().unwrap_or(0),
-            ego2global: g[0].ego2global,
-            images: std::mem::take(g),
-        });
+        frames.push((
+            RecordedFrame {
+                timestamp_us: g.iter().map(|i| i.timestamp_us).min().unwrap_or(0),
+                ego2global: g[0].ego2global,
+                images: std::mem::take(g),
+            },
+            None,
+        ));
     };
     for s in sds.iter().filter(|s| !s.key && s.modality == "camera") {
         let img = image(s);
@@ -752,6 +823,7 @@ fn camera_rig(
         group.push(img);
     }
     flush(&mut group, &mut frames);
-    frames.sort_by_key(|f| f.timestamp_us);
-    Ok(CameraRig { cameras, frames })
+    frames.sort_by_key(|f| f.0.timestamp_us);
+    let (frames, samples) = frames.into_iter().unzip();
+    Ok((CameraRig { cameras, frames }, samples))
 }
