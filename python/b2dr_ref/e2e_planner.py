@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import importlib.util
 import json
 import math
 import sys
@@ -29,21 +28,12 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-POSES = 8
-COMMANDS = ["left", "straight", "right"]
-# Target normalisation (x m, y m, heading rad): the loss is L1 in these units.
-POSE_SCALE = (10.0, 1.0, 0.1)
-WEIGHTS = "planner.safetensors"
-CONFIG = "config.json"
+# the torch-free parts, shared with the numpy forward (b2dr_ref.e2e_numpy)
+from .e2e_common import (COMMANDS, CONFIG, POSE_SCALE, POSES, WEIGHTS, pool2,  # noqa: F401 (re-exported)
+                         read_config, reply_poses, request_inputs, serve_planner, state_vector)
+from .e2e_common import client as _client  # noqa: F401
+
 CKPT = "checkpoint.pt"
-
-
-def pool2(img: np.ndarray) -> np.ndarray:
-    """(..., H, W) uint8 -> (..., H // 2, W // 2) uint8: the rounded mean of each 2 x 2 block."""
-    h, w = img.shape[-2] // 2 * 2, img.shape[-1] // 2 * 2
-    x = img[..., :h, :w].astype(np.uint16)
-    s = x[..., 0::2, 0::2] + x[..., 1::2, 0::2] + x[..., 0::2, 1::2] + x[..., 1::2, 1::2]
-    return ((s + 2) // 4).astype(np.uint8)
 
 
 class E2EPlanner(nn.Module):
@@ -76,15 +66,6 @@ class E2EPlanner(nn.Module):
         f = self.convs(image / 127.5 - 1.0).flatten(1)
         out = self.head(torch.cat([f, state], 1)).view(-1, POSES, 3)
         return out * self.scale
-
-
-def state_vector(speed: np.ndarray, accel: np.ndarray, command: np.ndarray) -> np.ndarray:
-    """(N,) speed m/s, accel m/s^2, command code (0 left, 1 straight, 2 right) -> (N, 5) float32."""
-    s = np.zeros((len(speed), 5), np.float32)
-    s[:, 0] = speed / 10.0
-    s[:, 1] = np.clip(accel, -6.0, 6.0) / 3.0
-    s[np.arange(len(speed)), 2 + command.astype(np.int64)] = 1.0
-    return s
 
 
 def load_data(folder: str) -> Dict[str, np.ndarray]:
@@ -214,51 +195,24 @@ def export(a) -> None:
 def load_planner(folder: str) -> E2EPlanner:
     from safetensors.torch import load_file
 
-    cfg = json.loads((Path(folder) / CONFIG).read_text())
-    if cfg.get("format") != "b2dr-e2e-planner":
-        raise ValueError(f"{folder}/{CONFIG}: not a b2dr-e2e-planner")
+    cfg = read_config(folder)
     m = E2EPlanner(tuple(cfg["image_size"]), cfg["width"])
     m.load_state_dict({k: v.float() for k, v in load_file(str(Path(folder) / WEIGHTS)).items()})
     return m.eval()
 
 
-def _client():
-    """The project's protocol-v2 client (examples/b2dr_planner.py), loaded by path."""
-    p = Path(__file__).resolve().parents[2] / "examples" / "b2dr_planner.py"
-    spec = importlib.util.spec_from_file_location("b2dr_planner", p)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def plan_request(model: E2EPlanner, image_hwc: np.ndarray, ego: dict, command: str) -> List[List[float]]:
     """One protocol-v2 request -> 8 poses (the image must be the model's size)."""
-    h, w = model.image_size
-    if image_hwc.shape != (h, w, 3):
-        raise ValueError(f"image {image_hwc.shape}, the planner was trained on {(h, w, 3)}")
-    img = torch.from_numpy(pool2(image_hwc.transpose(2, 0, 1))).float()[None]
-    st = torch.from_numpy(state_vector(np.array([ego["vx"]], np.float32), np.array([ego.get("ax", 0.0)],
-                                       np.float32), np.array([COMMANDS.index(command)])))
+    img, st = request_inputs(model.image_size, image_hwc, ego, command)
     with torch.no_grad():
-        p = model(img, st)[0].double().numpy()
-    if not np.isfinite(p).all():
-        raise ValueError("the planner produced a non-finite pose")
-    return [[float(x), float(y), float(t)] for x, y, t in p]
+        p = model(torch.from_numpy(img).float(), torch.from_numpy(st))[0].double().numpy()
+    return reply_poses(p)
 
 
 def serve(a) -> None:
     torch.set_num_threads(1)
     model = load_planner(a.weights)
-    client = _client()
-    cam = a.camera
-
-    def plan(req):
-        try:
-            return plan_request(model, req.camera(cam).array(), req.ego, req.command)
-        except (KeyError, ValueError) as e:
-            return {"error": str(e)}
-
-    client.serve(plan, images="inline", size=model.image_size)
+    serve_planner(lambda img, ego, command: plan_request(model, img, ego, command), model.image_size, a.camera)
 
 
 def main(argv=None) -> None:
