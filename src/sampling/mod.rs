@@ -37,7 +37,7 @@ pub const MAX_GUIDANCE: f64 = 100.0;
 pub fn check_guidance(flag: &str, w: f64) -> Result<()> {
     anyhow::ensure!(
         w.is_finite() && w > 0.0 && w <= MAX_GUIDANCE,
-        "{flag} {w}: a guidance scale in (0, {MAX_GUIDANCE}]"
+        "{flag} {w}: must be a finite guidance scale in (0, {MAX_GUIDANCE}]"
     );
     Ok(())
 }
@@ -47,7 +47,7 @@ pub fn check_guidance(flag: &str, w: f64) -> Result<()> {
 pub fn check_conditioning_scale(flag: &str, s: f64) -> Result<()> {
     anyhow::ensure!(
         s.is_finite() && (0.0..=MAX_GUIDANCE).contains(&s),
-        "{flag} {s}: a conditioning scale in [0, {MAX_GUIDANCE}]"
+        "{flag} {s}: must be a finite conditioning scale in [0, {MAX_GUIDANCE}]"
     );
     Ok(())
 }
