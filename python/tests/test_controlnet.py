@@ -154,8 +154,9 @@ def test_config_rejects_unknown_key(tmp_path):
         B2DRControlNetModel.from_config(dict(cfg, ref_attn=["mid", "down.0"]))
     with pytest.raises(ConfigError, match="unknown"):
         B2DRControlNetModel.from_config(dict(cfg, ref_attn=["down.3"]))
+    # in_channels = 2 x the latent channels ([x_t, z_prev]): an odd count cannot be split
     with pytest.raises(ConfigError, match="in_channels"):
-        B2DRControlNetModel.from_config(dict(cfg, in_channels=4))
+        B2DRControlNetModel.from_config(dict(cfg, in_channels=7))
     with pytest.raises(ConfigError, match="conditioning_channels"):
         B2DRControlNetModel.from_config(dict(cfg, conditioning_channels=3))
     with pytest.raises(ConfigError, match="ref_encoder_channels"):
