@@ -86,8 +86,16 @@ NANO_Z16_WVAE = copy.deepcopy(NANO_Z16)
 NANO_Z16_WVAE["name"] = "b2dr-nano-z16-wvae"
 NANO_Z16_WVAE["vae"]["block_out_channels"] = [64, 128, 128, 128]
 
+# ... and the committed VAE's blocks with 4 groups in its GroupNorms instead of 16: with 16 groups on the 16-channel
+# full-resolution stage every group is one channel, an instance norm that removes each channel's mean and contrast
+# over the image right before conv_out, so flat colours must be rebuilt from what the norm left
+NANO_Z16_G4 = copy.deepcopy(NANO_Z16)
+NANO_Z16_G4["name"] = "b2dr-nano-z16-g4"
+NANO_Z16_G4["vae"]["norm_num_groups"] = 4
+
 CONFIGS = {"nano": NANO, "b2dr-nano": NANO, "test": TEST, "b2dr-test": TEST, "nano-z8": NANO_Z8,
-           "nano-z16": NANO_Z16, "test-z8": TEST_Z8, "nano-z16-wvae": NANO_Z16_WVAE}
+           "nano-z16": NANO_Z16, "test-z8": TEST_Z8, "nano-z16-wvae": NANO_Z16_WVAE,
+           "nano-z16-g4": NANO_Z16_G4}
 
 
 def get_config(name: str) -> Dict[str, Any]:

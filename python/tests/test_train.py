@@ -477,3 +477,46 @@ def test_more_latent_channels_train_export_and_init(vae_run, tmp_path):
                 assert k in fresh, (part, k)
             else:
                 torch.testing.assert_close(ck[part][k], val, rtol=0, atol=0)
+
+
+def test_grad_l1_on_hand_computed_edges():
+    """vae_train.grad_l1 (--grad-weight): zero for the image itself and for a uniform colour shift; hand-computed
+    values on a one-pixel line blurred over three pixels and moved one pixel; weights take the larger of two
+    neighbours."""
+    x = torch.zeros(1, 3, 4, 5)
+    x[..., :, 2] = 1.0                                        # a vertical line one pixel wide
+    assert float(V.grad_l1(x, x)) == 0.0
+    assert float(V.grad_l1(x + 0.25, x)) == 0.0                 # 0.25: exact in binary
+    blur = torch.zeros_like(x)
+    blur[..., :, 1:4] = 1 / 3                                  # the line spread over three pixels
+    shifted = torch.roll(x, 1, dims=-1)                      # the line one pixel to the right
+    # horizontal differences per row: x (0, 1, -1, 0), blur (1/3, 0, 0, -1/3), |diff| sum 1/3 + 1 + 1 + 1/3
+    # = 8/3 a row, 4 rows, 3 channels; vertical differences all zero
+    assert float(V.grad_l1(blur, x)) == pytest.approx(3 * 4 * 8 / 3)
+    # shifted: x (0, 1, -1, 0) vs (0, 0, 1, -1): 0 + 1 + 2 + 1 = 4 a row -> 48
+    assert float(V.grad_l1(shifted, x)) == pytest.approx(3 * 4 * 4)
+    w = torch.ones(1, 1, 4, 5)
+    w[..., 0, 2] = 5.0                                        # one heavy pixel on the line, top row
+    # top row's horizontal pairs (1,2) and (2,3) take weight 5: the blur's row costs 1/3 + 5 + 5 + 1/3; its
+    # vertical pairs (0,1) at column 2 take 5 too but their differences are zero
+    assert float(V.grad_l1(blur, x, w)) == pytest.approx(3 * (3 * 8 / 3 + (2 / 3 + 10)))
+
+
+def test_recon_loss_l2_is_the_squared_error():
+    """vae_loss(recon="l2"): the weighted squared error per pixel (the decoded sample drawn with the same
+    generator state as the L1 loss), the logged L1 unchanged; an unknown loss is refused."""
+    vae = V.build_vae(nano.get_config("test"), 0).eval()
+    x = torch.rand(2, 3, 16, 24) * 2 - 1
+    w = torch.ones(2, 1, 16, 24)
+    w[:, :, 3:6] = 5.0
+    loss1, l1a, _ = V.vae_loss(vae, x, torch.Generator().manual_seed(3), 0.0, w)
+    loss2, l1b, _ = V.vae_loss(vae, x, torch.Generator().manual_seed(3), 0.0, w, recon="l2")
+    gen = torch.Generator().manual_seed(3)
+    post = vae.encode(x).latent_dist
+    rec = vae.decode(post.mean + post.std * torch.randn(post.mean.shape, generator=gen)).sample
+    n = 3 * 16 * 24
+    torch.testing.assert_close(loss1, ((rec - x).abs() * w).flatten(1).sum(1).mean() / n)
+    torch.testing.assert_close(loss2, ((rec - x).square() * w).flatten(1).sum(1).mean() / n)
+    torch.testing.assert_close(l1a, l1b)
+    with pytest.raises(ValueError, match="l1 or l2"):
+        V.vae_loss(vae, x, torch.Generator().manual_seed(3), 0.0, recon="huber")
