@@ -867,7 +867,8 @@ fn upsampled_input_matches_upsample_then_conv() {
 /// `norm::group_norm_stats_parts`): the normalisation they define, applied to the conv's stored output, against
 /// the f64 group norm of that output. Partial tile pairs (OH % 6, OW % 12 != 0), a batch of 2, bias and
 /// residual, an output far from zero (the mean 1e3 times the spread: the shifted merge must not cancel), f32 and
-/// f16 (the partials see the f16-rounded values).
+/// f16 (the partials see the f16-rounded values, checked partial by partial: Mesa 25's lavapipe drops an
+/// f32 -> f16 -> f32 round trip, so the kernel rounds in f32 arithmetic, `as_stored4`).
 #[test]
 fn group_norm_stats_from_conv_partials_match_reference() {
     let Some(ctx) = ctx() else { return };
@@ -929,6 +930,35 @@ fn group_norm_stats_from_conv_partials_match_reference() {
                 .iter()
                 .map(|&v| v as f64)
                 .collect();
+            // each partial (slot = tile pair (image, tile row, pair) of 6 rows x 12 columns): the count of the
+            // pixels it covers and the mean of their values as stored (in f16: rounded, not the f32 values
+            // before the store; 1e-6 is f32 precision, a partial of unrounded halves misses by ~1e-4)
+            let pv = parts.to_f32(&ctx).unwrap();
+            let (th, pw) = (h.div_ceil(6), w.div_ceil(12));
+            for (slot, (img, ty, q)) in (0..n)
+                .flat_map(|i| (0..th).flat_map(move |t| (0..pw).map(move |q| (i, t, q))))
+                .enumerate()
+            {
+                for ch in 0..o {
+                    let vals: Vec<f64> = (6 * ty..(6 * ty + 6).min(h))
+                        .flat_map(|yy| (12 * q..(12 * q + 12).min(w)).map(move |xx| (yy, xx)))
+                        .map(|(yy, xx)| y[((img * o + ch) * h + yy) * w + xx])
+                        .collect();
+                    let k = (slot * o + ch) * 4;
+                    assert_eq!(
+                        pv[k] as usize,
+                        vals.len(),
+                        "{name} {dtype:?}: slot {slot} count"
+                    );
+                    let mean = vals.iter().sum::<f64>() / vals.len() as f64;
+                    let err = (pv[k + 1] as f64 - mean).abs();
+                    assert!(
+                        err <= 1e-6 * (mean.abs() + 1.0),
+                        "{name} {dtype:?}: slot {slot} channel {ch}: partial mean {} vs {mean} of the stored values",
+                        pv[k + 1]
+                    );
+                }
+            }
             let s = st.to_f32(&ctx).unwrap();
             let hw = h * w;
             let got: Vec<f32> = y

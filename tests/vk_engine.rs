@@ -172,3 +172,20 @@ fn explicit_vulkan_control_runs_on_a_callers_device() {
         instance.destroy_instance(None);
     }
 }
+
+/// The driver's identity (VkPhysicalDeviceDriverProperties) and how it evaluates f16 (`cast.wgsl`'s
+/// `f16_probe`): the probe gives one of the outcomes it knows (anything else is an error), on every driver that
+/// reports f16 support.
+#[test]
+fn driver_info_and_f16_arithmetic_probe() {
+    let Some(ctx) = ctx() else { return };
+    let info = ctx.info();
+    assert!(
+        !info.driver_info.is_empty(),
+        "driverName / driverInfo empty"
+    );
+    let r = b2dr::ops::cast::f16_probe(&ctx).expect("f16 probe");
+    assert_eq!(r.is_some(), info.f16);
+    eprintln!("driver {}: {r:?}", info.driver_info);
+    assert_no_validation_errors();
+}

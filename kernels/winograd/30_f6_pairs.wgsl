@@ -136,20 +136,20 @@ fn output6p(@builtin(workgroup_id) wid: vec3<u32>, @builtin(num_workgroups) nwg:
                         v2 = v2 / (1.0 + exp(-v2));
                         v3 = v3 / (1.0 + exp(-v3));
                     }
-                    let s0 = vec4<ST>(out4(v0));
-                    let s1 = vec4<ST>(out4(v1));
-                    let s2 = vec4<ST>(out4(v2));
-                    let s3 = vec4<ST>(out4(v3));
-                    y4[e] = s0;
-                    y4[e + ps] = s1;
-                    y4[e + 2u * ps] = s2;
-                    y4[e + 3u * ps] = s3;
+                    let c0 = out4(v0);
+                    let c1 = out4(v1);
+                    let c2 = out4(v2);
+                    let c3 = out4(v3);
+                    y4[e] = vec4<ST>(c0);
+                    y4[e + ps] = vec4<ST>(c1);
+                    y4[e + 2u * ps] = vec4<ST>(c2);
+                    y4[e + 3u * ps] = vec4<ST>(c3);
                     if (p.stats == 1u) {
-                        // the values as stored, shifted by each channel's first value
-                        let f0 = vec4<f32>(s0);
-                        let f1 = vec4<f32>(s1);
-                        let f2 = vec4<f32>(s2);
-                        let f3 = vec4<f32>(s3);
+                        // the values as stored (`as_stored4`), shifted by each channel's first value
+                        let f0 = as_stored4(c0);
+                        let f1 = as_stored4(c1);
+                        let f2 = as_stored4(c2);
+                        let f3 = as_stored4(c3);
                         if (r == 0u && q == 0u) { sh = vec4<f32>(f0.x, f1.x, f2.x, f3.x); }
                         let d0 = f0 - sh.x;
                         let d1 = f1 - sh.y;
@@ -192,3 +192,19 @@ var<private> sh: vec4<f32>;
 var<private> ss1: array<vec4<f32>, 4>;
 var<private> ss2: array<vec4<f32>, 4>;
 var<private> cnt: f32;
+
+// The f32 value that storing v (|v| <= 65504, as `out4` leaves it) as ST keeps: v itself in f32; in f16 v rounded
+// to the nearest half (ties to even, subnormal halves included), computed with f32 operations that are exact
+// (scalings by powers of two, roundEven). Not vec4<f32>(vec4<f16>(v)): Mesa 25's lavapipe drops that round trip
+// (f32(f16(x)) = x: `b2dr info`'s f16 probe, kernels/cast.wgsl), and statistics of the unrounded values miss
+// the stored tensor's mean by ~ulp / sqrt(count) (group norm NMSE 1e-9 instead of 1e-15 on one-channel groups).
+fn as_stored4(v: vec4<f32>) -> vec4<f32> {
+    if (!IS_F16) { return v; }
+    // binary exponent of |v| (v in [2^ex, 2^(ex + 1))); the half's spacing there is 2^(ex - 10), at least 2^-24
+    let ex = vec4<i32>((bitcast<vec4<u32>>(v) >> vec4<u32>(23u)) & vec4<u32>(0xffu)) - vec4<i32>(127);
+    let k = max(ex - vec4<i32>(10), vec4<i32>(-24));
+    // 2^-k and 2^k built from their exponent bits (k in [-24, 118]: both normal f32)
+    let down = bitcast<vec4<f32>>(vec4<u32>(vec4<i32>(127) - k) << vec4<u32>(23u));
+    let up = bitcast<vec4<f32>>(vec4<u32>(vec4<i32>(127) + k) << vec4<u32>(23u));
+    return round(v * down) * up;
+}

@@ -16,6 +16,9 @@ pub fn run(device: Option<String>) -> Result<()> {
                 .map(|[dom, bus, dev, f]| format!(", PCI {dom:04x}:{bus:02x}:{dev:02x}.{f:x}"))
                 .unwrap_or_default();
         println!("      uuid {}{pci}", d.id.uuid_string());
+        if !d.driver_info.is_empty() {
+            println!("      driver {}", d.driver_info);
+        }
     }
     for v in [
         "CUDA_VISIBLE_DEVICES",
@@ -35,8 +38,28 @@ pub fn run(device: Option<String>) -> Result<()> {
     let yes = |b: bool| if b { "yes" } else { "no" };
     println!("chosen: [{}] {} ({})", i.index, i.name, i.kind);
     println!("  uuid:                       {}", i.id.uuid_string());
+    println!("  driver:                     {}", i.driver_info);
     println!("  chosen by:                  {}", i.selected_by);
     println!("  f16 storage + arithmetic:   {}", yes(i.f16));
+    // the probe's own failure is reported, not fatal: `info` is what one runs to look at a misbehaving driver
+    match b2dr::ops::cast::f16_probe(&ctx) {
+        Ok(Some(f)) => {
+            let ops = if f.rounds_per_op {
+                "rounds every operation to f16 (IEEE half arithmetic)"
+            } else {
+                "evaluated in f32, rounded to f16 only when stored"
+            };
+            let trip = if f.round_trip_kept {
+                "rounds to f16"
+            } else {
+                "dropped by the compiler (gives x back)"
+            };
+            println!("  f16 arithmetic:             {ops}");
+            println!("  f32(f16(x)) round trip:     {trip}");
+        }
+        Ok(None) => {}
+        Err(e) => println!("  f16 probe:                  failed: {e:#}"),
+    }
     println!(
         "  subgroups (size {}):         {}",
         i.subgroup_size,

@@ -14,6 +14,9 @@ pub struct DeviceInfo {
     pub kind: String,
     pub api_version: String,
     pub driver: String,
+    /// `VkPhysicalDeviceDriverProperties` driverName and driverInfo, e.g. "llvmpipe: Mesa 25.0.7-2~bpo12+1
+    /// (LLVM 15.0.6)": which driver build runs (the tests print it, so a log tells Mesa 22 from Mesa 25).
+    pub driver_info: String,
     /// f16 arithmetic (shaderFloat16) and 16-bit storage-buffer access.
     pub f16: bool,
     /// Subgroup basic + arithmetic + shuffle in compute shaders.
@@ -237,10 +240,12 @@ pub(super) fn describe(
         .any(|e| e.extension_name_as_c_str() == Ok(ash::ext::pci_bus_info::NAME));
     let mut sg = vk::PhysicalDeviceSubgroupProperties::default();
     let mut idp = vk::PhysicalDeviceIDProperties::default();
+    let mut drv = vk::PhysicalDeviceDriverProperties::default();
     let mut pci = vk::PhysicalDevicePCIBusInfoPropertiesEXT::default();
     let mut p2 = vk::PhysicalDeviceProperties2::default()
         .push_next(&mut sg)
-        .push_next(&mut idp);
+        .push_next(&mut idp)
+        .push_next(&mut drv);
     if has_pci {
         p2 = p2.push_next(&mut pci);
     }
@@ -285,6 +290,19 @@ pub(super) fn describe(
             vk::api_version_patch(v)
         ),
         driver: format!("{:#x}", p.driver_version),
+        driver_info: {
+            let name = drv
+                .driver_name_as_c_str()
+                .map(|c| c.to_string_lossy().into_owned());
+            let info = drv
+                .driver_info_as_c_str()
+                .map(|c| c.to_string_lossy().into_owned());
+            match (name.unwrap_or_default(), info.unwrap_or_default()) {
+                (n, i) if n.is_empty() => i,
+                (n, i) if i.is_empty() => n,
+                (n, i) => format!("{n}: {i}"),
+            }
+        },
         // naga declares UniformAndStorageBuffer16BitAccess for f16 storage buffers, so both 16-bit features are needed.
         f16: v12.shader_float16 == vk::TRUE
             && v11.storage_buffer16_bit_access == vk::TRUE
