@@ -103,6 +103,9 @@ pub fn read_regular_string(path: &Path, what: &str, limit: u64) -> Result<String
 
 /// The ceiling for a JSON document b2dr reads whole (scenarios, tables, maps, configurations): 4 GiB.
 pub const JSON_LIMIT: u64 = 4 << 30;
+/// The ceiling for a model package's text context (context.safetensors: a few (77, D) embeddings, ~1 MB for
+/// SD1.5's six cameras): 256 MiB.
+pub const CONTEXT_LIMIT: u64 = 256 << 20;
 /// The ceiling for one recorded image file: 256 MiB (a 16384 x 16384 RGBA PNG stored is 1 GiB raw, but no camera
 /// image b2dr reads approaches this compressed).
 pub const IMAGE_LIMIT: u64 = 256 << 20;

@@ -1115,6 +1115,53 @@ fn special_files_are_refused_at_once() {
     );
 }
 
+/// A model package's own small files (b2dr.json, a component's config.json, context.safetensors) are read as
+/// regular files too (issue #36, item 3): each, replaced by a FIFO in a copy of the committed package, is
+/// refused at once naming that file, instead of blocking the package load forever.
+#[test]
+fn package_files_that_are_fifos_are_refused_at_once() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("models/b2dr-nano");
+    if !src.join("b2dr.json").is_file() {
+        eprintln!("skipping: no models/b2dr-nano");
+        return;
+    }
+    for (k, name) in [
+        "b2dr.json",
+        "unet/config.json",
+        "controlnet/config.json",
+        "context.safetensors",
+    ]
+    .iter()
+    .enumerate()
+    {
+        let d = tmp(&format!("fifo-pkg-{k}"));
+        for sub in ["unet", "controlnet", "vae"] {
+            std::fs::create_dir_all(d.join(sub)).unwrap();
+            for f in ["config.json", "diffusion_pytorch_model.safetensors"] {
+                std::os::unix::fs::symlink(src.join(sub).join(f), d.join(sub).join(f)).unwrap();
+            }
+        }
+        for f in ["b2dr.json", "context.safetensors"] {
+            std::os::unix::fs::symlink(src.join(f), d.join(f)).unwrap();
+        }
+        let p = d.join(name);
+        std::fs::remove_file(&p).unwrap();
+        if !mkfifo(&p) {
+            eprintln!("skipping: no mkfifo");
+            return;
+        }
+        let q = d.clone();
+        let r = within_bound(name, move || {
+            b2dr::render::package::ModelPackage::load(&q).map(|_| ())
+        });
+        let m = format!("{:#}", r.expect_err(name));
+        assert!(
+            m.contains("FIFO") && m.contains(&*p.to_string_lossy()),
+            "{name}: {m}"
+        );
+    }
+}
+
 /// Recorded images checked against their table (issue #36, items 3 and 5): an image file of another size than
 /// its camera's calibration (a 1x1 PNG where the table says the fixture's size), or a FIFO in its place, is an
 /// error naming the file in the image store that log replay, retrieval and export read through, not a resized

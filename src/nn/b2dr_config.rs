@@ -80,7 +80,7 @@ impl ControlNetKind {
 
     pub fn from_file(path: &Path) -> Result<Self> {
         let text =
-            std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+            crate::files::read_regular_string(path, "model config", crate::files::JSON_LIMIT)?;
         let v: Value =
             serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))?;
         Self::from_json(v).with_context(|| format!("in {}", path.display()))

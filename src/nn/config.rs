@@ -464,8 +464,7 @@ fn parse_encoder(k: &mut Keys) -> Result<EncoderConfig> {
 }
 
 fn read_json(path: &Path) -> Result<Value> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let text = crate::files::read_regular_string(path, "model config", crate::files::JSON_LIMIT)?;
     serde_json::from_str(&text).with_context(|| format!("parsing {}", path.display()))
 }
 

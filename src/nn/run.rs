@@ -204,10 +204,11 @@ pub fn forward_component(
 /// Reads a diffusers component folder: `config.json` + `diffusion_pytorch_model.safetensors`.
 pub fn read_component(dir: &Path) -> Result<(serde_json::Value, std::path::PathBuf)> {
     let cfg_path = dir.join("config.json");
-    let cfg: serde_json::Value = serde_json::from_str(
-        &std::fs::read_to_string(&cfg_path)
-            .with_context(|| format!("reading {}", cfg_path.display()))?,
-    )
+    let cfg: serde_json::Value = serde_json::from_str(&crate::files::read_regular_string(
+        &cfg_path,
+        "model config",
+        crate::files::JSON_LIMIT,
+    )?)
     .with_context(|| format!("{}: invalid JSON", cfg_path.display()))?;
     Ok((cfg, dir.join("diffusion_pytorch_model.safetensors")))
 }

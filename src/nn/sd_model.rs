@@ -79,9 +79,7 @@ impl SdModel {
         })?;
         let cpath = dir.join("context.safetensors");
         let ctxw = Weights::from_bytes_unchecked(
-            &std::fs::read(&cpath).with_context(|| {
-                format!("reading {} (the fixed text embedding)", cpath.display())
-            })?,
+            &crate::files::read_regular(&cpath, "text context", crate::files::CONTEXT_LIMIT)?,
             &cpath.display().to_string(),
         )?;
         let cond = ctxw.get("cond")?.data.clone();

@@ -229,8 +229,7 @@ impl ModelPackage {
             dir.display()
         );
         let mp = dir.join("b2dr.json");
-        let text =
-            std::fs::read_to_string(&mp).with_context(|| format!("reading {}", mp.display()))?;
+        let text = crate::files::read_regular_string(&mp, "model file", crate::files::JSON_LIMIT)?;
         let meta: PackageMeta =
             serde_json::from_str(&text).with_context(|| format!("{}: invalid", mp.display()))?;
         meta.check(&mp.display().to_string())?;
@@ -260,7 +259,7 @@ impl ModelPackage {
         let vae = Weights::load(&vw, &expected_vae(&vae_cfg))?;
         let xp = dir.join("context.safetensors");
         let xw = Weights::from_bytes_unchecked(
-            &std::fs::read(&xp).with_context(|| format!("reading {}", xp.display()))?,
+            &crate::files::read_regular(&xp, "text context", crate::files::CONTEXT_LIMIT)?,
             &xp.display().to_string(),
         )?;
         ensure!(
