@@ -8,7 +8,7 @@
 //! padded to 4x4 (`viewpad`) and `lidar2cam = inv(cam2ego) @ inv(image_ego2global) @ ego2global @ lidar2ego`
 //! (mmdet3d's `sensor2lidar` chain through the global frame). For rendered images the image's ego pose is the
 //! request's, so this is `inv(cam2ego) @ lidar2ego`; a replayed log image keeps the log's pose at its exposure.
-use glam::{DMat3, DMat4, DVec2, DVec3, DVec4};
+use glam::{DAffine3, DMat3, DMat4, DVec2, DVec3, DVec4};
 
 use crate::scene::geometry::wrap_angle;
 
@@ -33,13 +33,17 @@ pub fn lidar2img(
     ego2global: &DMat4,
     lidar2ego: &DMat4,
 ) -> DMat4 {
-    intrinsic4(k) * cam2ego.inverse() * image_ego2global.inverse() * *ego2global * *lidar2ego
+    // affine products and inverses: the last row stays [0, 0, 0, 1] exactly
+    let a = |m: &DMat4| DAffine3::from_mat4(*m);
+    let lidar2cam =
+        a(cam2ego).inverse() * a(image_ego2global).inverse() * a(ego2global) * a(lidar2ego);
+    intrinsic4(k) * DMat4::from(lidar2cam)
 }
 
 /// The rear-axle pose expressed in the lidar frame: `inv(lidar2ego)`, which maps ego-frame points (x forward,
 /// y left, z up, origin on the ground under the rear axle) into the lidar frame.
 pub fn ego_in_lidar(lidar2ego: &DMat4) -> DMat4 {
-    lidar2ego.inverse()
+    DMat4::from(DAffine3::from_mat4(*lidar2ego).inverse())
 }
 
 /// A lidar-frame plan point `(x, y)` -> the ego-frame ground point `(x, y)`: the lidar point `(x, y, z)` whose
