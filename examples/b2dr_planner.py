@@ -3,16 +3,21 @@
 images, served over JSON lines on stdin/stdout. Plain Python 3 (no dependencies); numpy is used when present
 (`Camera.array()`), PIL when present to read PNG files (a small built-in PNG reader otherwise).
 
-    from b2dr_planner import serve
+    from b2dr_planner import serve, reply
     def plan(req):                       # req: Request
         img = req.camera("CAM_FRONT").rgb()   # bytes, row-major (H, W, 3)
         return [[4.0 * (k + 1), 0.0, 0.0] for k in range(8)]
     serve(plan, images="inline", size=(112, 200))
 
+A model that plans in the nuScenes lidar frame, xy only (headings derived by b2dr from the path), 6 poses at
+0.5 s, replies with `return reply(xy, dt_s=0.5, frame="lidar")` (`Camera.lidar2img` and `Request.lidar2ego`
+give its calibration).
+
 Test modes of b2dr's protocol tests (python3 b2dr_planner.py --mode M): cv, checksum, noread, closeout,
-tworeplies, manyposes, project.
+tworeplies, manyposes, project, lidarxy, dt1, badframe, baddt, mixed, short.
 """
 import json
+import math
 import struct
 import sys
 import zlib
@@ -91,6 +96,7 @@ class Camera:
         self.intrinsic = d["intrinsic"]      # 3x3 rows, at (width, height)
         self.cam2ego = d["cam2ego"]          # 4x4 rows
         self.ego2global = d["ego2global"]    # 4x4 rows
+        self.lidar2img = d.get("lidar2img")  # 4x4 rows: lidar (request time) -> pixel at (width, height)
         self.checksum = int(d["fnv1a64"])
         self.path = d.get("path")
         self._rgb = None
@@ -122,10 +128,28 @@ class Camera:
         v = (k[1][1] * pc[1] + k[1][2] * pc[2]) / pc[2]
         return u, v
 
+    def project_lidar(self, p_lidar):
+        """A point in the lidar frame of the request -> pixel (u, v) through `lidar2img`, or None behind."""
+        q = transform(self.lidar2img, p_lidar)
+        if q[2] <= 1e-6:
+            return None
+        return q[0] / q[2], q[1] / q[2]
+
+
+def transform(m, p):
+    """4x4 rows `m` applied to the 3D point `p` (homogeneous w = 1; the last row of b2dr's matrices is
+    [0, 0, 0, 1])."""
+    return [sum(m[r][c] * p[c] for c in range(3)) + m[r][3] for r in range(3)]
+
 
 class Request:
-    def __init__(self, d, inline):
+    def __init__(self, d, inline, start=None):
         self.raw = d
+        # the scenario's `start` message (rig, lidar2ego, ...)
+        self.start = start or {}
+        # lidar -> ego (4x4 rows) of the rig's top lidar, and the rear axle in that lidar frame
+        self.lidar2ego = self.start.get("lidar2ego")
+        self.ego_in_lidar = d.get("ego_in_lidar")
         self.scenario = d["scenario"]
         self.step, self.time_s = d["step"], d["time_s"]
         self.ego = d["ego"]
@@ -142,6 +166,40 @@ class Request:
         raise KeyError(f"no camera {name} in the request ({[c.name for c in self.cameras]})")
 
 
+def ego_to_lidar(req, p_ego):
+    """A rear-axle ego-frame point (x forward, y left, z up) -> the request's lidar frame."""
+    return transform(req.ego_in_lidar, p_ego)
+
+
+def reply(poses, dt_s=None, frame=None, xy_only=False):
+    """A plan reply: `poses` are [x, y, heading] or [x, y] (headings derived by b2dr from the path), all of one
+    kind, `dt_s` apart (None: 0.5 s), in `frame` "ego_rear_axle" (None: the default) or "lidar" (the lidar frame
+    of the request time); `xy_only=True` drops the headings of [x, y, heading] poses. At least 2 s of horizon
+    (len(poses) * dt_s). Raises ValueError on what b2dr would refuse."""
+    if frame not in (None, "ego_rear_axle", "lidar"):
+        raise ValueError(f"frame {frame!r}: expected 'ego_rear_axle' or 'lidar'")
+    if dt_s is not None and not (isinstance(dt_s, (int, float)) and math.isfinite(dt_s) and 0.01 <= dt_s <= 2.0):
+        raise ValueError(f"dt_s {dt_s!r}: the pose spacing must be in [0.01, 2] s")
+    out = []
+    for i, p in enumerate(poses):
+        p = [float(v) for v in p]
+        if xy_only:
+            p = p[:2]
+        if len(p) not in (2, 3) or not all(math.isfinite(v) for v in p):
+            raise ValueError(f"poses[{i}] = {p}: expected finite [x, y] or [x, y, heading]")
+        if out and len(p) != len(out[0]):
+            raise ValueError(f"poses[{i}] has {len(p)} values, poses[0] {len(out[0])}: mix of [x, y] and [x, y, heading]")
+        out.append(p)
+    if len(out) * (0.5 if dt_s is None else dt_s) < 2.0 - 1e-9:
+        raise ValueError(f"{len(out)} poses x {0.5 if dt_s is None else dt_s} s: at least 2 s of horizon are required")
+    r = {"poses": out}
+    if dt_s is not None:
+        r["dt_s"] = float(dt_s)
+    if frame is not None:
+        r["frame"] = frame
+    return r
+
+
 def _read_exact(stream, n):
     buf = b""
     while len(buf) < n:
@@ -154,8 +212,10 @@ def _read_exact(stream, n):
 
 def serve(plan, images="paths", size=None, on_start=None, on_end=None):
     """Serves one b2dr process: `plan(Request) -> list of [x, y, heading]` (ego frame, 0.5 s apart) or a dict
-    reply; `images`: "paths", "inline" or "none"; `size`: (height, width) or None (the renderer's size)."""
+    reply (`reply(...)`: declared dt_s, lidar frame, xy-only poses); `images`: "paths", "inline" or "none";
+    `size`: (height, width) or None (the renderer's size)."""
     inp, out = sys.stdin.buffer, sys.stdout
+    start = None
     while True:
         line = inp.readline()
         if not line:
@@ -166,6 +226,7 @@ def serve(plan, images="paths", size=None, on_start=None, on_end=None):
         msg = json.loads(line)
         kind = msg.get("type", "plan")
         if kind == "start":
+            start = msg
             if on_start:
                 on_start(msg)
             reply = {"images": images}
@@ -179,11 +240,11 @@ def serve(plan, images="paths", size=None, on_start=None, on_end=None):
                 on_end(msg)
             continue
         inline = _read_exact(inp, msg.get("inline_bytes", 0)) if msg.get("inline_bytes") else b""
-        r = plan(Request(msg, inline))
-        reply = r if isinstance(r, dict) else {"poses": r}
+        r = plan(Request(msg, inline, start))
+        answer = r if isinstance(r, dict) else {"poses": r}
         # echo the request's step: b2dr then knows the reply answers this request (not an earlier one)
-        reply.setdefault("step", msg.get("step"))
-        out.write(json.dumps(reply) + "\n")
+        answer.setdefault("step", msg.get("step"))
+        out.write(json.dumps(answer) + "\n")
         out.flush()
 
 
@@ -219,12 +280,31 @@ def main():
                     return {"error": f"{c.name}: checksum {got} != {c.checksum}"}
         if mode == "project":
             # where the ego point (10, 0, 0.5) lands in each camera, for the test to compare with b2dr's own
-            # projection at the delivered size
+            # projection at the delivered size; the same point through the lidar frame and lidar2img
             dump = sys.argv[sys.argv.index("--dump") + 1]
+            p_lidar = ego_to_lidar(req, [10.0, 0.0, 0.5])
             with open(dump, "a") as f:
                 for c in req.cameras:
                     f.write(json.dumps({"step": req.step, "camera": c.name, "size": [c.height, c.width],
-                                        "uv": c.project([10.0, 0.0, 0.5])}) + "\n")
+                                        "uv": c.project([10.0, 0.0, 0.5]), "uv_lidar": c.project_lidar(p_lidar),
+                                        "lidar2ego": req.lidar2ego}) + "\n")
+        v = max(2.0, req.ego["vx"])
+        if mode == "lidarxy":
+            # 6 points 0.5 s apart on a gentle left curve, ego frame (v dt k, 0.02 k^2) on the ground, sent
+            # as xy in the lidar frame
+            pts = [ego_to_lidar(req, [v * 0.5 * k, 0.02 * k * k, 0.0]) for k in range(1, 7)]
+            return reply([p[:2] for p in pts], dt_s=0.5, frame="lidar")
+        if mode == "dt1":
+            return reply([[v * k, 0.0, 0.0] for k in range(1, 4)], dt_s=1.0)
+        # replies b2dr must refuse, written without the helper (which refuses them too)
+        if mode == "badframe":
+            return {"poses": _cv(req), "frame": "camera"}
+        if mode == "baddt":
+            return {"poses": _cv(req), "dt_s": 0}
+        if mode == "mixed":
+            return {"poses": [[1.0, 0.0]] + _cv(req)[1:]}
+        if mode == "short":
+            return {"poses": _cv(req)[:3]}
         if mode == "tworeplies":
             sys.stdout.write(json.dumps({"poses": _cv(req)}) + "\n")
         if mode == "manyposes":

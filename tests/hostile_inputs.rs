@@ -16,7 +16,8 @@ use b2dr::scene::geometry::Pose2;
 use b2dr::scene::import::{nuscenes, scenarionet};
 use b2dr::sim::ego::EgoState;
 use b2dr::sim::external::parse_reply;
-use b2dr::sim::planner::trajectory_from_ego_frame;
+use b2dr::sim::planner::{trajectory_from_ego_frame, trajectory_from_ego_poses};
+use b2dr::sim::reply::parse_plan_reply;
 use proptest::prelude::*;
 use proptest::sample::Index;
 
@@ -856,6 +857,21 @@ proptest! {
         extra in arb_json(),
     ) {
         let _ = bounded("reply", || parse_reply(&doc));
+        // version 2: any document, and the poses with a nasty spacing in either frame
+        let l2e = b2dr::scene::camera::nuscenes_lidar2ego();
+        let _ = bounded("v2 reply", || parse_plan_reply(&doc, &l2e));
+        for frame in ["ego_rear_axle", "lidar"] {
+            for dt in [json!(0.5), extra.clone(), poses.first().and_then(|p| p.first()).cloned().unwrap_or(Value::Null)] {
+                let reply = json!({"poses": poses, "dt_s": dt, "frame": frame});
+                if let Ok(r) = bounded("v2 reply poses", || parse_plan_reply(&reply, &l2e)) {
+                    if let Ok(t) = bounded("v2 trajectory", || trajectory_from_ego_poses(&ego(), &r.poses, r.dt_s)) {
+                        for p in &t.poses {
+                            prop_assert!(p.x.is_finite() && p.y.is_finite() && p.heading.is_finite());
+                        }
+                    }
+                }
+            }
+        }
         let reply = json!({"poses": poses, "step": extra});
         if let Ok(local) = bounded("reply poses", || parse_reply(&reply)) {
             // whatever parses either becomes a finite trajectory or is refused

@@ -952,3 +952,47 @@ fn inputs_are_fingerprinted_and_a_missing_log_fails_alone() {
     );
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// The rig's lidar2ego comes from the log's `lidar` row (the fixture's MergedPointCloud: 1.5 m ahead, 1.8 m up,
+/// identity rotation); a log without cameras keeps it; a log without a `lidar` table gets the nominal nuScenes
+/// mounting (issue #34).
+#[test]
+fn lidar2ego_comes_from_the_lidar_table() {
+    let Some(root) = root() else { return };
+    let want = glam::DMat4::from_translation(glam::DVec3::new(1.5, 0.0, 1.8));
+    let sc = nuplan::load(&spec(&db_path(root), None)).unwrap();
+    assert!(
+        sc.rig.lidar2ego.abs_diff_eq(want, 1e-12),
+        "{}",
+        sc.rig.lidar2ego
+    );
+    let nocam = edited(
+        "lidar_nocam",
+        |db, _| {
+            db.execute_batch("DELETE FROM image; DELETE FROM camera")
+                .unwrap()
+        },
+        nuplan::load,
+    )
+    .unwrap();
+    assert!(nocam.rig.lidar2ego.abs_diff_eq(want, 1e-12));
+    let nolidar = edited(
+        "nolidar",
+        |db, _| db.execute_batch("DROP TABLE lidar").unwrap(),
+        nuplan::load,
+    )
+    .unwrap();
+    assert_eq!(
+        nolidar.rig.lidar2ego,
+        b2dr::scene::camera::nuscenes_lidar2ego()
+    );
+    // a hostile calibration is refused naming the column
+    let e = broken("lidar_bad", |db, _| {
+        db.execute_batch("UPDATE lidar SET rotation = x'00'")
+            .unwrap();
+    });
+    assert!(
+        e.contains("table `lidar`") && e.contains("column `rotation`"),
+        "{e}"
+    );
+}

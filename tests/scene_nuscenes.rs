@@ -1174,3 +1174,31 @@ fn dividers_and_stop_lines_come_from_the_map_expansion() {
         "{q:?}"
     );
 }
+
+/// The rig's lidar2ego is the calibration of the scene's LIDAR_TOP (the fixture writes a real nuScenes
+/// LIDAR_TOP record: translation (0.943713, 0, 1.84023), rotation w, x, y, z below), not the nominal mounting
+/// (issue #34).
+#[test]
+fn lidar2ego_is_the_lidar_top_calibration() {
+    let Some(root) = dataroot() else { return };
+    let sc = nuscenes::load(&spec(root)).unwrap();
+    let q = glam::DQuat::from_xyzw(
+        -0.006492242056004365,
+        0.010646214713995808,
+        -0.7063073142877817,
+        0.7077955119163518,
+    );
+    let want = glam::DMat4::from_rotation_translation(
+        q.normalize(),
+        glam::DVec3::new(0.943713, 0.0, 1.84023),
+    );
+    assert!(
+        sc.rig.lidar2ego.abs_diff_eq(want, 1e-9),
+        "{}",
+        sc.rig.lidar2ego
+    );
+    assert!(!sc
+        .rig
+        .lidar2ego
+        .abs_diff_eq(b2dr::scene::camera::nuscenes_lidar2ego(), 1e-3));
+}

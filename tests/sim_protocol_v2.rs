@@ -5,12 +5,18 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
+use b2dr::scene::geometry::{angle_diff, Pose2};
 use b2dr::scene::Scenario;
 use b2dr::sim::closed_loop::run_with_sensors;
+use b2dr::sim::ego::EgoState;
 use b2dr::sim::external::ExternalPlanner;
+use b2dr::sim::sensors::Command;
 use b2dr::sim::sensors::{CameraFrame, SensorState, Sensors};
+use b2dr::sim::trajectory::Trajectory;
 use b2dr::sim::{AgentMode, SimConfig};
+use b2dr::sim::{Planner, PlannerInput};
 use b2dr::world::town as synthetic;
+use glam::DVec2;
 
 fn python() -> bool {
     std::process::Command::new("python3")
@@ -154,11 +160,19 @@ fn images_reach_the_planner_exactly() {
             continue;
         }
         let p = k * (pc / pc.z);
-        let uv = v["uv"].as_array().unwrap();
-        let (u, vv) = (uv[0].as_f64().unwrap(), uv[1].as_f64().unwrap());
+        // the planner's projections: through cam2ego + intrinsic, and through the lidar frame (ego_in_lidar)
+        // and lidar2img of the same message; the start message's lidar2ego reached it
+        for key in ["uv", "uv_lidar"] {
+            let uv = v[key].as_array().unwrap();
+            let (u, vv) = (uv[0].as_f64().unwrap(), uv[1].as_f64().unwrap());
+            assert!(
+                (u - p.x).abs() < 1e-6 && (vv - p.y).abs() < 1e-6,
+                "{key}: {line} vs {p:?}"
+            );
+        }
+        let l2e: [[f64; 4]; 4] = serde_json::from_value(v["lidar2ego"].clone()).unwrap();
         assert!(
-            (u - p.x).abs() < 1e-6 && (vv - p.y).abs() < 1e-6,
-            "{line} vs {p:?}"
+            b2dr::projection::geometry::mat4_from_rows(&l2e).abs_diff_eq(sc.rig.lidar2ego, 1e-12)
         );
         n += 1;
     }
@@ -177,6 +191,13 @@ fn hostile_planners_end_only_their_scenario() {
         ("closeout", "closed its output"),
         ("tworeplies", "two replies"),
         ("manyposes", "at most 1000"),
+        ("badframe", "planner reply `frame` = \"camera\""),
+        ("baddt", "planner reply `dt_s` = 0"),
+        ("mixed", "poses[0] has 2 values but poses[1] has 3"),
+        (
+            "short",
+            "3 poses x `dt_s` 0.5 s cover 1.5 s; at least 2 s are required",
+        ),
     ] {
         let d = tmp(mode);
         let t0 = Instant::now();
@@ -233,4 +254,70 @@ fn camera_names_from_data_stay_inside_the_image_folder() {
         "{names:?}"
     );
     assert!(std::fs::read_dir(d.parent().unwrap()).unwrap().count() == 1);
+}
+
+/// One plan of a v2 planner process on the synthetic town's first step: (the request's ego, the trajectory).
+fn plan_once(mode: &str) -> anyhow::Result<(EgoState, Trajectory)> {
+    let sc = synthetic::town(1, None);
+    let d = tmp(mode);
+    let mut p = planner(&format!("--mode {mode} --images none"), 20.0, &d);
+    p.start(&sc)?;
+    let ego = EgoState::from_log(&sc.ego, 0, sc.dt);
+    let t = p.plan(&PlannerInput {
+        scenario: &sc,
+        step: 0,
+        time_s: 0.0,
+        ego: &ego,
+        objects: &[],
+        images: &[],
+        frames: &[],
+        command: Command::Straight,
+    });
+    p.finish();
+    Ok((ego, t?))
+}
+
+/// Replies as end-to-end models emit them (issue #34 item 3), through the Python client's `reply` helper:
+/// six xy points 0.5 s apart in the lidar frame become rear-axle poses with path headings; three poses 1 s
+/// apart keep their spacing in the tracker's trajectory.
+#[test]
+fn replies_as_models_emit_them() {
+    if !python() {
+        println!("SKIP: python3 not available");
+        return;
+    }
+    let (ego, t) = plan_once("lidarxy").unwrap();
+    // the planner's ego-frame ground points (v dt k, 0.02 k^2), k = 1..6, v = max(2, vx), sent as lidar xy
+    let v = ego.vx.max(2.0);
+    let local: Vec<DVec2> = (1..=6)
+        .map(|k| DVec2::new(v * 0.5 * k as f64, 0.02 * (k * k) as f64))
+        .collect();
+    assert_eq!(
+        t.times_us,
+        (0..=6).map(|k| k * 500_000).collect::<Vec<i64>>()
+    );
+    let mut prev = DVec2::ZERO;
+    for (k, q) in local.iter().enumerate() {
+        // heading: the chord arriving at the point (all chords are longer than 5 cm)
+        let h = (q.y - prev.y).atan2(q.x - prev.x);
+        prev = *q;
+        let want = ego.rear_axle.compose(&Pose2::new(q.x, q.y, h));
+        let got = t.poses[k + 1];
+        assert!(
+            (got.x - want.x).abs() < 1e-6
+                && (got.y - want.y).abs() < 1e-6
+                && angle_diff(got.heading, want.heading).abs() < 1e-9,
+            "pose {}: {got:?} vs {want:?}",
+            k + 1
+        );
+    }
+    // dt 1.0: the trajectory's poses are 1 s apart
+    let (ego, t) = plan_once("dt1").unwrap();
+    assert_eq!(t.times_us, vec![0, 1_000_000, 2_000_000, 3_000_000]);
+    let v = ego.vx.max(2.0);
+    let end = ego.rear_axle.compose(&Pose2::new(3.0 * v, 0.0, 0.0));
+    assert!((t.poses[3].x - end.x).abs() < 1e-9 && (t.poses[3].y - end.y).abs() < 1e-9);
+    // a refused reply is an error naming the field
+    let e = plan_once("badframe").unwrap_err().to_string();
+    assert!(e.contains("`frame`"), "{e}");
 }

@@ -44,11 +44,51 @@ pub struct RecordedFrame {
     pub images: Vec<CameraImage>,
 }
 
-/// A camera rig: the cameras of the vehicle plus the recorded frames of the log.
-#[derive(Clone, Debug, Default, PartialEq)]
+/// A camera rig: the cameras of the vehicle, its top lidar's mounting, and the recorded frames of the log.
+#[derive(Clone, Debug, PartialEq)]
 pub struct CameraRig {
     pub cameras: Vec<Camera>,
+    /// Lidar -> ego transform of the vehicle's top lidar: the frame end-to-end models (UniAD, VAD,
+    /// SparseDrive) plan in. From the log where it has one (nuScenes: LIDAR_TOP's calibrated_sensor; nuPlan: the
+    /// `lidar` table), else [`nuscenes_lidar2ego`].
+    pub lidar2ego: DMat4,
     pub frames: Vec<RecordedFrame>,
+}
+
+impl Default for CameraRig {
+    /// No cameras, no frames, the nominal nuScenes lidar mounting.
+    fn default() -> Self {
+        CameraRig {
+            cameras: vec![],
+            lidar2ego: nuscenes_lidar2ego(),
+            frames: vec![],
+        }
+    }
+}
+
+/// Translation (m, ego frame) of the default lidar mounting: a real nuScenes v1.0 LIDAR_TOP `calibrated_sensor`
+/// record (the value public nuScenes tooling, e.g. mmdet3d-style test-info scripts, hard-codes for every sample;
+/// other logs' calibrations differ by a few centimetres and a fraction of a degree): 0.99 m ahead of the rear
+/// axle, on the centre line, 1.84 m up.
+pub const NUSCENES_LIDAR_TRANSLATION: [f64; 3] = [0.985793, 0.0, 1.84019];
+/// Rotation of the same record as a quaternion `[w, x, y, z]` (nuScenes order): about -90 degrees about +z
+/// (plus about 2 degrees of roll and pitch), so the lidar frame has x to the right, y forward, z up.
+pub const NUSCENES_LIDAR_ROTATION_WXYZ: [f64; 4] = [
+    0.706749235646644,
+    -0.015300993788500868,
+    0.01739745181256607,
+    -0.7070846669051719,
+];
+
+/// The default lidar -> ego transform (synthetic rigs, logs without a lidar calibration): the nuScenes
+/// LIDAR_TOP mounting of [`NUSCENES_LIDAR_TRANSLATION`] and [`NUSCENES_LIDAR_ROTATION_WXYZ`], built as the
+/// nuScenes devkit builds `calibrated_sensor` transforms (`transform_matrix(translation, Quaternion(rotation))`).
+pub fn nuscenes_lidar2ego() -> DMat4 {
+    let [w, x, y, z] = NUSCENES_LIDAR_ROTATION_WXYZ;
+    DMat4::from_rotation_translation(
+        glam::DQuat::from_xyzw(x, y, z, w).normalize(),
+        DVec3::from(NUSCENES_LIDAR_TRANSLATION),
+    )
 }
 
 impl Camera {

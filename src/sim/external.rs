@@ -5,7 +5,10 @@
 //! The planner runs in its own process group, killed at the end of its scenario; on Linux, processes holding its
 //! pipes are killed as well, so a descendant that escaped the group (`setsid`) and keeps the pipes open neither
 //! outlives the scenario nor keeps the reader thread blocked (the reads time out in any case).
-use super::planner::{trajectory_from_ego_frame, Planner, PlannerInput, PLAN_POSES};
+use super::planner::{
+    trajectory_from_ego_frame, trajectory_from_ego_poses, Planner, PlannerInput, PLAN_POSES,
+};
+use super::reply::{parse_plan_reply, MIN_HORIZON_S};
 use super::sensors::CameraFrame;
 use super::trajectory::Trajectory;
 use crate::scene::geometry::Pose2;
@@ -354,11 +357,14 @@ impl ExternalPlanner {
         self.receive(deadline).map(Some)
     }
 
-    /// The v2 `cameras` entries of a request (files written or bytes appended).
+    /// The v2 `cameras` entries of a request (files written or bytes appended); `ego2global`: the request's
+    /// (simulated) ego pose, `lidar2ego`: the rig's lidar.
     fn cameras(
         &self,
         step: usize,
         frames: &[CameraFrame],
+        ego2global: &glam::DMat4,
+        lidar2ego: &glam::DMat4,
         inline: &mut Vec<u8>,
     ) -> Result<Vec<Value>> {
         let mut out = vec![];
@@ -367,11 +373,7 @@ impl ExternalPlanner {
                 Some((h, w)) => f.resized(w, h),
                 None => f.clone(),
             };
-            let mut e = json!({
-                "camera": f.camera, "width": f.width, "height": f.height,
-                "intrinsic": rows3(&f.intrinsic), "cam2ego": rows4(&f.cam2ego), "ego2global": rows4(&f.ego2global),
-                "fnv1a64": fnv1a64(&f.rgb).to_string(),
-            });
+            let mut e = camera_entry(&f, ego2global, lidar2ego);
             match self.mode {
                 ImageMode::Paths => {
                     let dir = self
@@ -404,7 +406,46 @@ impl ExternalPlanner {
     }
 }
 
-/// Parses a reply `{"poses": [[x, y, heading], ...]}` (ego frame) into poses.
+/// The v2 `start` message of a scenario (docs/planner_protocol.md).
+pub fn start_message(sc: &Scenario) -> Value {
+    let p = &sc.ego_params;
+    let rig: Vec<Value> = sc
+        .rig
+        .cameras
+        .iter()
+        .map(|c| {
+            json!({"camera": c.name, "width": c.width, "height": c.height,
+            "intrinsic": rows3(&c.intrinsic), "cam2ego": rows4(&c.cam2ego)})
+        })
+        .collect();
+    json!({
+        "type": "start", "version": 2, "scenario": sc.name, "map": sc.source,
+        "dt_s": sc.dt, "rig": rig, "lidar2ego": rows4(&sc.rig.lidar2ego),
+        "ego": {"length": p.length, "width": p.width, "wheel_base": p.wheel_base, "rear_axle_to_center": p.rear_axle_to_center},
+        "route": sc.route,
+    })
+}
+
+/// The calibration part of a v2 `cameras` entry for a frame as delivered (its size, its intrinsic):
+/// `ego2global` is the request's ego pose, `lidar2ego` the rig's lidar ([`super::lidar::lidar2img`]).
+pub fn camera_entry(f: &CameraFrame, ego2global: &glam::DMat4, lidar2ego: &glam::DMat4) -> Value {
+    let l2i = super::lidar::lidar2img(
+        &f.intrinsic,
+        &f.cam2ego,
+        &f.ego2global,
+        ego2global,
+        lidar2ego,
+    );
+    json!({
+        "camera": f.camera, "width": f.width, "height": f.height,
+        "intrinsic": rows3(&f.intrinsic), "cam2ego": rows4(&f.cam2ego), "ego2global": rows4(&f.ego2global),
+        "lidar2img": rows4(&l2i),
+        "fnv1a64": fnv1a64(&f.rgb).to_string(),
+    })
+}
+
+/// Parses a version-1 reply `{"poses": [[x, y, heading], ...]}` (ego frame) into poses (version 2:
+/// [`super::reply::parse_plan_reply`]).
 pub fn parse_reply(v: &Value) -> Result<Vec<Pose2>> {
     if let Some(e) = v.get("error") {
         bail!("planner reported an error: {e}");
@@ -447,22 +488,7 @@ impl Planner for ExternalPlanner {
         if self.protocol < 2 {
             return Ok(());
         }
-        let p = &sc.ego_params;
-        let rig: Vec<Value> = sc
-            .rig
-            .cameras
-            .iter()
-            .map(|c| {
-                json!({"camera": c.name, "width": c.width, "height": c.height,
-                "intrinsic": rows3(&c.intrinsic), "cam2ego": rows4(&c.cam2ego)})
-            })
-            .collect();
-        let msg = json!({
-            "type": "start", "version": 2, "scenario": sc.name, "map": sc.source,
-            "dt_s": sc.dt, "rig": rig,
-            "ego": {"length": p.length, "width": p.width, "wheel_base": p.wheel_base, "rear_axle_to_center": p.rear_axle_to_center},
-            "route": sc.route,
-        });
+        let msg = start_message(sc);
         let reply = self
             .request(&msg, &[], true)?
             .context("no reply to start")?;
@@ -518,9 +544,19 @@ impl Planner for ExternalPlanner {
         });
         let mut inline = vec![];
         if self.protocol >= 2 {
+            let ego2global = crate::scene::import::ego2global(&e.rear_axle);
+            let lidar2ego = sc.rig.lidar2ego;
             msg["type"] = json!("plan");
             msg["command"] = json!(input.command);
-            msg["cameras"] = json!(self.cameras(input.step, input.frames, &mut inline)?);
+            msg["ego_in_lidar"] = json!(rows4(&super::lidar::ego_in_lidar(&lidar2ego)));
+            msg["reply"]["min_horizon_s"] = json!(MIN_HORIZON_S);
+            msg["cameras"] = json!(self.cameras(
+                input.step,
+                input.frames,
+                &ego2global,
+                &lidar2ego,
+                &mut inline
+            )?);
             msg["inline_bytes"] = json!(inline.len());
         }
         let reply = self.request(&msg, &inline, true)?.context("no reply")?;
@@ -532,6 +568,10 @@ impl Planner for ExternalPlanner {
                 "planner replied for step {s} to the request of step {} (two replies to one request?)",
                 input.step
             );
+        }
+        if self.protocol >= 2 {
+            let r = parse_plan_reply(&reply, &sc.rig.lidar2ego)?;
+            return trajectory_from_ego_poses(e, &r.poses, r.dt_s);
         }
         let local = parse_reply(&reply)?;
         trajectory_from_ego_frame(e, &local, PLAN_POSES)

@@ -60,11 +60,22 @@ pub fn trajectory_from_ego_frame(
     local: &[Pose2],
     min_poses: usize,
 ) -> Result<Trajectory> {
-    ensure!(!local.is_empty(), "planner returned an empty trajectory");
     ensure!(
-        local.len() >= min_poses,
+        local.is_empty() || local.len() >= min_poses,
         "planner returned {} poses, at least {min_poses} are required",
         local.len()
+    );
+    trajectory_from_ego_poses(ego, local, PLAN_DT_S)
+}
+
+/// Converts ego-frame rear-axle poses at `t + dt_s k`, k = 1..=n, into a global trajectory that starts at the
+/// current rear-axle pose (what the 10 Hz tracker follows between plans). Checks finiteness and magnitude;
+/// `dt_s` must be positive and finite (a planner's declared spacing is checked where it is parsed).
+pub fn trajectory_from_ego_poses(ego: &EgoState, local: &[Pose2], dt_s: f64) -> Result<Trajectory> {
+    ensure!(!local.is_empty(), "planner returned an empty trajectory");
+    ensure!(
+        dt_s.is_finite() && dt_s > 0.0,
+        "pose spacing dt_s = {dt_s} s must be a positive number"
     );
     for (i, p) in local.iter().enumerate() {
         ensure!(
@@ -85,11 +96,11 @@ pub fn trajectory_from_ego_frame(
         );
     }
     let t0 = (ego.time_s * 1e6).round() as i64;
-    let step = (PLAN_DT_S * 1e6) as i64;
     let mut times = vec![t0];
     let mut poses = vec![ego.rear_axle];
     for (k, p) in local.iter().enumerate() {
-        times.push(t0 + step * (k as i64 + 1));
+        // each time from its own product: no rounding error accumulates along the trajectory
+        times.push(t0 + (dt_s * 1e6 * (k + 1) as f64).round() as i64);
         poses.push(ego.rear_axle.compose(p));
     }
     Trajectory::new(times, poses)

@@ -191,11 +191,12 @@ pub fn frames_from_ego(
         .collect()
 }
 
-/// The rig of a scenario: nuScenes-like cameras plus frames every 0.5 s.
+/// The rig of a scenario: nuScenes-like cameras, the nominal nuScenes lidar mounting, frames every 0.5 s.
 pub fn default_rig(name: &str, ego: &[super::EgoLogState], dt: f64) -> CameraRig {
     let every = ((0.5 / dt).round() as usize).max(1);
     CameraRig {
         cameras: nuscenes_like_cameras(),
+        lidar2ego: super::camera::nuscenes_lidar2ego(),
         frames: frames_from_ego(name, ego, dt, every),
     }
 }

@@ -18,6 +18,8 @@
 //!   distortion (k1, k2, p1, p2, k3) kept on the camera: the image store undistorts its images); `image` rows
 //!   within the window become recorded images (own timestamp and ego pose), grouped into one frame per step
 //!   (the image of each camera nearest the step time, within [`FRAME_TOLERANCE_US`]). Without cameras the rig is the default generated one.
+//! - Lidar: the rig's `lidar2ego` is the log's `lidar` row (pickled translation, rotation w,x,y,z lidar->ego;
+//!   channel `MergedPointCloud` when several), the nominal nuScenes mounting without one.
 //! - Route: the `roadblock_ids` of the scenario's `scene` rows, as the devkit's `get_route_roadblock_ids`
 //!   ([`scene_route`]; lane ids: the lanes the logged ego drives); the lane groups the logged ego drives
 //!   through when no scene gives roadblocks. Mission goal: `scene.goal_ego_pose_token` (`Route::mission_goal`).
@@ -563,8 +565,11 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
     let (mut route, goal) = scene_route(&db, spec, t0, t_last, driven)?;
     route.mission_goal = goal;
     let name = spec.name();
-    let rig = camera_rig(&db, spec, &log, &sel, &eps, t0, t_last)?
+    let mut rig = camera_rig(&db, spec, &log, &sel, &eps, t0, t_last)?
         .unwrap_or_else(|| super::default_rig(&name, &ego, DT));
+    if let Some(m) = lidar2ego(&db, &log)? {
+        rig.lidar2ego = m;
+    }
     let scenario = Scenario {
         name,
         source: spec.spec(),
@@ -685,6 +690,43 @@ fn ego2global_of(e: &Rec) -> Result<DMat4> {
         quat(e)?,
         DVec3::new(e.f64("x")?, e.f64("y")?, 0.0),
     ))
+}
+
+/// The lidar mounting of the log (module docs): the `lidar` row of channel `MergedPointCloud` (the point cloud
+/// nuPlan's `lidar_pc` rows hold), else the log's first `lidar` row; None without a `lidar` table or row.
+fn lidar2ego(db: &Db, log: &Rec) -> Result<Option<DMat4>> {
+    if !db.has_table("lidar")? {
+        return Ok(None);
+    }
+    let log_tok = unhex(&log.token("token")?).unwrap_or_default();
+    let rows = db.select(
+        "lidar",
+        &["token", "channel", "translation", "rotation"],
+        "WHERE log_token = ?1",
+        &[&log_tok as &dyn rusqlite::ToSql],
+    )?;
+    let Some(r) = rows
+        .iter()
+        .find(|r| r.opt_text("channel").ok().flatten() == Some("MergedPointCloud"))
+        .or(rows.first())
+    else {
+        return Ok(None);
+    };
+    let t = r.pickled("translation", 3)?;
+    let q = r.pickled("rotation", 4)?;
+    let rot = rotation(DQuat::from_xyzw(q[1], q[2], q[3], q[0]))
+        .map_err(|why| anyhow!("{}: column `rotation`: {why}", r.at()))?;
+    if !t.iter().all(|x| x.abs() <= bounds::MAX_SIZE_M) {
+        bail!(
+            "{}: column `translation`: {t:?} lies beyond {} m of the ego",
+            r.at(),
+            bounds::MAX_SIZE_M
+        );
+    }
+    Ok(Some(DMat4::from_rotation_translation(
+        rot,
+        DVec3::new(t[0], t[1], t[2]),
+    )))
 }
 
 /// Cameras and recorded frames (module docs); None when the log has no camera rows.
@@ -872,7 +914,12 @@ fn camera_rig(
             images,
         });
     }
-    Ok(Some(CameraRig { cameras, frames }))
+    Ok(Some(CameraRig {
+        cameras,
+        // the log's `lidar` row replaces it where there is one (`load_log`)
+        lidar2ego: crate::scene::camera::nuscenes_lidar2ego(),
+        frames,
+    }))
 }
 
 /// The (k1, k2, p1, p2, k3) of a `camera.distortion` array (nuplan-devkit: "the Caltech model (k1, k2, p1, p2,

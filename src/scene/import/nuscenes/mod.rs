@@ -14,8 +14,10 @@
 //! - Cameras: every camera sample_data becomes a recorded image with its own ego pose and timestamp; the
 //!   keyframe images of a sample form one [`RecordedFrame`] at the log step nearest the sample time; non-key
 //!   images (sweeps) are grouped into frames by time (one image per camera, within 60 ms). The rig's cameras
-//!   take the calibration of each channel's first image. Image paths are `DATAROOT/<filename>` (absolute when
-//!   DATAROOT is, else relative to the working directory, like the DATAROOT itself).
+//!   take the calibration of each channel's first image; the rig's `lidar2ego` is the calibration of the scene's
+//!   first LIDAR_TOP sample_data (the nominal nuScenes mounting without one). Image paths are
+//!   `DATAROOT/<filename>` (absolute when DATAROOT is, else relative to the working directory, like the DATAROOT
+//!   itself).
 use super::bounds;
 use crate::scene::camera::{Camera, CameraImage, CameraRig, RecordedFrame};
 use crate::scene::geometry::{wrap_angle, Aabb, Pose2};
@@ -825,5 +827,25 @@ fn camera_rig(
     flush(&mut group, &mut frames);
     frames.sort_by_key(|f| f.0.timestamp_us);
     let (frames, samples) = frames.into_iter().unzip();
-    Ok((CameraRig { cameras, frames }, samples))
+    Ok((
+        CameraRig {
+            cameras,
+            lidar2ego: lidar2ego(t, sds)?,
+            frames,
+        },
+        samples,
+    ))
+}
+
+/// The LIDAR_TOP mounting: the calibrated_sensor of the scene's first LIDAR_TOP sample_data (the devkit's
+/// lidar2ego); the nominal nuScenes mounting when the scene has no LIDAR_TOP.
+fn lidar2ego(t: &Tables, sds: &[Sd]) -> Result<DMat4> {
+    let Some(s) = sds.iter().find(|s| s.channel == "LIDAR_TOP") else {
+        return Ok(crate::scene::camera::nuscenes_lidar2ego());
+    };
+    let cs = t
+        .calibrated_sensor
+        .find(&s.calib)
+        .ok_or_else(|| anyhow!("calibrated_sensor {:?} vanished", s.calib))?;
+    cs.transform(bounds::MAX_SIZE_M)
 }
