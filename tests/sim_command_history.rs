@@ -140,8 +140,11 @@ fn the_definitions_differ_where_they_should() {
     );
 }
 
+/// The history of each plan request, by step.
+type Recorded = Vec<(usize, Vec<HistoryEntry>)>;
+
 /// Records the history of each plan request and drives at constant velocity.
-struct Recorder(Rc<RefCell<Vec<(usize, Vec<HistoryEntry>)>>>);
+struct Recorder(Rc<RefCell<Recorded>>);
 
 impl Planner for Recorder {
     fn name(&self) -> String {
@@ -173,7 +176,7 @@ fn straight_with_past(n: usize) -> (Scenario, f64) {
     (sc, v)
 }
 
-fn run_history(sc: &Scenario, history: usize) -> Vec<(usize, Vec<HistoryEntry>)> {
+fn run_history(sc: &Scenario, history: usize) -> Recorded {
     let rec = Rc::new(RefCell::new(vec![]));
     let cfg = SimConfig {
         agents: AgentMode::None,

@@ -413,3 +413,26 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
     batch::write_summary(out, &summary)?;
     Ok(summary)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The request options enter config.json only where they differ from the defaults: a folder written before
+    /// they existed resumes under the defaults, and one run with other options is refused.
+    #[test]
+    fn request_options_are_written_only_when_not_default() {
+        assert_eq!(
+            serde_json::to_value(RequestOptions::default()).unwrap(),
+            json!({})
+        );
+        let o = RequestOptions {
+            command_def: CommandDef::Nuscenes,
+            history: 2,
+        };
+        assert_eq!(
+            serde_json::to_value(o).unwrap(),
+            json!({"command_def": "nuscenes", "history": 2})
+        );
+    }
+}

@@ -101,7 +101,7 @@ fn route_line(sc: &Scenario) -> Option<Polyline> {
 /// The distance the expert drove (logged rear-axle path length) from the log step at `time_s` to
 /// [`NUSCENES_HORIZON_S`] later, clamped to the log.
 pub fn expert_travel_m(sc: &Scenario, time_s: f64) -> f64 {
-    if sc.ego.len() < 2 || !(sc.dt > 0.0) || !time_s.is_finite() {
+    if sc.ego.len() < 2 || sc.dt.is_nan() || sc.dt <= 0.0 || !time_s.is_finite() {
         return 0.0;
     }
     let last = sc.ego.len() - 1;
