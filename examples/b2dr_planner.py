@@ -9,12 +9,21 @@ images, served over JSON lines on stdin/stdout. Plain Python 3 (no dependencies)
         return [[4.0 * (k + 1), 0.0, 0.0] for k in range(8)]
     serve(plan, images="inline", size=(112, 200))
 
+Each `plan` request carries the navigation command (`Request.command`: "left", "right" or "straight", by the
+run's definition `Request.command_def`: "route20" or "nuscenes"; docs/planner_protocol.md) and the ego history
+(`Request.history`: the last K states, newest first, in the current ego frame, each flagged "sim", "log" or
+"pad"; only states, no past images). `Request.command_as(model)` encodes the command as a model expects it:
+
+    req.command_as("uniad")   # int: 0 right, 1 left, 2 forward (UniAD)
+    req.command_as("vad")     # one-hot [right, left, straight] (VAD)
+    req.command_as("navsim")  # one-hot [left, straight, right, unknown] (NAVSIM / OpenScene)
+
 A model that plans in the nuScenes lidar frame, xy only (headings derived by b2dr from the path), 6 poses at
 0.5 s, replies with `return reply(xy, dt_s=0.5, frame="lidar")` (`Camera.lidar2img` and `Request.lidar2ego`
 give its calibration).
 
 Test modes of b2dr's protocol tests (python3 b2dr_planner.py --mode M): cv, checksum, noread, closeout,
-tworeplies, manyposes, project, lidarxy, dt1, badframe, baddt, mixed, short.
+tworeplies, manyposes, project, lidarxy, dt1, badframe, baddt, mixed, short, dumpreq.
 """
 import json
 import math
@@ -154,16 +163,69 @@ class Request:
         self.step, self.time_s = d["step"], d["time_s"]
         self.ego = d["ego"]
         self.command = d.get("command", "straight")
+        # which definition the command follows ("route20" or "nuscenes"); absent in version 1
+        self.command_def = d.get("command_def")
+        # the last K ego states, newest first (EgoPast)
+        self.history = [EgoPast(h) for h in d.get("history", [])]
         self.route = d.get("route", {})
         self.poses = d.get("reply", {}).get("poses", 8)
         self.dt = d.get("reply", {}).get("dt_s", 0.5)
         self.cameras = [Camera(c, inline) for c in d.get("cameras", [])]
+
+    def command_as(self, model):
+        """The command as `model` ("uniad", "vad", "navsim") consumes it (`encode_command`)."""
+        return encode_command(self.command, model)
 
     def camera(self, name):
         for c in self.cameras:
             if c.name == name:
                 return c
         raise KeyError(f"no camera {name} in the request ({[c.name for c in self.cameras]})")
+
+
+# The three commands of the protocol, and each model's encoding of them. Sources (read 2026-12):
+# - UniAD: OpenDriveLab/UniAD projects/mmdet3d_plugin/datasets/data_utils/trajectory_api.py,
+#   get_sdc_planning_label: `command = 0 #'RIGHT'` (lidar x >= 2), `1 #'LEFT'` (x <= -2), `2 #'FORWARD'`.
+# - VAD: hustvl/VAD tools/data_converter/vad_nuscenes_converter.py (lines 452-457): `[1, 0, 0]  # Turn Right`,
+#   `[0, 1, 0]  # Turn Left`, `[0, 0, 1]  # Go Straight` (gt_ego_fut_cmd).
+# - NAVSIM: the driving_command of its OpenScene data, OpenScene DriveEngine/process_data/helpers/
+#   driving_command.py get_driving_command: "one-hot (left, forward, right, unknown)"; unknown where no route.
+COMMANDS = ("left", "right", "straight")
+_ENCODINGS = {
+    "uniad": {"right": 0, "left": 1, "straight": 2},
+    "vad": {"right": [1, 0, 0], "left": [0, 1, 0], "straight": [0, 0, 1]},
+    "navsim": {"left": [1, 0, 0, 0], "straight": [0, 1, 0, 0], "right": [0, 0, 1, 0]},
+}
+
+
+def encode_command(command, model):
+    """b2dr's command ("left", "right", "straight") as `model` ("uniad", "vad", "navsim") consumes it. None (no
+    command in the request) is NAVSIM's unknown [0, 0, 0, 1]; UniAD and VAD have no such value: ValueError, as
+    for an unknown command or model."""
+    if model not in _ENCODINGS:
+        raise ValueError(f"unknown model {model!r}: expected one of {sorted(_ENCODINGS)}")
+    if command is None and model == "navsim":
+        return [0, 0, 0, 1]
+    if command not in COMMANDS:
+        raise ValueError(f"command {command!r}: expected one of {COMMANDS}")
+    e = _ENCODINGS[model][command]
+    return list(e) if isinstance(e, list) else e
+
+
+class EgoPast:
+    """One history slot of a request: the ego `time_s` (negative) before the request, in the request's ego
+    rear-axle frame (x, y, heading; velocity vx, vy and acceleration ax, ay rotated into it), and where it came
+    from: "sim" (the run's simulated state), "log" (logged before the scenario start) or "pad" (before the start
+    where the log has nothing: a copy of the oldest state available)."""
+
+    def __init__(self, d):
+        self.time_s = d["time_s"]
+        self.x, self.y, self.heading = d["x"], d["y"], d["heading"]
+        self.vx, self.vy, self.ax, self.ay = d["vx"], d["vy"], d["ax"], d["ay"]
+        self.source = d["from"]
+
+    def __repr__(self):
+        return f"EgoPast(t={self.time_s}, x={self.x:.3f}, y={self.y:.3f}, from={self.source})"
 
 
 def ego_to_lidar(req, p_ego):
@@ -288,6 +350,14 @@ def main():
                     f.write(json.dumps({"step": req.step, "camera": c.name, "size": [c.height, c.width],
                                         "uv": c.project([10.0, 0.0, 0.5]), "uv_lidar": c.project_lidar(p_lidar),
                                         "lidar2ego": req.lidar2ego}) + "\n")
+        if mode == "dumpreq":
+            # the command, its encodings and the history as this module reads them, for b2dr's tests
+            dump = sys.argv[sys.argv.index("--dump") + 1]
+            with open(dump, "a") as f:
+                f.write(json.dumps({"step": req.step, "command": req.command, "command_def": req.command_def,
+                                    "encoded": {m: req.command_as(m) for m in ("uniad", "vad", "navsim")},
+                                    "history": [[h.time_s, h.x, h.y, h.heading, h.vx, h.source]
+                                                for h in req.history]}) + "\n")
         v = max(2.0, req.ego["vx"])
         if mode == "lidarxy":
             # 6 points 0.5 s apart on a gentle left curve, ego frame (v dt k, 0.02 k^2) on the ground, sent

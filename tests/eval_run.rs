@@ -36,6 +36,7 @@ fn cfg(renderer: RendererMode, agents: AgentMode, controller: &str, steps: usize
         dtype: b2dr::tensor::DType::F32,
         gif: false,
         shard: None,
+        requests: Default::default(),
     }
 }
 

@@ -323,6 +323,7 @@ fn run_cfg(renderer: RendererMode, shard: Option<Shard>) -> RunConfig {
         dtype: b2dr::tensor::DType::F32,
         gif: false,
         shard,
+        requests: Default::default(),
     }
 }
 

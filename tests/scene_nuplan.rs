@@ -389,6 +389,7 @@ fn log_replay_uses_the_recorded_images() {
         dtype: b2dr::tensor::DType::F32,
         gif: false,
         shard: None,
+        requests: Default::default(),
     };
     run(None, &cfg, &out, false).unwrap();
     for cam in ["CAM_F0", "CAM_B0"] {

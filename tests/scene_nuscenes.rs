@@ -902,6 +902,7 @@ fn log_replay_and_retrieval_use_the_recorded_images() {
         dtype: b2dr::tensor::DType::F32,
         gif: false,
         shard: None,
+        requests: Default::default(),
     };
     run(None, &cfg, &out, false).unwrap();
     for cam in ["CAM_FRONT", "CAM_BACK"] {

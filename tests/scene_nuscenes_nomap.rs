@@ -117,6 +117,7 @@ fn log_replay_runs_and_idm_agents_refuse() {
         dtype: b2dr::tensor::DType::F32,
         gif: false,
         shard: None,
+        requests: Default::default(),
     };
     run(None, &cfg, &out, false).unwrap();
     let dir = out.join("scene-0061");

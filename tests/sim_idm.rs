@@ -88,6 +88,7 @@ fn scenario(tracks: Vec<Track>) -> Scenario {
         route: Route::default(),
         traffic_lights: vec![],
         rig: Default::default(),
+        ego_past: vec![],
     }
 }
 

@@ -272,6 +272,8 @@ fn plan_once(mode: &str) -> anyhow::Result<(EgoState, Trajectory)> {
         images: &[],
         frames: &[],
         command: Command::Straight,
+        command_def: Default::default(),
+        history: &[],
     });
     p.finish();
     Ok((ego, t?))

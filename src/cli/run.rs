@@ -33,6 +33,13 @@ pub struct RunArgs {
     pub steps: usize,
     #[arg(long, default_value_t = 60.0)]
     pub planner_timeout: f64,
+    /// Navigation command definition of the planner requests: route20 (the route point 20 m ahead, NAVSIM's)
+    /// or nuscenes (the expert's position 3 s ahead, in the lidar frame: VAD / UniAD); docs/planner_protocol.md
+    #[arg(long, default_value = "route20")]
+    pub command_def: b2dr::sim::command::CommandDef,
+    /// Past ego states per planner request (0.5 s apart, newest first; at most 120)
+    #[arg(long, default_value_t = b2dr::sim::history::HISTORY_DEFAULT)]
+    pub history: usize,
     /// Comma-separated cameras (default: the model's / the rig's)
     #[arg(long, value_delimiter = ',')]
     pub cameras: Vec<String>,
@@ -83,6 +90,10 @@ pub fn run(device: Option<String>, a: RunArgs) -> Result<()> {
         dtype: a.dtype,
         gif: !a.no_gif,
         shard: a.shard,
+        requests: run::RequestOptions {
+            command_def: a.command_def,
+            history: a.history,
+        },
     };
     let ctx = if any_model {
         Some(Context::new(&ContextOptions {

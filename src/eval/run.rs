@@ -25,7 +25,9 @@ use super::sensors::{B2dr, B2drEngine, GroundTruth, LogReplay};
 use crate::metrics::ScoreParams;
 use crate::scene::import::{resolve, Source};
 use crate::sim::closed_loop::{run_with_sensors, Controller};
+use crate::sim::command::CommandDef;
 use crate::sim::external::ExternalPlanner;
+use crate::sim::history::{HISTORY_DEFAULT, HISTORY_MAX};
 use crate::sim::sensors::{CameraFrame, Sensors};
 use crate::sim::{self, AgentMode, Planner, PlannerSpec, SimConfig, SimResult};
 use crate::tensor::DType;
@@ -98,6 +100,36 @@ pub struct RunConfig {
     /// `--shard K/N`: every N-th scenario of the name-ordered list (None: all; not written to config.json).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub shard: Option<Shard>,
+    /// The planner requests' navigation command definition and ego history (protocol v2; written to
+    /// config.json only where they differ from the defaults, so earlier runs' folders still resume).
+    #[serde(flatten)]
+    pub requests: RequestOptions,
+}
+
+/// What protocol-v2 `plan` requests carry besides the state (`--command-def`, `--history`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+pub struct RequestOptions {
+    #[serde(skip_serializing_if = "is_default_def")]
+    pub command_def: CommandDef,
+    #[serde(skip_serializing_if = "is_default_history")]
+    pub history: usize,
+}
+
+impl Default for RequestOptions {
+    fn default() -> Self {
+        Self {
+            command_def: CommandDef::default(),
+            history: HISTORY_DEFAULT,
+        }
+    }
+}
+
+fn is_default_def(d: &CommandDef) -> bool {
+    *d == CommandDef::default()
+}
+
+fn is_default_history(h: &usize) -> bool {
+    *h == HISTORY_DEFAULT
 }
 
 /// Stage totals over frames.
@@ -193,6 +225,8 @@ fn run_one(
         agents: cfg.agents,
         controller: cfg.controller,
         steps: cfg.steps,
+        command_def: cfg.requests.command_def,
+        history: cfg.requests.history,
         ..SimConfig::default()
     };
     std::fs::create_dir_all(dir.join("frames"))
@@ -297,6 +331,11 @@ fn run_one(
 pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> Result<Value> {
     ensure!(cfg.steps >= 1, "--steps must be at least 1");
     ensure!(
+        cfg.requests.history <= HISTORY_MAX,
+        "--history {}: at most {HISTORY_MAX} slots",
+        cfg.requests.history
+    );
+    ensure!(
         cfg.planner_timeout_s > 0.0 && cfg.planner_timeout_s <= 86400.0,
         "--planner-timeout must be in (0, 86400] seconds"
     );
@@ -373,4 +412,27 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
     let summary = batch::summarize(header.as_object().cloned().unwrap_or_default(), results);
     batch::write_summary(out, &summary)?;
     Ok(summary)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The request options enter config.json only where they differ from the defaults: a folder written before
+    /// they existed resumes under the defaults, and one run with other options is refused.
+    #[test]
+    fn request_options_are_written_only_when_not_default() {
+        assert_eq!(
+            serde_json::to_value(RequestOptions::default()).unwrap(),
+            json!({})
+        );
+        let o = RequestOptions {
+            command_def: CommandDef::Nuscenes,
+            history: 2,
+        };
+        assert_eq!(
+            serde_json::to_value(o).unwrap(),
+            json!({"command_def": "nuscenes", "history": 2})
+        );
+    }
 }

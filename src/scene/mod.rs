@@ -217,6 +217,10 @@ pub struct Scenario {
     /// Per step: (connector index, status) for every connector with a known light state.
     pub traffic_lights: Vec<Vec<(usize, TrafficLightStatus)>>,
     pub rig: CameraRig,
+    /// Logged ego states before step 0 (oldest first, `dt` apart; the last is step -1): what a planner's
+    /// history sees before the run's own states exist (`sim::history`). Empty where the source's log starts at
+    /// the scenario's step 0 (every importer and the built-in worlds today).
+    pub ego_past: Vec<EgoLogState>,
 }
 
 impl Scenario {

@@ -1,12 +1,14 @@
 //! The closed loop: 10 Hz steps, planner every 5th step (the latest trajectory keeps being tracked), ego first
 //! (LQR + bicycle), then the agents, which see the ego before it moved and the lights/objects of the next step.
 use super::agents::{EgoObservation, IdmManager, LeaderRef};
+use super::command::CommandDef;
 use super::ego::{BicycleModel, EgoState};
 use super::failure::SimFailure;
+use super::history::{ego_history, HistoryEntry, HISTORY_DEFAULT};
 use super::idm::IdmParams;
 use super::lqr::{LqrParams, LqrTracker, TrackerCommand};
 use super::planner::{ObjectView, Planner, PlannerInput};
-use super::sensors::{navigation_command, CameraFrame, SensorState, Sensors};
+use super::sensors::{CameraFrame, SensorState, Sensors};
 use super::trajectory::Trajectory;
 use crate::scene::geometry::{OrientedBox, Pose2};
 use crate::scene::{CameraImage, ObjectClass, Scenario};
@@ -57,6 +59,10 @@ pub struct SimConfig {
     /// The planner runs every this many steps (5 = 2 Hz).
     pub planner_every: usize,
     pub idm: IdmParams,
+    /// The navigation command definition of the planner requests (`--command-def`).
+    pub command_def: CommandDef,
+    /// Ego history slots per planner request (`--history`; protocol v2 sends them).
+    pub history: usize,
 }
 
 impl Default for SimConfig {
@@ -67,6 +73,8 @@ impl Default for SimConfig {
             steps: 150,
             planner_every: 5,
             idm: IdmParams::default(),
+            command_def: CommandDef::Route20,
+            history: HISTORY_DEFAULT,
         }
     }
 }
@@ -313,6 +321,7 @@ fn plan_step(
     sensors: Option<&mut dyn Sensors>,
     on_frames: &mut dyn FnMut(usize, &[CameraFrame]) -> anyhow::Result<()>,
     timing: &mut StepTiming,
+    history: &[HistoryEntry],
 ) -> Result<Trajectory, SimFailure> {
     let k = rec.step;
     let views: Vec<ObjectView> = rec
@@ -364,7 +373,9 @@ fn plan_step(
         objects: &views,
         images: &imgs,
         frames: &frames,
-        command: navigation_command(c.sc, &st.ego.rear_axle),
+        command: c.cfg.command_def.command(c.sc, &st.ego),
+        command_def: c.cfg.command_def,
+        history,
     };
     let t1 = std::time::Instant::now();
     let t = planner.plan(&input).map_err(|e| SimFailure::Planner {
@@ -517,6 +528,15 @@ pub fn run_with_sensors(
                 step: k,
                 ..Default::default()
             };
+            let steps = &result.steps;
+            let history = ego_history(
+                &st.ego,
+                k,
+                dt,
+                &|j| steps.get(j).map_or(st.ego, |r| r.ego),
+                &sc.ego_past,
+                cfg.history,
+            );
             match plan_step(
                 &c,
                 &st,
@@ -529,6 +549,7 @@ pub fn run_with_sensors(
                 },
                 on_frames,
                 &mut timing,
+                &history,
             ) {
                 Ok(t) => st.traj = Some(t),
                 Err(e) => {

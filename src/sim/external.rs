@@ -548,6 +548,8 @@ impl Planner for ExternalPlanner {
             let lidar2ego = sc.rig.lidar2ego;
             msg["type"] = json!("plan");
             msg["command"] = json!(input.command);
+            msg["command_def"] = json!(input.command_def);
+            msg["history"] = json!(input.history);
             msg["ego_in_lidar"] = json!(rows4(&super::lidar::ego_in_lidar(&lidar2ego)));
             msg["reply"]["min_horizon_s"] = json!(MIN_HORIZON_S);
             msg["cameras"] = json!(self.cameras(

@@ -6,9 +6,11 @@
 pub mod agents;
 pub mod bev;
 pub mod closed_loop;
+pub mod command;
 pub mod ego;
 pub mod external;
 pub mod failure;
+pub mod history;
 pub mod idm;
 pub mod lidar;
 pub mod lqr;

@@ -33,8 +33,11 @@ pub struct PlannerInput<'a> {
     pub images: &'a [CameraImage],
     /// The images of the simulated state from the run's sensors (renderer), in memory; empty without one.
     pub frames: &'a [super::sensors::CameraFrame],
-    /// The navigation command from the route.
+    /// The navigation command from the route, by the run's definition (`command_def`).
     pub command: super::sensors::Command,
+    pub command_def: super::command::CommandDef,
+    /// The last ego states at 0.5 s, newest first, in the current ego frame ([`super::history`]).
+    pub history: &'a [super::history::HistoryEntry],
 }
 
 /// A driving model under test. `plan` returns a global-frame rear-axle trajectory starting at the current

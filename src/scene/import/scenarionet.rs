@@ -440,6 +440,7 @@ pub fn parse(v: &Value, file: &str, maps_dir: Option<&Path>) -> Result<Scenario>
         route,
         traffic_lights: lights,
         rig,
+        ego_past: vec![],
     })
 }
 

@@ -206,6 +206,7 @@ pub fn generate(spec: &BuiltinSpec) -> Scenario {
         route: Route::default(),
         traffic_lights: vec![],
         rig: Default::default(),
+        ego_past: vec![],
     };
     let params = IdmParams {
         radius: f64::INFINITY,
@@ -361,6 +362,7 @@ pub fn generate(spec: &BuiltinSpec) -> Scenario {
         route,
         traffic_lights,
         rig,
+        ego_past: vec![],
     }
 }
 

@@ -581,6 +581,7 @@ pub fn load_log(spec: &NuplanSpec) -> Result<NuplanLog> {
         route,
         traffic_lights,
         rig,
+        ego_past: vec![],
     };
     Ok(NuplanLog {
         scenario,

@@ -512,6 +512,7 @@ pub fn load_log(spec: &NuscenesSpec) -> Result<NuscenesLog> {
         route,
         traffic_lights: vec![Vec::<(usize, TrafficLightStatus)>::new(); n_steps],
         rig,
+        ego_past: vec![],
     };
     Ok(NuscenesLog {
         scenario,
