@@ -130,7 +130,7 @@ fn fails_one_and_restarts(name: &str, how: &str, cause: &str) {
             TWO,
             &planner("resident", &dir, &format!("{how} {scenario}:5")),
             20,
-            1.0,
+            2.0,
             30.0,
         ),
         &out,
@@ -175,11 +175,11 @@ fn a_hang_mid_scenario_times_out_that_scenario_and_the_next_runs_on_a_restarted_
 fn the_load_runs_under_the_start_timeout_not_the_per_call_one() {
     let dir = tmp("load");
     let one = "builtin:town:2";
-    // a 2 s load with a 1 s per-call timeout: accepted resident (start timeout 30 s) ...
-    let slow = planner("resident", &dir, "--load-sleep 2");
+    // a 3 s load with a 1.5 s per-call timeout: accepted resident (start timeout 30 s) ...
+    let slow = planner("resident", &dir, "--load-sleep 3");
     let s = run(
         None,
-        &cfg(one, &slow, 10, 1.0, 30.0),
+        &cfg(one, &slow, 10, 1.5, 30.0),
         &dir.join("ok"),
         false,
     )
@@ -187,10 +187,10 @@ fn the_load_runs_under_the_start_timeout_not_the_per_call_one() {
     assert!(scenarios(&s)[0]["failure"].is_null(), "{s}");
     assert!(scenarios(&s)[0]["score"].as_f64().unwrap() > 0.0, "{s}");
     // ... and times out as cmd: (the load at the first `start`, under the per-call timeout)
-    let per = planner("cmd", &dir, "--load-sleep 2");
+    let per = planner("cmd", &dir, "--load-sleep 3");
     let s = run(
         None,
-        &cfg(one, &per, 10, 1.0, 30.0),
+        &cfg(one, &per, 10, 1.5, 30.0),
         &dir.join("cmd"),
         false,
     )
@@ -216,8 +216,25 @@ fn the_load_runs_under_the_start_timeout_not_the_per_call_one() {
         .unwrap_or_default()
         .to_string();
     assert!(
-        failure.contains("not ready within the start timeout (1.0 s, --planner-start-timeout)")
+        failure.contains("did not answer `hello` (start timeout 1.0 s, --planner-start-timeout)")
             && failure.contains("timed out"),
+        "{failure}"
+    );
+    // a load that raises: serve() answers `hello` with the error, the scenario fails with it
+    let broken = planner("resident", &dir, "--load-fails");
+    let s = run(
+        None,
+        &cfg(one, &broken, 10, 1.0, 30.0),
+        &dir.join("broken"),
+        false,
+    )
+    .unwrap();
+    let failure = scenarios(&s)[0]["failure"]
+        .as_str()
+        .unwrap_or_default()
+        .to_string();
+    assert!(
+        failure.contains("resident planner failed to load") && failure.contains("no weights here"),
         "{failure}"
     );
 }

@@ -1,7 +1,9 @@
 //! External planner process (`--planner cmd:<command line>`), speaking JSON lines over stdin/stdout; the
-//! protocol (v1 and v2) is documented in docs/planner_protocol.md. One process per scenario. A writer thread
-//! owns the planner's stdin and a reader thread its stdout, so that every write AND read is under the
-//! timeout: a planner that never reads its input, or closes its stdout but lives on, is ended at the timeout.
+//! protocol (v1 and v2) is documented in docs/planner_protocol.md. One process per scenario, or one per batch in
+//! resident mode (`resident:`, [`super::resident`]: a session per scenario, restarted after a failure that left
+//! the pipes out of step). A writer thread owns the planner's stdin and a reader thread its stdout, so that
+//! every write AND read is under the timeout: a planner that never reads its input, or closes its stdout but
+//! lives on, is ended at the timeout.
 //! The planner runs in its own process group, killed at the end of its scenario; on Linux, processes holding its
 //! pipes are killed as well, so a descendant that escaped the group (`setsid`) and keeps the pipes open neither
 //! outlives the scenario nor keeps the reader thread blocked (the reads time out in any case).
@@ -449,13 +451,13 @@ impl ExternalPlanner {
         let hello = hello_message(self.timeout, start_timeout);
         let r = self
             .exchange(&hello, &[], true, start_timeout)
-            .and_then(|v| check_ready(&v.context("no reply to hello")?))
             .with_context(|| {
                 format!(
-                    "resident planner not ready within the start timeout ({:.1} s, --planner-start-timeout)",
+                    "resident planner did not answer `hello` (start timeout {:.1} s, --planner-start-timeout)",
                     start_timeout.as_secs_f64()
                 )
-            });
+            })
+            .and_then(|v| check_ready(&v.context("no reply to hello")?));
         if let Err(e) = &r {
             let cause = format!("failed to start: {e:#}");
             self.kill();
