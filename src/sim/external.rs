@@ -416,7 +416,8 @@ impl ExternalPlanner {
         let Some(start_timeout) = self.resident.as_ref().map(|r| r.start_timeout) else {
             bail!("internal: not a resident planner");
         };
-        if self.child.is_some() && self.desynced.is_none() && self.status() == "still running" {
+        let running = matches!(self.child.as_mut().map(|c| c.try_wait()), Some(Ok(None)));
+        if running && self.desynced.is_none() {
             if let Some(r) = self.resident.as_mut() {
                 r.restart_cause = None;
             }
