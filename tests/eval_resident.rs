@@ -1,8 +1,8 @@
 //! `b2dr run --planner resident:...`: one planner process for a batch of scenarios (docs/planner_protocol.md
 //! "Resident planners"), with tests/fixtures/resident_planner.py (the constant-velocity rule, a `load` that
 //! appends its pid to a file). One load drives every scenario with the scores of one process per scenario; a
-//! crash or a hang mid-scenario fails that scenario only and the next one runs on a restarted process; the
-//! load runs under the start timeout, not the per-call one.
+//! crash or a hang mid-scenario fails that scenario only and the next one runs on a restarted process (an error
+//! reply keeps the process); the load runs under the start timeout, not the per-call one.
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -169,6 +169,34 @@ fn a_crash_mid_scenario_fails_that_scenario_and_the_next_runs_on_a_restarted_pro
 #[test]
 fn a_hang_mid_scenario_times_out_that_scenario_and_the_next_runs_on_a_restarted_process() {
     fails_one_and_restarts("hang", "--hang-at", "timed out");
+}
+
+/// An `{"error": ...}` reply ends its scenario but leaves the pipes in step: the process serves the next one.
+#[test]
+fn an_error_reply_fails_that_scenario_and_keeps_the_process() {
+    let dir = tmp("error");
+    let scenario = b2dr::world::load_all("builtin:town:2")
+        .unwrap()
+        .remove(0)
+        .name;
+    let args = format!("--error-at {scenario}:5");
+    let s = run(
+        None,
+        &cfg(TWO, &planner("resident", &dir, &args), 20, 2.0, 30.0),
+        &dir.join("out"),
+        false,
+    )
+    .unwrap();
+    let sc = scenarios(&s);
+    let failure = sc[0]["failure"].as_str().unwrap_or_default();
+    assert!(
+        failure.contains("step 5") && failure.contains("refusing this step"),
+        "{failure}"
+    );
+    assert!(sc[1]["failure"].is_null(), "{}", sc[1]);
+    assert_eq!(loads(&dir), 1, "no restart after a reply in step");
+    assert_eq!(sc[1]["planner_process"]["process"], 1, "{}", sc[1]);
+    assert_eq!(sc[1]["planner_process"]["restarted"], false, "{}", sc[1]);
 }
 
 #[test]
