@@ -171,6 +171,18 @@ fn a_hang_mid_scenario_times_out_that_scenario_and_the_next_runs_on_a_restarted_
     fails_one_and_restarts("hang", "--hang-at", "timed out");
 }
 
+/// The script a resident command line names enters config.json's fingerprinted inputs, as a `cmd:` one's.
+#[test]
+fn the_resident_planner_script_is_fingerprinted() {
+    let script =
+        PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/resident_planner.py");
+    for kind in ["cmd", "resident"] {
+        let files =
+            b2dr::eval::batch::planner_files(&format!("{kind}:python3 {}", script.display()));
+        assert_eq!(files, vec![script.clone()], "{kind}");
+    }
+}
+
 /// An `{"error": ...}` reply ends its scenario but leaves the pipes in step: the process serves the next one.
 #[test]
 fn an_error_reply_fails_that_scenario_and_keeps_the_process() {

@@ -180,7 +180,7 @@ fn parent_of(proc_dir: &std::path::Path) -> Option<u32> {
 impl ExternalPlanner {
     pub fn new(command: &str, timeout: Duration) -> Result<Self> {
         if command.trim().is_empty() {
-            bail!("--planner cmd: needs a command line after `cmd:`");
+            bail!("--planner cmd: (or resident:) needs a command line after the colon");
         }
         ensure!(
             timeout > Duration::ZERO && timeout <= Duration::from_secs(24 * 3600),
