@@ -22,6 +22,16 @@ A model that plans in the nuScenes lidar frame, xy only (headings derived by b2d
 0.5 s, replies with `return reply(xy, dt_s=0.5, frame="lidar")` (`Camera.lidar2img` and `Request.lidar2ego`
 give its calibration).
 
+A model that takes long to load passes `load` (called once, before the first session) and runs resident
+(`b2dr run --planner "resident:python3 my_planner.py"`): b2dr starts the process once for the whole batch, waits
+for the load under `--planner-start-timeout` and then runs every scenario as a session on the same process:
+
+    model = None
+    def load():
+        global model
+        model = build_model()               # minutes: outside the per-call timeout when resident
+    serve(plan, load=load)                  # the same script also serves `cmd:` (loading at the first start)
+
 Test modes of b2dr's protocol tests (python3 b2dr_planner.py --mode M): cv, checksum, noread, closeout,
 tworeplies, manyposes, project, lidarxy, dt1, badframe, baddt, mixed, short, dumpreq.
 """
@@ -272,12 +282,15 @@ def _read_exact(stream, n):
     return buf
 
 
-def serve(plan, images="paths", size=None, on_start=None, on_end=None):
+def serve(plan, images="paths", size=None, on_start=None, on_end=None, load=None):
     """Serves one b2dr process: `plan(Request) -> list of [x, y, heading]` (ego frame, 0.5 s apart) or a dict
     reply (`reply(...)`: declared dt_s, lidar frame, xy-only poses); `images`: "paths", "inline" or "none";
-    `size`: (height, width) or None (the renderer's size)."""
+    `size`: (height, width) or None (the renderer's size); `load()`: called once before the first session (a
+    resident planner's `hello`, else the first `start`). Sessions (start, plan..., end) repeat until stdin
+    ends: a resident process (`b2dr run --planner resident:...`) serves every scenario of a batch."""
     inp, out = sys.stdin.buffer, sys.stdout
     start = None
+    loaded = load is None
     while True:
         line = inp.readline()
         if not line:
@@ -287,7 +300,22 @@ def serve(plan, images="paths", size=None, on_start=None, on_end=None):
             continue
         msg = json.loads(line)
         kind = msg.get("type", "plan")
+        if kind == "hello":
+            # resident mode: the load runs under b2dr's start timeout, not the per-call one
+            try:
+                if not loaded:
+                    load()
+                    loaded = True
+                answer = {"ready": True}
+            except Exception as e:  # the load failed: say why, b2dr ends the scenario with it
+                answer = {"error": f"load failed: {type(e).__name__}: {e}"}
+            out.write(json.dumps(answer) + "\n")
+            out.flush()
+            continue
         if kind == "start":
+            if not loaded:
+                load()
+                loaded = True
             start = msg
             if on_start:
                 on_start(msg)

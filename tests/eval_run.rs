@@ -30,6 +30,7 @@ fn cfg(renderer: RendererMode, agents: AgentMode, controller: &str, steps: usize
         controller: controller.parse().unwrap(),
         steps,
         planner_timeout_s: 30.0,
+        planner_start_timeout_s: 300.0,
         cameras: vec![],
         size: (56, 104),
         seed: 0,

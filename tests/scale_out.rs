@@ -317,6 +317,7 @@ fn run_cfg(renderer: RendererMode, shard: Option<Shard>) -> RunConfig {
         controller: b2dr::sim::closed_loop::Controller::Lqr,
         steps: 15,
         planner_timeout_s: 30.0,
+        planner_start_timeout_s: 300.0,
         cameras: vec!["CAM_FRONT".into()],
         size: (28, 52),
         seed: 0,

@@ -383,6 +383,7 @@ fn log_replay_uses_the_recorded_images() {
         controller: b2dr::sim::closed_loop::Controller::Lqr,
         steps: 4,
         planner_timeout_s: 30.0,
+        planner_start_timeout_s: 300.0,
         cameras: vec!["CAM_F0".into(), "CAM_B0".into()],
         size: (18, 32),
         seed: 0,

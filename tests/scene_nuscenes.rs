@@ -896,6 +896,7 @@ fn log_replay_and_retrieval_use_the_recorded_images() {
         controller: b2dr::sim::closed_loop::Controller::Lqr,
         steps: 6,
         planner_timeout_s: 30.0,
+        planner_start_timeout_s: 300.0,
         cameras: vec!["CAM_FRONT".into(), "CAM_BACK".into()],
         size: (56, 104),
         seed: 0,

@@ -111,6 +111,7 @@ fn log_replay_runs_and_idm_agents_refuse() {
         controller: b2dr::sim::closed_loop::Controller::Lqr,
         steps: 10,
         planner_timeout_s: 30.0,
+        planner_start_timeout_s: 300.0,
         cameras: vec!["CAM_FRONT".into()],
         size: (56, 100),
         seed: 0,

@@ -19,7 +19,8 @@ pub struct RunArgs {
     /// Model package folder or builtin:NAME for the b2dr renderers (default: builtin:b2dr-nano)
     #[arg(long)]
     pub model: Option<PathBuf>,
-    /// expert, cv, idm or cmd:<command line> (protocol v2, docs/planner_protocol.md)
+    /// expert, cv, idm, cmd:<command line> (protocol v2, docs/planner_protocol.md: one process per scenario) or
+    /// resident:<command line> (one process for the whole batch, loaded once; "Resident planners" there)
     #[arg(long, default_value = "expert")]
     pub planner: b2dr::sim::PlannerSpec,
     /// idm (reactive, R-CLS), replay (CLS-NR) or none
@@ -31,8 +32,12 @@ pub struct RunArgs {
     /// Steps per scenario (10 Hz)
     #[arg(long, default_value_t = 150)]
     pub steps: usize,
+    /// Seconds each message to and from an external planner may take (a crash or hang ends the scenario)
     #[arg(long, default_value_t = 60.0)]
     pub planner_timeout: f64,
+    /// Seconds a resident planner may take to answer `hello` (its model load), at start and at each restart
+    #[arg(long, default_value_t = b2dr::sim::resident::START_TIMEOUT_DEFAULT_S)]
+    pub planner_start_timeout: f64,
     /// Navigation command definition of the planner requests: route20 (the route point 20 m ahead, NAVSIM's)
     /// or nuscenes (the expert's position 3 s ahead, in the lidar frame: VAD / UniAD); docs/planner_protocol.md
     #[arg(long, default_value = "route20")]
@@ -84,6 +89,7 @@ pub fn run(device: Option<String>, a: RunArgs) -> Result<()> {
         controller: a.controller,
         steps: a.steps,
         planner_timeout_s: a.planner_timeout,
+        planner_start_timeout_s: a.planner_start_timeout,
         cameras: a.cameras,
         size,
         seed: a.seed,

@@ -157,9 +157,12 @@ pub const HASH_KEY: &str = "xxh3_128";
 
 /// The files a planner command line reads that can be named: every word of it (split at blanks, quotes
 /// removed) that names an existing regular file, e.g. the script of `python3 planner.py --weights w.pt` and its
-/// weights. `python -m module` planners name no file.
+/// weights. `python -m module` planners name no file. Both external kinds: `cmd:` and `resident:`.
 pub fn planner_files(planner: &str) -> Vec<PathBuf> {
-    let Some(cmd) = planner.strip_prefix("cmd:") else {
+    let Some(cmd) = planner
+        .strip_prefix("cmd:")
+        .or_else(|| planner.strip_prefix("resident:"))
+    else {
         return vec![];
     };
     cmd.split_whitespace()

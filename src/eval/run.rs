@@ -28,6 +28,7 @@ use crate::sim::closed_loop::{run_with_sensors, Controller};
 use crate::sim::command::CommandDef;
 use crate::sim::external::ExternalPlanner;
 use crate::sim::history::{HISTORY_DEFAULT, HISTORY_MAX};
+use crate::sim::resident::START_TIMEOUT_DEFAULT_S;
 use crate::sim::sensors::{CameraFrame, Sensors};
 use crate::sim::{self, AgentMode, Planner, PlannerSpec, SimConfig, SimResult};
 use crate::tensor::DType;
@@ -88,6 +89,10 @@ pub struct RunConfig {
     pub controller: Controller,
     pub steps: usize,
     pub planner_timeout_s: f64,
+    /// `--planner-start-timeout`: a resident planner's load (`resident:`; written to config.json only when it
+    /// differs from the default, so earlier runs' folders still resume).
+    #[serde(skip_serializing_if = "is_default_start_timeout")]
+    pub planner_start_timeout_s: f64,
     /// Cameras (empty: the model's for b2dr modes, the rig's otherwise).
     pub cameras: Vec<String>,
     /// Render size (H, W) of groundtruth / log-replay (b2dr modes use the model's).
@@ -132,6 +137,10 @@ fn is_default_history(h: &usize) -> bool {
     *h == HISTORY_DEFAULT
 }
 
+fn is_default_start_timeout(s: &f64) -> bool {
+    *s == START_TIMEOUT_DEFAULT_S
+}
+
 /// Stage totals over frames.
 #[derive(Default)]
 struct Totals(Vec<(String, f64)>);
@@ -154,8 +163,24 @@ fn planner(cfg: &RunConfig, dir: &Path) -> Result<Box<dyn Planner>> {
         PlannerSpec::Command(c) => {
             Box::new(ExternalPlanner::new(c, timeout)?.v2(Some(dir.join("planner_images"))))
         }
+        PlannerSpec::Resident(_) => Box::new(resident_planner(cfg)?.context("internal")?),
         p => p.build(timeout)?,
     })
+}
+
+/// The batch's resident planner (`resident:`; None for other planners): one process for every scenario of this
+/// `b2dr run` (each shard and each renderer of a comparison runs its own), started at the first scenario.
+fn resident_planner(cfg: &RunConfig) -> Result<Option<ExternalPlanner>> {
+    let PlannerSpec::Resident(c) = &cfg.planner else {
+        return Ok(None);
+    };
+    ensure!(
+        cfg.planner_start_timeout_s > 0.0 && cfg.planner_start_timeout_s <= 86400.0,
+        "--planner-start-timeout must be in (0, 86400] seconds"
+    );
+    let timeout = Duration::from_secs_f64(cfg.planner_timeout_s);
+    let start = Duration::from_secs_f64(cfg.planner_start_timeout_s);
+    Ok(Some(ExternalPlanner::new(c, timeout)?.resident(start)?))
 }
 
 /// The mosaic of one planner step: the cameras in a grid and the bird's-eye view of the state.
@@ -204,6 +229,7 @@ fn run_one(
     src: &Source,
     cfg: &RunConfig,
     engine: Option<&mut B2drEngine>,
+    resident: Option<&mut ExternalPlanner>,
     dir: &Path,
     progress: &indicatif::ProgressBar,
 ) -> Result<Value> {
@@ -232,7 +258,18 @@ fn run_one(
     std::fs::create_dir_all(dir.join("frames"))
         .with_context(|| format!("creating {}", dir.display()))?;
     std::fs::create_dir_all(dir.join("mosaic"))?;
-    let mut p = planner(cfg, dir)?;
+    let mut own;
+    let mut resident = resident;
+    let p: &mut dyn Planner = match resident.as_deref_mut() {
+        Some(r) => {
+            r.set_image_dir(Some(dir.join("planner_images")));
+            r
+        }
+        None => {
+            own = planner(cfg, dir)?;
+            own.as_mut()
+        }
+    };
     let cams = match engine.as_ref() {
         Some(e) => sc.select_cameras(&e.cameras)?,
         None => sc.select_cameras(&cfg.cameras)?,
@@ -281,7 +318,7 @@ fn run_one(
     };
     let r = run_with_sensors(
         &sc,
-        p.as_mut(),
+        &mut *p,
         &sim_cfg,
         &sim::closed_loop::images_at,
         sensors,
@@ -316,13 +353,19 @@ fn run_one(
             Ok(s) => (s.score, serde_json::to_value(&s)?, None),
             Err(e) => (0.0, Value::Null, Some(format!("{e:#}"))),
         };
-    let v = json!({
+    let mut v = json!({
         "scenario": sc.name, "source": sc.source, "planner": r.planner, "agents": r.agent_mode,
         "renderer": cfg.renderer, "steps": r.steps.len().saturating_sub(1), "frames": kept.len(),
         "idm_agents": r.idm_agents, "failure": r.failure, "score": if r.failure.is_some() { 0.0 } else { score },
         "metrics": metrics, "metrics_error": metrics_error, "wall_ms": wall_ms,
         "timing_ms": totals.json(), "timing_per_frame": per_frame,
     });
+    if let Some(res) = resident
+        .as_deref()
+        .and_then(ExternalPlanner::resident_state)
+    {
+        v["planner_process"] = res.report();
+    }
     // metrics.json is written by the batch loop, with the configuration's fingerprint, last
     Ok(v)
 }
@@ -345,6 +388,7 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
         "--size {h}x{w}: each side in 8..=4096"
     );
     planner(cfg, out)?;
+    let mut resident = resident_planner(cfg)?;
     let (sources, list) = batch::select_listed(resolve(&cfg.scenario)?, cfg.shard)?;
     batch::check_out_outside_scenarios(out, &sources)?;
     let model_files = if cfg.renderer.uses_model() {
@@ -395,7 +439,7 @@ pub fn run(ctx: Option<&Context>, cfg: &RunConfig, out: &Path, resume: bool) -> 
         &sources,
         |i, src, dir| {
             bar.set_prefix(format!("scenario {}/{n}", i + 1));
-            run_one(src, cfg, engine.as_mut(), dir, &bar)
+            run_one(src, cfg, engine.as_mut(), resident.as_mut(), dir, &bar)
         },
         // suspend + eprintln, not println: a hidden bar (stderr not a terminal) prints nothing, and a failed
         // scenario must be named in logs too

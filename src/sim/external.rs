@@ -1,7 +1,9 @@
 //! External planner process (`--planner cmd:<command line>`), speaking JSON lines over stdin/stdout; the
-//! protocol (v1 and v2) is documented in docs/planner_protocol.md. One process per scenario. A writer thread
-//! owns the planner's stdin and a reader thread its stdout, so that every write AND read is under the
-//! timeout: a planner that never reads its input, or closes its stdout but lives on, is ended at the timeout.
+//! protocol (v1 and v2) is documented in docs/planner_protocol.md. One process per scenario, or one per batch in
+//! resident mode (`resident:`, [`super::resident`]: a session per scenario, restarted after a failure that left
+//! the pipes out of step). A writer thread owns the planner's stdin and a reader thread its stdout, so that
+//! every write AND read is under the timeout: a planner that never reads its input, or closes its stdout but
+//! lives on, is ended at the timeout.
 //! The planner runs in its own process group, killed at the end of its scenario; on Linux, processes holding its
 //! pipes are killed as well, so a descendant that escaped the group (`setsid`) and keeps the pipes open neither
 //! outlives the scenario nor keeps the reader thread blocked (the reads time out in any case).
@@ -9,6 +11,7 @@ use super::planner::{
     trajectory_from_ego_frame, trajectory_from_ego_poses, Planner, PlannerInput, PLAN_POSES,
 };
 use super::reply::{parse_plan_reply, MIN_HORIZON_S};
+use super::resident::{check_ready, hello_message, Resident};
 use super::sensors::CameraFrame;
 use super::trajectory::Trajectory;
 use crate::scene::geometry::Pose2;
@@ -56,6 +59,11 @@ pub struct ExternalPlanner {
     /// Inodes of the planner's stdin and stdout pipes (Linux): a descendant that left the process group
     /// (`setsid`) and keeps them open is found by them and killed with the group.
     pipes: Vec<u64>,
+    /// Resident mode (`resident:<command line>`): one process for many scenarios; None: one per scenario.
+    resident: Option<Resident>,
+    /// The transport failure after which the pipes may be out of step (a timeout, a crash, a line no request
+    /// asked for): a resident process is then ended with its scenario and restarted for the next one.
+    desynced: Option<String>,
 }
 
 /// FNV-1a 64 of a byte string (the image checksum of the protocol: over the RGB bytes, row-major (H, W, 3)).
@@ -172,7 +180,7 @@ fn parent_of(proc_dir: &std::path::Path) -> Option<u32> {
 impl ExternalPlanner {
     pub fn new(command: &str, timeout: Duration) -> Result<Self> {
         if command.trim().is_empty() {
-            bail!("--planner cmd: needs a command line after `cmd:`");
+            bail!("--planner cmd: (or resident:) needs a command line after the colon");
         }
         ensure!(
             timeout > Duration::ZERO && timeout <= Duration::from_secs(24 * 3600),
@@ -192,6 +200,8 @@ impl ExternalPlanner {
             size: None,
             scenario: String::new(),
             pipes: vec![],
+            resident: None,
+            desynced: None,
         })
     }
 
@@ -200,6 +210,24 @@ impl ExternalPlanner {
         self.protocol = 2;
         self.image_dir = image_dir;
         self
+    }
+
+    /// Resident mode (protocol v2): one process for every scenario this planner runs, loaded under
+    /// `start_timeout` (docs/planner_protocol.md "Resident planners").
+    pub fn resident(mut self, start_timeout: Duration) -> Result<Self> {
+        self.protocol = 2;
+        self.resident = Some(Resident::new(start_timeout)?);
+        Ok(self)
+    }
+
+    /// Where the next scenario's v2 image files go (`Paths` mode).
+    pub fn set_image_dir(&mut self, dir: Option<PathBuf>) {
+        self.image_dir = dir;
+    }
+
+    /// The resident-mode state (None: one process per scenario).
+    pub fn resident_state(&self) -> Option<&Resident> {
+        self.resident.as_ref()
     }
 
     fn spawn(&mut self) -> Result<()> {
@@ -244,6 +272,7 @@ impl ExternalPlanner {
         self.writer = Some(wtx);
         self.acks = Some(arx);
         self.child = Some(child);
+        self.desynced = None;
         Ok(())
     }
 
@@ -275,8 +304,8 @@ impl ExternalPlanner {
         }
     }
 
-    /// Writes `bytes` under the deadline.
-    fn send(&mut self, bytes: Vec<u8>, deadline: Instant) -> Result<()> {
+    /// Writes `bytes` under the deadline (`limit`: the timeout it stands for, for the message).
+    fn send(&mut self, bytes: Vec<u8>, deadline: Instant, limit: Duration) -> Result<()> {
         let w = self
             .writer
             .as_ref()
@@ -292,7 +321,7 @@ impl ExternalPlanner {
             Ok(Err(e)) => bail!("planner process crashed or closed its input: {e}"),
             Err(RecvTimeoutError::Timeout) => bail!(
                 "planner timed out: it did not read its input within {:.1} s",
-                self.timeout.as_secs_f64()
+                limit.as_secs_f64()
             ),
             Err(RecvTimeoutError::Disconnected) => {
                 bail!("planner process crashed or closed its input")
@@ -300,8 +329,8 @@ impl ExternalPlanner {
         }
     }
 
-    /// One reply line under the deadline.
-    fn receive(&mut self, deadline: Instant) -> Result<Value> {
+    /// One reply line under the deadline (`limit`: the timeout it stands for, for the message).
+    fn receive(&mut self, deadline: Instant, limit: Duration) -> Result<Value> {
         loop {
             let rx = self
                 .lines
@@ -316,7 +345,7 @@ impl ExternalPlanner {
                 Ok(Err(e)) => bail!("{e}"),
                 Err(RecvTimeoutError::Timeout) => bail!(
                     "planner timed out: no reply within {:.1} s",
-                    self.timeout.as_secs_f64()
+                    limit.as_secs_f64()
                 ),
                 Err(RecvTimeoutError::Disconnected) => {
                     let s = self.status();
@@ -344,17 +373,115 @@ impl ExternalPlanner {
         Ok(())
     }
 
-    fn request(&mut self, msg: &Value, extra: &[u8], want_reply: bool) -> Result<Option<Value>> {
-        self.check_no_pending()?;
-        let deadline = Instant::now() + self.timeout;
-        let mut bytes = serde_json::to_vec(msg)?;
-        bytes.push(b'\n');
-        bytes.extend_from_slice(extra);
-        self.send(bytes, deadline)?;
-        if !want_reply {
-            return Ok(None);
+    /// Sends `msg` (and `extra` bytes) and reads its reply, all under `limit`; a failure leaves the pipes out
+    /// of step (`desynced`).
+    fn exchange(
+        &mut self,
+        msg: &Value,
+        extra: &[u8],
+        want_reply: bool,
+        limit: Duration,
+    ) -> Result<Option<Value>> {
+        let r = (|| {
+            self.check_no_pending()?;
+            let deadline = Instant::now() + limit;
+            let mut bytes = serde_json::to_vec(msg)?;
+            bytes.push(b'\n');
+            bytes.extend_from_slice(extra);
+            self.send(bytes, deadline, limit)?;
+            if !want_reply {
+                return Ok(None);
+            }
+            self.receive(deadline, limit).map(Some)
+        })();
+        if let Err(e) = &r {
+            self.desync(e);
         }
-        self.receive(deadline).map(Some)
+        r
+    }
+
+    fn request(&mut self, msg: &Value, extra: &[u8], want_reply: bool) -> Result<Option<Value>> {
+        self.exchange(msg, extra, want_reply, self.timeout)
+    }
+
+    fn desync(&mut self, e: &anyhow::Error) {
+        if self.desynced.is_none() {
+            self.desynced = Some(format!("{e:#}"));
+        }
+    }
+
+    /// Resident mode: keeps the running process, or (first scenario, or the last one ended it) starts one and
+    /// waits for its `hello` reply under the start timeout.
+    fn ensure_resident(&mut self) -> Result<()> {
+        let Some(start_timeout) = self.resident.as_ref().map(|r| r.start_timeout) else {
+            bail!("internal: not a resident planner");
+        };
+        let running = matches!(self.child.as_mut().map(|c| c.try_wait()), Some(Ok(None)));
+        if running && self.desynced.is_none() {
+            if let Some(r) = self.resident.as_mut() {
+                r.restart_cause = None;
+            }
+            return Ok(());
+        }
+        if self.child.is_some() {
+            // it exited (or broke the protocol) between scenarios
+            let cause = match self.desynced.take() {
+                Some(d) => d,
+                None => format!("process {} between scenarios", self.status()),
+            };
+            self.kill();
+            if let Some(r) = self.resident.as_mut() {
+                r.ended_by.get_or_insert(cause);
+            }
+        }
+        self.spawn()?;
+        let (n, cause) = match self.resident.as_mut() {
+            Some(r) => {
+                r.starts += 1;
+                r.restart_cause = r.ended_by.take();
+                (r.starts, r.restart_cause.clone())
+            }
+            None => bail!("internal: not a resident planner"),
+        };
+        if let Some(c) = cause {
+            eprintln!(
+                "resident planner restarted (process {n}) for scenario {}: the previous one ended with: {c}",
+                self.scenario
+            );
+        }
+        let hello = hello_message(self.timeout, start_timeout);
+        let r = self
+            .exchange(&hello, &[], true, start_timeout)
+            .with_context(|| {
+                format!(
+                    "resident planner did not answer `hello` (start timeout {:.1} s, --planner-start-timeout)",
+                    start_timeout.as_secs_f64()
+                )
+            })
+            .and_then(|v| check_ready(&v.context("no reply to hello")?));
+        if let Err(e) = &r {
+            let cause = format!("failed to start: {e:#}");
+            self.kill();
+            if let Some(res) = self.resident.as_mut() {
+                res.ended_by = Some(cause);
+            }
+        }
+        r
+    }
+
+    /// Resident mode, at the end of a scenario: `end` on pipes still in step, the process lives on; else the
+    /// process is ended (and restarted at the next scenario).
+    fn end_session(&mut self) {
+        if self.desynced.is_none() && self.writer.is_some() {
+            let line = json!({"type": "end", "version": 2, "scenario": self.scenario});
+            let _ = self.request(&line, &[], false);
+        }
+        if let Some(d) = self.desynced.take() {
+            self.kill();
+            if let Some(r) = self.resident.as_mut() {
+                r.ended_by = Some(d);
+            }
+        }
     }
 
     /// The v2 `cameras` entries of a request (files written or bytes appended); `ego2global`: the request's
@@ -479,15 +606,52 @@ pub fn parse_reply(v: &Value) -> Result<Vec<Pose2>> {
 
 impl Planner for ExternalPlanner {
     fn name(&self) -> String {
-        format!("cmd:{}", self.command)
+        match self.resident {
+            Some(_) => format!("resident:{}", self.command),
+            None => format!("cmd:{}", self.command),
+        }
     }
     fn start(&mut self, sc: &Scenario) -> Result<()> {
-        self.kill();
-        self.spawn()?;
         self.scenario = crate::scene::safe_name(&sc.name);
-        if self.protocol < 2 {
-            return Ok(());
+        if self.resident.is_none() {
+            self.kill();
+            self.spawn()?;
+            if self.protocol < 2 {
+                return Ok(());
+            }
+            return self.start_session(sc);
         }
+        self.ensure_resident()?;
+        let r = self.start_session(sc);
+        if r.is_err() {
+            // the loop does not call `finish` after a failed start
+            self.end_session();
+        }
+        r
+    }
+    fn plan(&mut self, input: &PlannerInput) -> Result<Trajectory> {
+        self.plan_request(input)
+    }
+    fn finish(&mut self) {
+        if self.resident.is_some() {
+            self.end_session();
+            return;
+        }
+        if self.protocol >= 2 && self.writer.is_some() {
+            // best effort, for at most a second: the process is killed right after
+            let mut line =
+                json!({"type": "end", "version": 2, "scenario": self.scenario}).to_string();
+            line.push('\n');
+            let limit = self.timeout.min(Duration::from_secs(1));
+            let _ = self.send(line.into_bytes(), Instant::now() + limit, limit);
+        }
+        self.kill();
+    }
+}
+
+impl ExternalPlanner {
+    /// The v2 `start` message and its reply (the scenario's image mode and size).
+    fn start_session(&mut self, sc: &Scenario) -> Result<()> {
         let msg = start_message(sc);
         let reply = self
             .request(&msg, &[], true)?
@@ -523,7 +687,9 @@ impl Planner for ExternalPlanner {
         };
         Ok(())
     }
-    fn plan(&mut self, input: &PlannerInput) -> Result<Trajectory> {
+
+    /// One `plan` request and its reply as a trajectory.
+    fn plan_request(&mut self, input: &PlannerInput) -> Result<Trajectory> {
         let e = input.ego;
         let sc = input.scenario;
         let mut msg = json!({
@@ -565,11 +731,14 @@ impl Planner for ExternalPlanner {
         // A reply may echo the request's step; when it does it must be this request's. Without it a second
         // reply to an earlier request that arrives late would be taken for this one's.
         if let Some(s) = reply.get("step").filter(|s| !s.is_null()) {
-            ensure!(
-                s.as_u64() == Some(input.step as u64),
-                "planner replied for step {s} to the request of step {} (two replies to one request?)",
-                input.step
-            );
+            if s.as_u64() != Some(input.step as u64) {
+                let e = anyhow!(
+                    "planner replied for step {s} to the request of step {} (two replies to one request?)",
+                    input.step
+                );
+                self.desync(&e);
+                return Err(e);
+            }
         }
         if self.protocol >= 2 {
             let r = parse_plan_reply(&reply, &sc.rig.lidar2ego)?;
@@ -577,17 +746,6 @@ impl Planner for ExternalPlanner {
         }
         let local = parse_reply(&reply)?;
         trajectory_from_ego_frame(e, &local, PLAN_POSES)
-    }
-    fn finish(&mut self) {
-        if self.protocol >= 2 && self.writer.is_some() {
-            // best effort, for at most a second: the process is killed right after
-            let mut line =
-                json!({"type": "end", "version": 2, "scenario": self.scenario}).to_string();
-            line.push('\n');
-            let deadline = Instant::now() + self.timeout.min(Duration::from_secs(1));
-            let _ = self.send(line.into_bytes(), deadline);
-        }
-        self.kill();
     }
 }
 

@@ -16,6 +16,7 @@ pub mod lidar;
 pub mod lqr;
 pub mod planner;
 pub mod reply;
+pub mod resident;
 pub mod score;
 pub mod sensors;
 pub mod trajectory;
@@ -40,6 +41,9 @@ pub enum PlannerSpec {
     Idm,
     /// An external planner process started with this command line.
     Command(String),
+    /// A resident external planner: one process for a whole batch of scenarios (`b2dr run` only; protocol v2,
+    /// docs/planner_protocol.md "Resident planners").
+    Resident(String),
 }
 
 impl std::str::FromStr for PlannerSpec {
@@ -50,7 +54,10 @@ impl std::str::FromStr for PlannerSpec {
             "cv" => PlannerSpec::ConstantVelocity,
             "idm" => PlannerSpec::Idm,
             s if s.starts_with("cmd:") => PlannerSpec::Command(s[4..].to_string()),
-            _ => bail!("unknown planner {spec:?}: expected expert, cv, idm or cmd:<command line>"),
+            s if s.starts_with("resident:") => PlannerSpec::Resident(s[9..].to_string()),
+            _ => bail!(
+                "unknown planner {spec:?}: expected expert, cv, idm, cmd:<command line> or resident:<command line>"
+            ),
         })
     }
 }
@@ -62,6 +69,7 @@ impl std::fmt::Display for PlannerSpec {
             PlannerSpec::ConstantVelocity => f.write_str("cv"),
             PlannerSpec::Idm => f.write_str("idm"),
             PlannerSpec::Command(c) => write!(f, "cmd:{c}"),
+            PlannerSpec::Resident(c) => write!(f, "resident:{c}"),
         }
     }
 }
@@ -80,6 +88,9 @@ impl PlannerSpec {
             PlannerSpec::ConstantVelocity => Box::new(ConstantVelocityPlanner),
             PlannerSpec::Idm => Box::new(IdmPlanner::default()),
             PlannerSpec::Command(c) => Box::new(external::ExternalPlanner::new(c, timeout)?),
+            PlannerSpec::Resident(_) => bail!(
+                "--planner resident: needs protocol v2 sessions (`b2dr run`); `b2dr sim` runs cmd: planners"
+            ),
         })
     }
 }
@@ -95,7 +106,13 @@ mod tests {
 
     #[test]
     fn planner_spec_round_trips() {
-        for s in ["expert", "cv", "idm", "cmd:python3 -u p.py --x 1"] {
+        for s in [
+            "expert",
+            "cv",
+            "idm",
+            "cmd:python3 -u p.py --x 1",
+            "resident:python3 p.py",
+        ] {
             assert_eq!(s.parse::<PlannerSpec>().unwrap().to_string(), s);
         }
         let e = "magic".parse::<PlannerSpec>().unwrap_err().to_string();
