@@ -23,6 +23,7 @@ pub mod plot;
 mod report;
 pub use report::{scored_classes, LANE_MARKING, VEHICLE};
 pub mod scene;
+pub mod segmenter;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -144,8 +145,13 @@ pub struct Score {
     /// IoU of the lane-marking class (None: no marking in the truth nor in the image).
     pub marking_iou: Option<f64>,
     pub mean_iou: Option<f64>,
+    /// Vehicle and lane-marking IoU of the layout segmenter's class image ([`segmenter`]).
+    pub seg_vehicle_iou: Option<f64>,
+    pub seg_marking_iou: Option<f64>,
     #[serde(skip)]
     iou: IouCounts,
+    #[serde(skip)]
+    seg_iou: IouCounts,
 }
 
 /// A scored image with its pixels (kept until the classifier is fitted).
@@ -278,6 +284,8 @@ pub struct Results {
     /// Non-finite pixel values seen per drift setting.
     pub drift_nonfinite: BTreeMap<String, usize>,
     pub classifier_ceiling: BTreeMap<String, Option<f64>>,
+    /// The layout segmenter on the ground truth itself, per class.
+    pub segmenter_ceiling: BTreeMap<String, Option<f64>>,
     pub skipped: Vec<String>,
 }
 
@@ -591,7 +599,12 @@ pub fn eval_render(ctx: &Context, cfg: &EvalConfig, out: &Path) -> Result<Result
         ceiling.add(&clf.classify(r), c);
     }
     let classes = report::scored_classes(&ceiling);
-    let finish = |v: Vec<Kept>| -> Vec<Score> {
+    let seg = segmenter::LayoutSegmenter::builtin()?;
+    let mut seg_ceiling = IouCounts::default();
+    for (r, c) in &truths {
+        seg_ceiling.add(&seg.classify(r, size.0, size.1)?, c);
+    }
+    let finish = |v: Vec<Kept>| -> Result<Vec<Score>> {
         v.into_iter()
             .map(|k| {
                 let mut s = k.score;
@@ -599,7 +612,11 @@ pub fn eval_render(ctx: &Context, cfg: &EvalConfig, out: &Path) -> Result<Result
                 s.vehicle_iou = s.iou.iou(report::VEHICLE);
                 s.marking_iou = s.iou.iou(report::LANE_MARKING);
                 s.mean_iou = s.iou.mean_iou(&classes);
-                s
+                s.seg_iou
+                    .add(&seg.classify(&k.rgb, size.0, size.1)?, &truths[k.truth].1);
+                s.seg_vehicle_iou = s.seg_iou.iou(report::VEHICLE);
+                s.seg_marking_iou = s.seg_iou.iou(report::LANE_MARKING);
+                Ok(s)
             })
             .collect()
     };
@@ -607,10 +624,11 @@ pub fn eval_render(ctx: &Context, cfg: &EvalConfig, out: &Path) -> Result<Result
         config: cfg.clone(),
         model: model_name,
         render_size: [size.0, size.1],
-        single: finish(kept),
-        drift: finish(drift_kept),
+        single: finish(kept)?,
+        drift: finish(drift_kept)?,
         drift_nonfinite: nonfinite,
         classifier_ceiling: report::class_table(&ceiling, &classes),
+        segmenter_ceiling: report::class_table(&seg_ceiling, &classes),
         skipped,
     };
     report::write(out, &res, &classes, &strips, size)?;

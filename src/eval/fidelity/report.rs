@@ -42,7 +42,10 @@ pub fn score(
         vehicle_iou: None,
         marking_iou: None,
         mean_iou: None,
+        seg_vehicle_iou: None,
+        seg_marking_iou: None,
         iou: IouCounts::default(),
+        seg_iou: IouCounts::default(),
     })
 }
 
@@ -79,6 +82,8 @@ struct Agg {
     vehicle: Option<f64>,
     marking: Option<f64>,
     miou: Option<f64>,
+    seg_vehicle: Option<f64>,
+    seg_marking: Option<f64>,
 }
 
 fn agg<'a>(v: impl Iterator<Item = &'a Score>, classes: &[u8]) -> Option<Agg> {
@@ -87,9 +92,10 @@ fn agg<'a>(v: impl Iterator<Item = &'a Score>, classes: &[u8]) -> Option<Agg> {
         return None;
     }
     let finite: Vec<f64> = v.iter().filter_map(|s| s.psnr).collect();
-    let mut iou = IouCounts::default();
+    let (mut iou, mut seg) = (IouCounts::default(), IouCounts::default());
     for s in &v {
         iou.merge(&s.iou);
+        seg.merge(&s.seg_iou);
     }
     Some(Agg {
         n: v.len(),
@@ -99,6 +105,8 @@ fn agg<'a>(v: impl Iterator<Item = &'a Score>, classes: &[u8]) -> Option<Agg> {
         vehicle: iou.iou(VEHICLE),
         marking: iou.iou(LANE_MARKING),
         miou: iou.mean_iou(classes),
+        seg_vehicle: seg.iou(VEHICLE),
+        seg_marking: seg.iou(LANE_MARKING),
     })
 }
 
@@ -247,8 +255,12 @@ pub fn write(
     writeln!(
         md,
         "## Logged path (ego on the log, logged agents; previous frame = ground truth 0.5 s earlier)\n\n\
-         | setting | images | PSNR dB | SSIM | vehicle IoU | lane-marking IoU | mean IoU |\n\
-         |---|---|---|---|---|---|---|"
+         Layout score two ways: the colour classifier (vehicle, lane-marking, mean IoU: colour exactness; the \
+         ground truth plus 4 levels of noise already halves it) and the layout segmenter (seg: is the class drawn \
+         there; docs/eval_render.md).\n\n\
+         | setting | images | PSNR dB | SSIM | vehicle IoU | lane-marking IoU | mean IoU | vehicle IoU (seg) | \
+         lane-marking IoU (seg) |\n\
+         |---|---|---|---|---|---|---|---|---|"
     )?;
     for s in &settings {
         if let Some(a) = agg(
@@ -259,13 +271,15 @@ pub fn write(
         ) {
             writeln!(
                 md,
-                "| {s} | {} | {} | {:.4} | {} | {} | {} |",
+                "| {s} | {} | {} | {:.4} | {} | {} | {} | {} | {} |",
                 a.n,
                 psnr_cell(&a),
                 a.ssim,
                 f3(a.vehicle),
                 f3(a.marking),
-                f3(a.miou)
+                f3(a.miou),
+                f3(a.seg_vehicle),
+                f3(a.seg_marking)
             )?;
         }
     }
@@ -282,7 +296,7 @@ pub fn write(
     writeln!(
         md,
         "\n## Deviation sweep (references retrieved from the log at the displaced pose)\n\n\
-         PSNR dB / vehicle IoU per setting.\n\n| deviation | {} |\n|---|{}",
+         PSNR dB / vehicle IoU / vehicle IoU (seg) per setting.\n\n| deviation | {} |\n|---|{}",
         dev_settings.join(" | "),
         "---|".repeat(dev_settings.len())
     )?;
@@ -311,7 +325,12 @@ pub fn write(
                 classes,
             ) {
                 Some(a) => {
-                    cells.push(format!("{} / {}", psnr_cell(&a), f3(a.vehicle)));
+                    cells.push(format!(
+                        "{} / {} / {}",
+                        psnr_cell(&a),
+                        f3(a.vehicle),
+                        f3(a.seg_vehicle)
+                    ));
                     let y = a.psnr.unwrap_or(f64::NAN);
                     if d.yaw_deg == 0.0 {
                         dev_series[k].0.points.push((d.lateral_m, y));
@@ -396,10 +415,12 @@ pub fn write(
     }
     writeln!(
         md,
-        "\n## Layout classifier ceiling (the classifier on the ground truth itself)\n\n| class | IoU |\n|---|---|"
+        "\n## Layout score ceiling (the colour classifier and the segmenter on the ground truth itself)\n\n\
+         | class | IoU | IoU (seg) |\n|---|---|---|"
     )?;
     for (k, v) in &r.classifier_ceiling {
-        writeln!(md, "| {k} | {} |", f3(*v))?;
+        let sv = r.segmenter_ceiling.get(k).copied().flatten();
+        writeln!(md, "| {k} | {} | {} |", f3(*v), f3(sv))?;
     }
     if !r.skipped.is_empty() {
         writeln!(md, "\n## Skipped cases\n")?;
