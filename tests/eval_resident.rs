@@ -58,6 +58,14 @@ fn scenarios(s: &Value) -> &Vec<Value> {
     s["scenarios"].as_array().unwrap()
 }
 
+/// The first scenario's failure message ("" when it passed).
+fn first_failure(s: &Value) -> String {
+    scenarios(s)[0]["failure"]
+        .as_str()
+        .unwrap_or_default()
+        .to_string()
+}
+
 /// A scenario's own metrics.json (what the batch wrote to its folder).
 fn metrics(out: &Path, folder: &str) -> Value {
     serde_json::from_str(&std::fs::read_to_string(out.join(folder).join("metrics.json")).unwrap())
@@ -235,10 +243,7 @@ fn the_load_runs_under_the_start_timeout_not_the_per_call_one() {
         false,
     )
     .unwrap();
-    let failure = scenarios(&s)[0]["failure"]
-        .as_str()
-        .unwrap_or_default()
-        .to_string();
+    let failure = first_failure(&s);
     assert!(failure.contains("timed out"), "{failure}");
     // a load longer than the start timeout fails the scenario with a message naming it, within about that time
     let t0 = Instant::now();
@@ -251,10 +256,7 @@ fn the_load_runs_under_the_start_timeout_not_the_per_call_one() {
     )
     .unwrap();
     assert!(t0.elapsed().as_secs_f64() < 10.0, "{:?}", t0.elapsed());
-    let failure = scenarios(&s)[0]["failure"]
-        .as_str()
-        .unwrap_or_default()
-        .to_string();
+    let failure = first_failure(&s);
     assert!(
         failure.contains("did not answer `hello` (start timeout 1.0 s, --planner-start-timeout)")
             && failure.contains("timed out"),
@@ -269,10 +271,7 @@ fn the_load_runs_under_the_start_timeout_not_the_per_call_one() {
         false,
     )
     .unwrap();
-    let failure = scenarios(&s)[0]["failure"]
-        .as_str()
-        .unwrap_or_default()
-        .to_string();
+    let failure = first_failure(&s);
     assert!(
         failure.contains("resident planner failed to load") && failure.contains("no weights here"),
         "{failure}"

@@ -3,8 +3,8 @@
 eval-render's layout score classifies each pixel by its colour bin alone (src/eval/fidelity/metrics.rs). That
 classifier is exact on the ground truth but measures colour exactness, not whether a vehicle is drawn: the
 ground truth plus an invisible change (i.i.d. noise of 4 levels, 36 dB; or +6 levels on every channel) already
-scores vehicle IoU 0.28-0.30 instead of 0.97 (docs/training.md, "The layout score"). This network classifies a
-pixel from a 33 x 33 neighbourhood, trained on the world's ground truth under the degradations a renderer may
+scores vehicle IoU 0.27-0.30 instead of 0.97 (docs/training.md, "The gate's layout score measured colour
+exactness"). This network classifies a pixel from its neighbourhood (about 70 px), trained on the world's ground truth under the degradations a renderer may
 make without failing to draw (blur, noise, colour shifts), so that a soft but correct vehicle counts.
 
 Net (shapes for one image, H x W any; every conv 3x3 with zero padding, then ReLU, unless said otherwise):
@@ -13,8 +13,10 @@ M->M with dilations 1, 2, 4, 8 -> nearest upsampling x2 cropped to (M, H, W) -> 
 -> fuse C+M->C -> head conv1x1 C->17 (no ReLU): logits (17, H, W). Receptive field about 70 px (a near car's
 whole body). Classes: src/world/palette.rs SemanticClass ids 0..16.
 
-    py -m b2dr_ref.layout_seg train --frames DIR --out RUN [--steps 1500]
-    py -m b2dr_ref.layout_seg eval --model RUN/seg.safetensors --truth DIR --images DIR ...
+    py -m b2dr_ref.layout_seg train --frames DIR --out RUN [--steps 3000]   # DIR: `b2dr world --out` folders
+
+Scoring: `b2dr eval-render` (the Rust port, src/eval/fidelity/segmenter.rs, with the committed weights) or
+`tools/layout_ceiling.py --seg RUN/seg.safetensors`. How the committed model was trained: models/layout-seg/README.md.
 """
 
 from __future__ import annotations
@@ -193,7 +195,7 @@ def main(argv=None):
     t = sub.add_parser("train")
     t.add_argument("--frames", required=True, help="folder of `b2dr world` outputs (<CAM>.png + <CAM>_class.png)")
     t.add_argument("--out", required=True)
-    t.add_argument("--steps", type=int, default=1500)
+    t.add_argument("--steps", type=int, default=3000)
     t.add_argument("--batch", type=int, default=32)
     t.add_argument("--crop", type=lambda s: tuple(int(v) for v in s.split("x")), default=(64, 96))
     t.add_argument("--lr", type=float, default=3e-3)

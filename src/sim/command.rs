@@ -27,13 +27,13 @@
 //! route's direction there (for the future lidar origin). Not the logged position at t + 3 s itself: an ego
 //! running ahead of (or behind) the expert would then look backwards (or too far). A stopped expert gives
 //! `d` = 0: the target is the ego's projection on the route, straight unless the ego is over 2 m off it.
-use glam::DVec2;
 
 use super::ego::EgoState;
 use super::sensors::Command;
-use crate::scene::geometry::{Polyline, Pose2};
+use crate::scene::geometry::Pose2;
 use crate::scene::Scenario;
 
+use super::sensors::route_line;
 pub use super::sensors::{navigation_command, COMMAND_LOOKAHEAD_M};
 
 /// Seconds ahead of the nuScenes/VAD command (6 keyframes at 2 Hz).
@@ -84,18 +84,6 @@ impl std::str::FromStr for CommandDef {
             _ => anyhow::bail!("unknown command definition {s:?}: expected route20 or nuscenes"),
         }
     }
-}
-
-/// The route's lane centrelines joined in driving order (None when fewer than two points).
-fn route_line(sc: &Scenario) -> Option<Polyline> {
-    let pts: Vec<DVec2> = sc
-        .route
-        .lane_ids
-        .iter()
-        .filter_map(|id| sc.map.lane_index(id))
-        .flat_map(|l| sc.map.lanes[l].centre.points.iter().copied())
-        .collect();
-    (pts.len() >= 2).then(|| Polyline::new(pts, None))
 }
 
 /// The distance the expert drove (logged rear-axle path length) from the log step at `time_s` to

@@ -112,7 +112,8 @@ pub enum Command {
 
 pub const COMMAND_LOOKAHEAD_M: f64 = 20.0;
 
-pub fn navigation_command(sc: &Scenario, ego: &Pose2) -> Command {
+/// The route's lane centrelines joined in driving order (None when fewer than two points).
+pub(crate) fn route_line(sc: &Scenario) -> Option<crate::scene::geometry::Polyline> {
     let pts: Vec<DVec2> = sc
         .route
         .lane_ids
@@ -120,10 +121,13 @@ pub fn navigation_command(sc: &Scenario, ego: &Pose2) -> Command {
         .filter_map(|id| sc.map.lane_index(id))
         .flat_map(|l| sc.map.lanes[l].centre.points.iter().copied())
         .collect();
-    if pts.len() < 2 {
+    (pts.len() >= 2).then(|| crate::scene::geometry::Polyline::new(pts, None))
+}
+
+pub fn navigation_command(sc: &Scenario, ego: &Pose2) -> Command {
+    let Some(line) = route_line(sc) else {
         return Command::Straight;
-    }
-    let line = crate::scene::geometry::Polyline::new(pts, None);
+    };
     let (s, _) = line.project(ego.pos());
     let target = line.point_at((s + COMMAND_LOOKAHEAD_M).min(line.length()));
     let local = ego.relative(&Pose2::new(target.x, target.y, 0.0));
