@@ -1,6 +1,7 @@
 //! `b2dr bench trade --quick` on the built-in trained model: the reference setting's error against itself is
 //! exactly 0, every point and extreme is finite (f16 included), and on a fixed seed more UniPC steps never move
-//! the image further from the 50-step reference (beyond a 10 % margin for rounding noise).
+//! the image further from the 50-step reference (beyond a 10 % margin for rounding noise); both layout judges
+//! (colour classifier, segmenter) score every point.
 mod common;
 
 use b2dr::eval::trade::{bench_trade, TradeConfig};
@@ -28,6 +29,11 @@ fn quick_sweep_is_exact_at_the_reference_finite_and_monotone_in_steps() {
             "{}",
             p.point.name
         );
+        // both layout judges score every point (straight:100 has vehicles and lane markings)
+        for v in [p.vehicle_iou, p.seg_vehicle_iou, p.seg_marking_iou] {
+            let v = v.unwrap_or_else(|| panic!("{}: no IoU", p.point.name));
+            assert!((0.0..=1.0).contains(&v), "{}: {v}", p.point.name);
+        }
     }
     let f16 = r
         .points

@@ -103,16 +103,21 @@ pub struct PointResult {
     pub nmse_vs_reference: f64,
     pub psnr_vs_reference: Option<f64>,
     /// Against the ground truth (8-bit images): PSNR (mean over images), the vehicle IoU and mean IoU of the
-    /// palette classifier.
+    /// palette classifier (colour exactness), the vehicle and lane-marking IoU of the layout segmenter
+    /// (drawing: docs/eval_render.md).
     pub psnr_vs_truth: Option<f64>,
     pub vehicle_iou: Option<f64>,
     pub mean_iou: Option<f64>,
+    pub seg_vehicle_iou: Option<f64>,
+    pub seg_marking_iou: Option<f64>,
     /// Non-finite values in the decoded images (must be 0).
     pub nonfinite: usize,
     /// On the time / error Pareto front of the sweep (extremes excluded).
     pub pareto: bool,
     #[serde(skip)]
     iou: IouCounts,
+    #[serde(skip)]
+    seg_iou: IouCounts,
 }
 
 /// An autoregressive rollout of one precision.
@@ -431,9 +436,12 @@ fn measure(
                 .then(|| psnrs.iter().sum::<f64>() / psnrs.len() as f64),
             vehicle_iou: None,
             mean_iou: None,
+            seg_vehicle_iou: None,
+            seg_marking_iou: None,
             nonfinite,
             pareto: false,
             iou: IouCounts::default(),
+            seg_iou: IouCounts::default(),
         },
         images,
         rgb: rgbs,
@@ -721,19 +729,31 @@ pub fn bench_trade(ctx: &Context, cfg: &TradeConfig, out: &Path) -> Result<Trade
         ceiling.add(&clf.classify(r), c);
     }
     let classes = crate::eval::fidelity::scored_classes(&ceiling);
-    let score = |m: Measured| -> PointResult {
+    // and the layout segmenter's (a judge of drawing that noise and small colour shifts do not move)
+    let seg = crate::eval::fidelity::segmenter::LayoutSegmenter::builtin()?;
+    let score = |m: Measured| -> Result<PointResult> {
         let mut res = m.result;
         for (fi, rgb) in m.rgb.iter().enumerate() {
             for (k, px) in rgb.iter().enumerate() {
-                res.iou.add(&clf.classify(px), &frames.truth_class[fi][k]);
+                let truth = &frames.truth_class[fi][k];
+                res.iou.add(&clf.classify(px), truth);
+                res.seg_iou.add(&seg.classify(px, full.0, full.1)?, truth);
             }
         }
         res.vehicle_iou = res.iou.iou(crate::eval::fidelity::VEHICLE);
         res.mean_iou = res.iou.mean_iou(&classes);
-        res
+        res.seg_vehicle_iou = res.seg_iou.iou(crate::eval::fidelity::VEHICLE);
+        res.seg_marking_iou = res.seg_iou.iou(crate::eval::fidelity::LANE_MARKING);
+        Ok(res)
     };
-    let mut points: Vec<PointResult> = measured.into_iter().map(score).collect();
-    let extremes: Vec<PointResult> = ext.into_iter().map(score).collect();
+    let mut points = measured
+        .into_iter()
+        .map(score)
+        .collect::<Result<Vec<PointResult>>>()?;
+    let extremes = ext
+        .into_iter()
+        .map(score)
+        .collect::<Result<Vec<PointResult>>>()?;
     // the front among points that render all the reference's cameras (fewer cameras is less work, not a
     // cheaper way to the same frame)
     let front = pareto(

@@ -60,7 +60,7 @@ fn row(s: &mut String, p: &PointResult, mark: &str) {
     let q = &p.point;
     let _ = writeln!(
         s,
-        "| {}{} | {} | {} {} | {}x{} | {} | {} | {:.0} | {:.0} / {:.0} / {:.0} | {:.1} | {:.3e} | {} | {} | {} | {} | {} |",
+        "| {}{} | {} | {} {} | {}x{} | {} | {} | {:.0} | {:.0} / {:.0} / {:.0} | {:.1} | {:.3e} | {} | {} | {} | {} | {} | {} | {} |",
         q.name,
         mark,
         q.dtype,
@@ -86,11 +86,13 @@ fn row(s: &mut String, p: &PointResult, mark: &str) {
         opt(p.psnr_vs_truth, 2),
         opt(p.vehicle_iou, 3),
         opt(p.mean_iou, 3),
+        opt(p.seg_vehicle_iou, 3),
+        opt(p.seg_marking_iou, 3),
         p.nonfinite
     );
 }
 
-const HEADER: &str = "| setting | dtype | sampler | size | w | cams | ms/frame | cond / denoise / decode ms | MiB | NMSE vs ref | PSNR vs ref dB | PSNR vs truth dB | vehicle IoU | mean IoU | non-finite |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
+const HEADER: &str = "| setting | dtype | sampler | size | w | cams | ms/frame | cond / denoise / decode ms | MiB | NMSE vs ref | PSNR vs ref dB | PSNR vs truth dB | vehicle IoU | mean IoU | vehicle IoU (seg) | marking IoU (seg) | non-finite |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|\n";
 
 pub fn markdown(r: &TradeResults) -> String {
     let mut s = String::new();
