@@ -42,6 +42,7 @@ class Agent:
         self.timings: Dict[str, List[float]] = {"initialize": [], "start": [], "step": [], "end": []}
         self.session: Optional[StartInfo] = None
         self.initialized = False
+        self._session_steps = 0  # index of this session's first step in timings["step"]
 
     # --- what a planner implements -------------------------------------------------------------------
     def initialize(self) -> None:
@@ -72,7 +73,7 @@ class Agent:
     def run_start(self, session: StartInfo) -> dict:
         """The reply to `start` (after `start(session)`)."""
         self.session = session
-        self.timings["step"] = []
+        self._session_steps = len(self.timings["step"])
         self._timed("start", self.start, session)
         answer = {"images": self.images}
         if self.size is not None:
@@ -90,7 +91,7 @@ class Agent:
 
     def run_end(self) -> None:
         self._timed("end", self.end)
-        s = self.timings["step"]
+        s = self.timings["step"][self._session_steps:]
         if s and self.session is not None:
             print(f"{type(self).__name__}: {self.session.scenario}: {len(s)} steps, step mean "
                   f"{1e3 * sum(s) / len(s):.1f} ms, max {1e3 * max(s):.1f} ms", file=sys.stderr, flush=True)

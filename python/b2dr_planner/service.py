@@ -73,7 +73,11 @@ def serve_agent(agent: Agent, inp: Optional[BinaryIO] = None, out: Optional[Text
         elif isinstance(msg, StartInfo):
             start = msg
             try:
-                agent.run_initialize()
+                agent.run_initialize()  # cmd: mode (resident: done at hello)
+            except Exception as e:
+                send({"error": f"load failed: {type(e).__name__}: {e}"})
+                continue
+            try:
                 send(agent.run_start(msg))
             except Exception as e:
                 send(_error(e))

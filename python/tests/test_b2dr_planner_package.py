@@ -190,7 +190,8 @@ def test_agent_service_resident_sessions():
     assert "returned 5 poses, it declares 6" in replies[3]["error"] and replies[3]["step"] == 10
     assert replies[4] == replies[1] and replies[5] == replies[2] and len(replies) == 7
     assert len(a.timings["initialize"]) == 1 and len(a.timings["start"]) == 2 and len(a.timings["end"]) == 2
-    assert all(t >= 0 for t in a.timings["step"])
+    # every step is timed, the refused one too
+    assert len(a.timings["step"]) == 4 and all(t >= 0 for t in a.timings["step"])
 
 
 def test_agent_service_cmd_mode_and_failures():
@@ -202,6 +203,8 @@ def test_agent_service_cmd_mode_and_failures():
     broken.fail = True
     hello = wire({"type": "hello", "version": 2, "resident": True, "timeout_s": 1.0, "start_timeout_s": 9.0})
     assert serve_lines(broken, [hello]) == [{"error": "load failed: RuntimeError: no weights here"}]
+    # as cmd: the load runs at start, and its failure refuses the scenario
+    assert serve_lines(broken, [wire(start_message())]) == [{"error": "load failed: RuntimeError: no weights here"}]
     # a request the parser refuses is an error reply naming the field
     m, _ = plan_message(5)
     del m["cameras"]
