@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""An example planner that READS THE IMAGES (protocol v2, examples/b2dr_planner.py): a simple rule on the front
+"""An example planner that READS THE IMAGES (protocol v2, the planner package python/b2dr_planner): a simple rule on the front
 camera, for `b2dr run --planner "cmd:python3 examples/image_planner.py"`.
 
 - Free space ahead: in the front camera's lower-centre window (the ego's lane over the next ~6-25 m) it counts
@@ -12,7 +12,7 @@ import math
 import os
 import sys
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "python"))
 from b2dr_planner import serve  # noqa: E402
 
 V_MAX = 8.0          # cruise speed (m/s)
@@ -47,7 +47,7 @@ def obstacle_ahead(cam):
 
 
 def plan(req):
-    v = max(0.0, req.ego["vx"])
+    v = max(0.0, req.ego.vx)
     blocked = 0.0
     try:
         blocked = obstacle_ahead(req.camera("CAM_FRONT"))
@@ -57,8 +57,8 @@ def plan(req):
     curv = {"left": 1.0 / TURN_RADIUS, "right": -1.0 / TURN_RADIUS}.get(req.command, 0.0)
     x = y = yaw = 0.0
     poses = []
-    dt = req.dt
-    for _ in range(req.poses):
+    dt = req.reply.dt_s
+    for _ in range(req.reply.poses):
         a = ACCEL if v < target else -BRAKE
         v_next = min(target, v + a * dt) if a > 0 else max(target, v + a * dt)
         s = 0.5 * (v + v_next) * dt

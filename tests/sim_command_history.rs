@@ -292,7 +292,7 @@ fn command_and_history_through_the_protocol_and_the_client() {
     std::fs::create_dir_all(&dir).unwrap();
     let dump = dir.join("dump.jsonl");
     let cmd = format!(
-        "exec python3 {}/examples/b2dr_planner.py --mode dumpreq --images none --dump {}",
+        "exec python3 {}/tests/fixtures/protocol_planner.py --mode dumpreq --images none --dump {}",
         env!("CARGO_MANIFEST_DIR"),
         dump.display()
     );

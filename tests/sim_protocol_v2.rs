@@ -1,4 +1,5 @@
-//! Planner protocol v2 end to end with a Python planner (examples/b2dr_planner.py): images by path and inline
+//! Planner protocol v2 end to end with a Python planner (tests/fixtures/protocol_planner.py, served by the
+//! planner package python/b2dr_planner): images by path and inline
 //! reach the planner with the checksum the request states, intrinsics match the delivered size, and hostile
 //! planners (never reads, closes stdout but lives, two replies, 10^5 poses) end only their scenario, within the
 //! timeout, with a reason.
@@ -66,7 +67,7 @@ impl Sensors for Gradient {
 fn planner(args: &str, timeout_s: f64, dir: &std::path::Path) -> ExternalPlanner {
     let cmd = format!(
         // exec: the shell is replaced, so the planner process itself holds the pipes (a closed stdout is seen)
-        "exec python3 {}/examples/b2dr_planner.py {args}",
+        "exec python3 {}/tests/fixtures/protocol_planner.py {args}",
         env!("CARGO_MANIFEST_DIR")
     );
     ExternalPlanner::new(&cmd, Duration::from_secs_f64(timeout_s))

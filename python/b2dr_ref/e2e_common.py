@@ -6,7 +6,6 @@ and the serve loop. Imports numpy and the standard library only.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 from pathlib import Path
 from typing import Callable, List, Tuple
@@ -74,25 +73,18 @@ def reply_poses(p: np.ndarray) -> List[List[float]]:
     return [[float(x), float(y), float(t)] for x, y, t in p]
 
 
-def client():
-    """The project's protocol-v2 client (examples/b2dr_planner.py), loaded by path."""
-    p = Path(__file__).resolve().parents[2] / "examples" / "b2dr_planner.py"
-    spec = importlib.util.spec_from_file_location("b2dr_planner", p)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
-
-
 def serve_planner(plan_request: Callable[[np.ndarray, dict, str], List[List[float]]],
                   image_size: Tuple[int, int], camera: str) -> None:
-    """Serves protocol v2 on stdin/stdout: `plan_request(image_hwc, ego, command) -> 8 poses`; a missing
-    camera or a bad request (KeyError / ValueError) is an `{"error": ...}` reply."""
-    c = client()
+    """Serves protocol v2 on stdin/stdout (the planner package `b2dr_planner`, which parses the requests):
+    `plan_request(image_hwc, ego, command) -> 8 poses` with `ego` {"vx", "ax"}; a missing camera or a bad
+    request (KeyError / ValueError) is an `{"error": ...}` reply."""
+    from b2dr_planner import serve
 
     def plan(req):
         try:
-            return plan_request(req.camera(camera).array(), req.ego, req.command)
+            ego = {"vx": req.ego.vx, "ax": req.ego.ax}
+            return plan_request(req.camera(camera).array(), ego, req.command.value)
         except (KeyError, ValueError) as e:
             return {"error": str(e)}
 
-    c.serve(plan, images="inline", size=tuple(image_size))
+    serve(plan, images="inline", size=tuple(image_size))

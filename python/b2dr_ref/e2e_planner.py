@@ -31,7 +31,6 @@ import torch.nn.functional as F
 # the torch-free parts, shared with the numpy forward (b2dr_ref.e2e_numpy)
 from .e2e_common import (COMMANDS, CONFIG, POSE_SCALE, POSES, WEIGHTS, pool2,  # noqa: F401 (re-exported)
                          read_config, reply_poses, request_inputs, serve_planner, state_vector)
-from .e2e_common import client as _client  # noqa: F401
 
 CKPT = "checkpoint.pt"
 

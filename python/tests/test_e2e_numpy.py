@@ -16,6 +16,7 @@ from safetensors.numpy import load_file, save_file
 from b2dr_ref import e2e_common as C
 from b2dr_ref import e2e_numpy as N
 from b2dr_ref import e2e_planner as P
+from planner_fixture import plan_message, start_message, wire
 
 PY = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 WEIGHTS = os.path.join(os.path.dirname(PY), "models", "e2e-planner")
@@ -105,18 +106,13 @@ def test_the_comparison_can_fail(planners, tmp_path):
 
 
 def request(step, img, ego, cmd, camera="CAM_FRONT"):
-    px = img.tobytes()
-    h, w = img.shape[:2]
-    return (json.dumps({"type": "plan", "version": 2, "scenario": "t", "step": step, "time_s": step / 10,
-                        "command": cmd, "ego": ego, "reply": {"poses": 8, "dt_s": 0.5}, "inline_bytes": len(px),
-                        "cameras": [{"camera": camera, "width": w, "height": h, "intrinsic": [[1, 0, 0]] * 3,
-                                     "cam2ego": [[1, 0, 0, 0]] * 4, "ego2global": [[1, 0, 0, 0]] * 4,
-                                     "fnv1a64": "0", "offset": 0, "bytes": len(px)}]}) + "\n").encode() + px
+    """A plan message as b2dr sends it (the recorded fixture) with `img` as `camera`, inline."""
+    return wire(*plan_message(step, images={camera: img}, command=cmd, ego=ego, scenario="t"))
 
 
 def session(argv):
     """start, six plans (the last two: a wrong image size, a missing camera), end -> the reply lines."""
-    msgs = [(json.dumps({"type": "start", "version": 2, "scenario": "t"}) + "\n").encode()]
+    msgs = [wire(start_message("t"))]
     msgs += [request(5 * i, *c) for i, c in enumerate(cases(4, seed=2))]
     msgs.append(request(20, np.zeros((10, 10, 3), np.uint8), {"vx": 1.0}, "straight"))
     msgs.append(request(25, cases(1)[0][0], {"vx": 1.0}, "straight", camera="CAM_BACK"))

@@ -11,6 +11,7 @@ import pytest
 from safetensors.numpy import save_file
 
 from b2dr_ref import e2e_planner as P
+from planner_fixture import plan_message, start_message, wire
 
 H, W = 32, 48
 
@@ -85,18 +86,12 @@ def test_serves_protocol_v2(trained):
     env = dict(os.environ, PYTHONPATH=os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     p = subprocess.Popen([sys.executable, "-m", "b2dr_ref.e2e_planner", "serve", "--weights", model_dir],
                          stdin=subprocess.PIPE, stdout=subprocess.PIPE, env=env)
-    start = {"type": "start", "version": 2, "scenario": "toy"}
-    p.stdin.write((json.dumps(start) + "\n").encode())
+    p.stdin.write(wire(start_message("toy")))
     p.stdin.flush()
     reply = json.loads(p.stdout.readline())
     assert reply == {"images": "inline", "size": [H, W]}
-    px = img[0].tobytes()
-    req = {"type": "plan", "version": 2, "scenario": "toy", "step": 5, "time_s": 0.5, "command": "straight",
-           "ego": {"vx": 8.0, "ax": 0.0}, "reply": {"poses": 8, "dt_s": 0.5}, "inline_bytes": len(px),
-           "cameras": [{"camera": "CAM_FRONT", "width": W, "height": H, "intrinsic": [[1, 0, 0]] * 3,
-                        "cam2ego": [[1, 0, 0, 0]] * 4, "ego2global": [[1, 0, 0, 0]] * 4, "fnv1a64": "0",
-                        "offset": 0, "bytes": len(px)}]}
-    p.stdin.write((json.dumps(req) + "\n").encode() + px)
+    msg, px = plan_message(5, images={"CAM_FRONT": img[0]}, command="straight", ego={"vx": 8.0, "ax": 0.0})
+    p.stdin.write(wire(msg, px))
     p.stdin.flush()
     r = json.loads(p.stdout.readline())
     p.stdin.close()

@@ -1,6 +1,8 @@
 //! `b2dr project`: projects a keyframe's boxes (and optionally a drivable-area map), or those of one log step of
 //! any scenario with its map, into each camera; writes per-class masks at render resolution, an overlay on the
-//! real image, and `projection.json` (native pixels).
+//! real image, and `projection.json` (native pixels; each box with its global centre, and each camera as a
+//! protocol-v2 `plan` request describes it at the native size, `lidar2img` included, beside the lidar frame's
+//! `ego2global` and `lidar2ego`: what `python/tests/test_b2dr_planner_adapters.py` checks the adapter against).
 use std::path::PathBuf;
 
 use anyhow::{bail, Context, Result};
@@ -11,6 +13,8 @@ use b2dr::projection::{
 };
 use b2dr::scene::camera::{Camera, CameraImage};
 use b2dr::scene::import::resolve;
+use b2dr::sim::external::camera_entry;
+use b2dr::sim::sensors::CameraFrame;
 use b2dr::world::images::ImageStore;
 use b2dr::world::step_views::step_views;
 use b2dr::world::view::MASK_COLOURS;
@@ -80,6 +84,13 @@ fn parse_size(s: &str) -> Result<(u32, u32)> {
     Ok((w, h))
 }
 
+/// The ego pose "now" (the keyframe's lidar time, or the scenario's log step) and the rig's lidar: the frame of
+/// the protocol-v2 `lidar2img` written beside each camera's boxes (docs/planner_protocol.md "Frames").
+struct LidarFrame {
+    ego2global: glam::DMat4,
+    lidar2ego: glam::DMat4,
+}
+
 /// One camera image to project: its camera, the image (with its ego pose), the boxes it shows and its pixels at
 /// the camera's native size.
 struct View {
@@ -101,7 +112,7 @@ pub fn run(args: ProjectArgs) -> Result<()> {
             "--overlay-width {w}: must be in 1..=8192"
         );
     }
-    let (views, map, about) = match (&args.frame, &args.scenario) {
+    let (views, map, about, lidar) = match (&args.frame, &args.scenario) {
         (Some(f), None) => frame_views(&args, f)?,
         (None, Some(s)) => scenario_views(s, args.step.unwrap_or(0), &args.cameras)?,
         _ => bail!("give either --frame FRAME.json or --scenario S --step K"),
@@ -110,14 +121,14 @@ pub fn run(args: ProjectArgs) -> Result<()> {
         range: args.range,
         ..ProjectionConfig::default()
     };
-    write_views(&args, &views, &map, &cfg, (rw, rh), about)
+    write_views(&args, &views, &map, &cfg, (rw, rh), about, &lidar)
 }
 
 /// The views of a keyframe file (every camera shows the file's boxes) and the optional GeoJSON map.
 fn frame_views(
     args: &ProjectArgs,
     path: &std::path::Path,
-) -> Result<(Vec<View>, MapLayer, serde_json::Value)> {
+) -> Result<(Vec<View>, MapLayer, serde_json::Value, LidarFrame)> {
     let mut frame = KeyFrame::load(path)?;
     let top = match args.box_z.as_str() {
         "top" => true,
@@ -153,7 +164,18 @@ fn frame_views(
             photo,
         });
     }
-    Ok((views, map, json!({ "frame": path.display().to_string() })))
+    // frame.json carries no lidar calibration: the nominal nuScenes LIDAR_TOP mounting, riding on the keyframe's
+    // (lidar time) ego pose
+    let lidar = LidarFrame {
+        ego2global: frame.ego2global,
+        lidar2ego: b2dr::scene::camera::nuscenes_lidar2ego(),
+    };
+    Ok((
+        views,
+        map,
+        json!({ "frame": path.display().to_string() }),
+        lidar,
+    ))
 }
 
 /// The views of log step `step` of one scenario (`b2dr::world::step_views`), images through the scenario's
@@ -162,7 +184,7 @@ fn scenario_views(
     spec: &str,
     step: usize,
     cameras: &[String],
-) -> Result<(Vec<View>, MapLayer, serde_json::Value)> {
+) -> Result<(Vec<View>, MapLayer, serde_json::Value, LidarFrame)> {
     let srcs = resolve(spec)?;
     let [src] = srcs.as_slice() else {
         bail!(
@@ -193,7 +215,16 @@ fn scenario_views(
     if let Some(m) = &sv.scenario.map.missing {
         eprintln!("no map channels: {m}");
     }
-    Ok((views, sv.map, about))
+    let ego = sv
+        .scenario
+        .ego
+        .get(sv.frame_step)
+        .with_context(|| format!("log step {} of {spec}", sv.frame_step))?;
+    let lidar = LidarFrame {
+        ego2global: b2dr::scene::import::ego2global(&ego.rear_axle),
+        lidar2ego: sv.scenario.rig.lidar2ego,
+    };
+    Ok((views, sv.map, about, lidar))
 }
 
 /// Masks, overlays and `projection.json` of the views (module docs).
@@ -204,12 +235,14 @@ fn write_views(
     cfg: &ProjectionConfig,
     (rw, rh): (u32, u32),
     about: serde_json::Value,
+    lidar: &LidarFrame,
 ) -> Result<()> {
     std::fs::create_dir_all(&args.out)
         .with_context(|| format!("creating {}", args.out.display()))?;
     let mut renderer = LayoutRenderer::new(rw as usize, rh as usize);
     let mut masks = LayoutMasks::new(rw as usize, rh as usize);
     let mut cams_json = serde_json::Map::new();
+    let mut protocol = serde_json::Map::new();
     for View {
         cam,
         img,
@@ -254,11 +287,26 @@ fn write_views(
                 wires.push((b.class.index(), segs));
             }
             entries.push(json!({
-                "box": i, "class": b.class.name(), "center_px": [center.x, center.y], "depth": depth,
+                "box": i, "class": b.class.name(), "center": b.center.to_array(),
+                "center_px": [center.x, center.y], "depth": depth,
                 "corners_px": corners, "in_view": in_view,
             }));
         }
         cams_json.insert(cam.name.clone(), serde_json::Value::Array(entries));
+        // the camera as a protocol-v2 `plan` request describes it at the native size (lidar2img included)
+        let frame = CameraFrame {
+            camera: cam.name.clone(),
+            width: cam.width,
+            height: cam.height,
+            rgb: std::sync::Arc::new(photo.as_raw().clone()),
+            intrinsic: cam.intrinsic,
+            cam2ego: cam.cam2ego,
+            ego2global: img.ego2global,
+        };
+        protocol.insert(
+            cam.name.clone(),
+            camera_entry(&frame, &lidar.ego2global, &lidar.lidar2ego),
+        );
 
         let mut photo = photo.clone();
         blend_masks(&mut photo, &masks);
@@ -289,7 +337,10 @@ fn write_views(
         }
     }
     let p = args.out.join("projection.json");
-    let mut doc = json!({ "cameras": cams_json });
+    let mut doc = json!({
+        "cameras": cams_json, "protocol_cameras": protocol,
+        "ego2global": rows4(&lidar.ego2global), "lidar2ego": rows4(&lidar.lidar2ego),
+    });
     if let (Some(o), serde_json::Value::Object(a)) = (doc.as_object_mut(), about) {
         o.extend(a);
     }
@@ -374,4 +425,9 @@ fn draw_line(img: &mut RgbImage, a: DVec2, b: DVec2, c: [u8; 3]) {
             }
         }
     }
+}
+
+/// 4x4 rows (`m[r][c]`), as the protocol writes matrices.
+fn rows4(m: &glam::DMat4) -> [[f64; 4]; 4] {
+    [0, 1, 2, 3].map(|r| m.row(r).to_array())
 }
