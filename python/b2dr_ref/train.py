@@ -498,47 +498,56 @@ def loss_weight(kind: str, abar_t: torch.Tensor, max_weight: float = 0.0, gamma:
 PREDICTIONS = ("epsilon", "v_prediction")
 
 
-def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: torch.Tensor, p_noprev: float = 0.1,
-                   ref_dropout: Optional[float] = None, weighting: str = "eps", max_weight: float = 0.0,
-                   prediction: str = "epsilon", object_weight: float = 0.0, fast: FastPath = PLAIN):
-    """One batch's (weighted) MSE of the model's prediction (all random draws from ``gen``, on the CPU, then moved to
-    the device). ``prediction``: the model predicts epsilon, or v = sqrt(abar) eps - sqrt(1 - abar) x_0
-    (diffusers' v_prediction; the sampler then reads x_0 = sqrt(abar) x_t - sqrt(1 - abar) v).
-    ``object_weight`` W > 0: latent pixels whose 8x8 image cell holds an object (mask channels car .. bicycle)
-    weigh 1 + W in the MSE (small vehicles cover ~5 % of the pixels and otherwise barely move the loss).
-    ``fast`` (fastpath.py): memory format and autocast of the forward; ``unet`` / ``controlnet`` may then be the
-    compiled wrappers of ``FastPath.prepare``. The random draws and the loss are the same in every mode."""
-    cfg = controlnet.config
-    dev = b["x0"].device
+def draw_noise(b, gen: torch.Generator, prev_noise_max: int, p_noprev: float, ref_dropout: float) -> Dict:
+    """The random draws of one batch, in this order from ``gen`` (on the CPU): t, eps, n, eps_p, noprev, ref_mask."""
     B = b["x0"].shape[0]
     t = torch.randint(0, 1000, (B,), generator=gen)
-    eps = torch.randn(b["x0"].shape, generator=gen).to(dev)
-    n = torch.randint(0, int(cfg.prev_noise_max) + 1, (B,), generator=gen)
-    eps_p = torch.randn(b["z_prev"].shape, generator=gen).to(dev)
+    eps = torch.randn(b["x0"].shape, generator=gen)
+    n = torch.randint(0, int(prev_noise_max) + 1, (B,), generator=gen)
+    eps_p = torch.randn(b["z_prev"].shape, generator=gen)
     noprev = torch.rand((B,), generator=gen) < p_noprev
-    rd = float(cfg.ref_dropout) if ref_dropout is None else ref_dropout
-    ref_mask = torch.rand((B,), generator=gen) >= rd
+    ref_mask = torch.rand((B,), generator=gen) >= ref_dropout
+    return dict(t=t, eps=eps, n=n, eps_p=eps_p, noprev=noprev, ref_mask=ref_mask)
 
+
+def noised_inputs(b, d: Dict, abar: torch.Tensor):
+    """x_t (DDPMScheduler.add_noise), the noised previous latent z (zero and n = 999 for 'no previous frame'), the
+    noise levels n and sqrt-able alpha-bar at t, all on the batch's device."""
+    dev = b["x0"].device
+    B = b["x0"].shape[0]
     a = abar.to(dev)
-    at = a[t.to(dev)].reshape(B, 1, 1, 1)
-    x_t = at.sqrt() * b["x0"] + (1 - at).sqrt() * eps                  # DDPMScheduler.add_noise
-    an = a[n.to(dev)].reshape(B, 1, 1, 1)
-    z = an.sqrt() * b["z_prev"] + (1 - an).sqrt() * eps_p
-    keep = (~noprev).to(dev).float().reshape(B, 1, 1, 1)
+    at = a[d["t"].to(dev)].reshape(B, 1, 1, 1)
+    x_t = at.sqrt() * b["x0"] + (1 - at).sqrt() * d["eps"].to(dev)
+    an = a[d["n"].to(dev)].reshape(B, 1, 1, 1)
+    z = an.sqrt() * b["z_prev"] + (1 - an).sqrt() * d["eps_p"].to(dev)
+    keep = (~d["noprev"]).to(dev).float().reshape(B, 1, 1, 1)
     z = z * keep
-    n = torch.where(noprev, torch.full_like(n, NO_PREV_NOISE_LEVEL), n)
-    ctx = context.to(dev)[b["cams"].to(dev)]
+    n = torch.where(d["noprev"], torch.full_like(d["n"], NO_PREV_NOISE_LEVEL), d["n"])
+    return x_t, z, n.to(dev), at
+
+
+def denoise(unet, controlnet, x_t, t, ctx, masks, z, n, ref_latents, pe_cur, pe_ref, ref_mask, fast: FastPath = PLAIN):
+    """The model's prediction: references prepared for the rows of ``ref_mask`` (none when it is all False), the
+    B2D-R ControlNet's residuals, the UNet. ``fast``: memory format and autocast (fastpath.py)."""
+    dev = x_t.device
     with fast.autocast_ctx(dev):
         refs = None
         if bool(ref_mask.any()):
             m = ref_mask.to(dev)
-            refs = controlnet.prepare_references(fast.inputs(b["ref_latents"][m]), [p[m] for p in b["pe_cur"]],
-                                                 [p[m] for p in b["pe_ref"]])
+            refs = controlnet.prepare_references(fast.inputs(ref_latents[m]), [p[m] for p in pe_cur],
+                                                 [p[m] for p in pe_ref])
         xi = fast.inputs(x_t)
-        down, mid = controlnet(xi, t.to(dev), ctx, fast.inputs(b["masks"]), fast.inputs(z), n.to(dev), refs=refs,
+        down, mid = controlnet(xi, t, ctx, fast.inputs(masks), fast.inputs(z), n, refs=refs,
                                ref_mask=ref_mask.to(dev) if refs is not None else None)
-        pred = unet(xi, t.to(dev), ctx, down_block_additional_residuals=down,
-                    mid_block_additional_residual=mid).sample
+        return unet(xi, t, ctx, down_block_additional_residuals=down, mid_block_additional_residual=mid).sample
+
+
+def prediction_loss(pred, b, d: Dict, at, weighting: str = "eps", max_weight: float = 0.0,
+                    prediction: str = "epsilon", object_weight: float = 0.0):
+    """The (weighted) MSE between the prediction and its target (epsilon, or v)."""
+    dev = b["x0"].device
+    B = b["x0"].shape[0]
+    eps = d["eps"].to(dev)
     if prediction == "v_prediction":
         target = at.sqrt() * eps - (1 - at).sqrt() * b["x0"]
     elif prediction == "epsilon":
@@ -552,6 +561,29 @@ def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: tor
         return sq.mean()
     per = sq.mean(dim=(1, 2, 3))
     return (loss_weight(weighting, at.reshape(B), max_weight) * per).mean()
+
+
+def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: torch.Tensor, p_noprev: float = 0.1,
+                   ref_dropout: Optional[float] = None, weighting: str = "eps", max_weight: float = 0.0,
+                   prediction: str = "epsilon", object_weight: float = 0.0, fast: FastPath = PLAIN):
+    """One batch's (weighted) MSE of the model's prediction (all random draws from ``gen``, on the CPU, then moved to
+    the device). ``prediction``: the model predicts epsilon, or v = sqrt(abar) eps - sqrt(1 - abar) x_0
+    (diffusers' v_prediction; the sampler then reads x_0 = sqrt(abar) x_t - sqrt(1 - abar) v).
+    ``object_weight`` W > 0: latent pixels whose 8x8 image cell holds an object (mask channels car .. bicycle)
+    weigh 1 + W in the MSE (small vehicles cover ~5 % of the pixels and otherwise barely move the loss).
+    ``fast`` (fastpath.py): memory format and autocast of the forward; ``unet`` / ``controlnet`` may then be the
+    compiled wrappers of ``FastPath.prepare``. The random draws and the loss are the same in every mode.
+    The pieces (draw_noise, noised_inputs, denoise, prediction_loss) are shared with b2dr_ref.training."""
+    cfg = controlnet.config
+    dev = b["x0"].device
+    rd = float(cfg.ref_dropout) if ref_dropout is None else ref_dropout
+    d = draw_noise(b, gen, int(cfg.prev_noise_max), p_noprev, rd)
+    x_t, z, n, at = noised_inputs(b, d, abar)
+    ctx = context.to(dev)[b["cams"].to(dev)]
+    pred = denoise(unet, controlnet, x_t, d["t"].to(dev), ctx, b["masks"], z, n, b["ref_latents"], b["pe_cur"],
+                   b["pe_ref"], d["ref_mask"], fast=fast)
+    return prediction_loss(pred, b, d, at, weighting=weighting, max_weight=max_weight, prediction=prediction,
+                           object_weight=object_weight)
 
 
 # the mask channels (controlnet.MASK_CHANNELS order) of the objects: car .. bicycle
