@@ -580,8 +580,9 @@ def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: tor
     d = draw_noise(b, gen, int(cfg.prev_noise_max), p_noprev, rd)
     x_t, z, n, at = noised_inputs(b, d, abar)
     ctx = context.to(dev)[b["cams"].to(dev)]
-    pred = denoise(unet, controlnet, x_t, d["t"].to(dev), ctx, b["masks"], z, n, b["ref_latents"], b["pe_cur"],
-                   b["pe_ref"], d["ref_mask"], fast=fast)
+    # (a batch may leave the references out when every row drops them: ref_mask all False)
+    pred = denoise(unet, controlnet, x_t, d["t"].to(dev), ctx, b["masks"], z, n, b.get("ref_latents"),
+                   b.get("pe_cur"), b.get("pe_ref"), d["ref_mask"], fast=fast)
     return prediction_loss(pred, b, d, at, weighting=weighting, max_weight=max_weight, prediction=prediction,
                            object_weight=object_weight)
 
