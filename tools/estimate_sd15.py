@@ -2,7 +2,7 @@
 """SD1.5-size B2D-R: parameter counts, FLOPs and saved-activation bytes per camera sample at 224x400, on the meta
 device (nothing allocated). Used for docs/training.md "At the paper's scale" (an ESTIMATE).
 
-    cd python && python ../tools/estimate_sd15.py
+    cd python && PYTHONPATH=. python ../tools/estimate_sd15.py
 """
 import torch
 from torch.utils.flop_counter import FlopCounterMode

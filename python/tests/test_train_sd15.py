@@ -320,6 +320,32 @@ def test_controlnet_starts_as_the_unet_encoder_with_zero_outputs(pretrained):
     torch.testing.assert_close(pred, plain)
 
 
+def test_freeze_unet_trains_the_controlnet_only(pretrained, data, tmp_path):
+    """--freeze_unet (MagicDrive): one step in this process with bf16 autocast; the checkpoint holds no unet/, the
+    ControlNet moved, and the export's UNet is the pretrained one."""
+    from diffusers import UNet2DConditionModel
+
+    from b2dr_ref.package import load_package
+
+    out = str(tmp_path / "frozen")
+    in_process(["--pretrained", pretrained, "--data", data, "--output_dir", out, *MODEL_ARGS, "--freeze_unet",
+                "--mixed_precision", "bf16", "--train_batch_size", "2", "--stop_after_steps", "1",
+                "--validation_steps", "0", "--report_to", "none"])
+    ck = os.path.join(out, "checkpoint-1")
+    assert os.path.isdir(os.path.join(ck, "controlnet")) and not os.path.exists(os.path.join(ck, "unet"))
+    r = common.export_package(out, str(tmp_path / "model"), dtype="f32", use_ema=False)
+    pkg = load_package(str(tmp_path / "model"))
+    want = UNet2DConditionModel.from_pretrained(pretrained, subfolder="unet").state_dict()
+    for k, v in pkg.unet.state_dict().items():
+        assert torch.equal(v, want[k]), k
+    from b2dr_ref.controlnet import B2DRControlNetModel
+
+    fresh = B2DRControlNetModel.from_unet(UNet2DConditionModel.from_pretrained(pretrained, subfolder="unet"),
+                                          conditioning_embedding_out_channels=(8, 16, 16, 32), pe_depth_num=4)
+    moved = [k for k, v in pkg.controlnet.state_dict().items() if not torch.equal(v, fresh.state_dict()[k])]
+    assert len(moved) > 10 and r["step"] == 1
+
+
 def test_checkpoint_rotation_and_resume_path(tmp_path):
     for s in (10, 2, 30):
         os.makedirs(tmp_path / f"checkpoint-{s}")
