@@ -289,6 +289,14 @@ def test_export_package_loads_and_the_engine_computes_its_unet(run_b, pretrained
     nmse = float(((got - ref) ** 2).mean() / (ref ** 2).mean())
     print(f"engine UNet vs diffusers on the exported package: normalised MSE {nmse:.2e}")
     assert nmse <= 1e-5, nmse
+    # and the engine renders a whole B2D-R frame of both cameras with the package (2 UniPC steps)
+    frame = SHARED / "keyframe-scene-0061" / "frame.json"
+    if frame.exists():
+        subprocess.run([exe, "render", "--model", str(model), "--frame", str(frame), "--steps", "2",
+                        "--out", str(tmp_path / "render")], check=True, capture_output=True)
+        with open(tmp_path / "render" / "render.json") as f:
+            assert json.load(f)
+        assert (tmp_path / "render" / "CAM_FRONT.png").exists() and (tmp_path / "render" / "CAM_BACK.png").exists()
 
 
 def test_controlnet_starts_as_the_unet_encoder_with_zero_outputs(pretrained):
