@@ -179,6 +179,9 @@ def main(args):
         accelerator.load_state(ck)
         global_step = common.checkpoint_step(ck)
     batches = len(loader)
+    if batches == 0:
+        raise SystemExit(f"{args.data}: {len(dataset)} camera samples do not fill one batch of "
+                         f"{args.train_batch_size} per process x {accelerator.num_processes} processes")
     per_epoch = max(1, math.ceil(batches / args.gradient_accumulation_steps))
     first_epoch, skip = divmod(global_step, per_epoch)
     epochs = common.epochs_for(args.max_train_steps, batches, args.gradient_accumulation_steps)
