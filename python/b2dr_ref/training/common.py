@@ -24,6 +24,7 @@ holds the parts that do not depend on where the weights come from:
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import math
 import os
@@ -36,7 +37,8 @@ import torch
 from ..controlnet import B2DRControlNetModel
 from ..frame import gaussian_blur
 from ..pe import PeConfig, location_sizes
-from ..train import CsvLog, denoise, draw_noise, open_source, sample_pe
+from .data import open_source, sample_pe
+from .loss import denoise, draw_noise
 
 CHECKPOINT_PREFIX = "checkpoint-"
 RUN_JSON = "run.json"
@@ -461,6 +463,29 @@ def write_run_json(args, cameras: Sequence[str], extra: Dict[str, Any]):
                 args={k: v for k, v in vars(args).items() if isinstance(v, (int, float, str, bool, list, type(None)))})
     with open(os.path.join(args.output_dir, RUN_JSON), "w") as f:
         json.dump(meta, f, indent=2)
+
+
+class CsvLog:
+    """log.csv: one row per step; on a resume the rows up to the resumed step are kept."""
+
+    def __init__(self, path: str, fields: Sequence[str], resume_step: int):
+        rows = []
+        if resume_step > 0 and os.path.exists(path):
+            with open(path) as f:
+                rows = [r for r in csv.DictReader(f) if int(r["step"]) <= resume_step]
+        self.f = open(path, "w", newline="")
+        self.w = csv.DictWriter(self.f, fieldnames=list(fields))
+        self.w.writeheader()
+        for r in rows:
+            self.w.writerow(r)
+        self.f.flush()
+
+    def write(self, row):
+        self.w.writerow(row)
+        self.f.flush()
+
+    def close(self):
+        self.f.close()
 
 
 def open_csv_log(args, resume_step: int) -> CsvLog:

@@ -27,7 +27,7 @@ import torch
 
 from ..controlnet import B2DRControlNetModel
 from ..frame import SD15_SCHEDULE
-from ..train import noised_inputs, prediction_loss
+from .loss import noised_inputs, prediction_loss
 from . import common
 
 # The paper's recipe (Bench2Drive-R; renderer.md 3, world.md 3): the defaults of every argument it names.
