@@ -62,7 +62,7 @@ def gaussian_blur(x: torch.Tensor, sigma: float) -> torch.Tensor:
     r = blur_radius(sigma)
     if r >= hh or r >= ww:
         raise ValueError(f"gaussian_blur: radius {r} needs an image larger than {hh}x{ww}")
-    k = torch.tensor(gaussian_weights(sigma), dtype=x.dtype)
+    k = torch.tensor(gaussian_weights(sigma), dtype=x.dtype, device=x.device)
     y = x.reshape(n * c, 1, hh, ww)
     y = F.conv2d(F.pad(y, (r, r, 0, 0), mode="reflect"), k.reshape(1, 1, 1, -1))
     y = F.conv2d(F.pad(y, (0, 0, r, r), mode="reflect"), k.reshape(1, 1, -1, 1))

@@ -20,193 +20,31 @@ All randomness comes from one seeded torch.Generator whose state the checkpoint 
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import math
 import os
 import sys
 import time
-from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Protocol, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from . import nano
 from .controlnet import B2DRControlNetModel, MASK_CHANNELS
 from .fastpath import AUTOCASTS, PLAIN, FastPath, Prefetcher
 from .frame import SD15_SCHEDULE, gaussian_blur
-from .pe import PeConfig, PixelGrid, cam2cur, depth_bins, location_sizes
+from .pe import PeConfig, location_sizes
 
 CKPT = "checkpoint.pt"
-NO_PREV_NOISE_LEVEL = 999     # src/render/frame.rs NO_PREV_NOISE_LEVEL: zero latent input, n = 999
 
-# ---------------------------------------------------------------------------------------------------------------
-# Data: the SampleSource protocol (what the trainer needs of one camera sample)
-# ---------------------------------------------------------------------------------------------------------------
-
-
-@dataclass
-class Sample:
-    """One camera of one training frame. Images uint8 (3, H, W) at render size; masks {0,1} (15, H, W)."""
-    target: np.ndarray
-    prev: np.ndarray
-    refs: np.ndarray              # (2, 3, H, W): front, rear
-    masks: np.ndarray             # (15, H, W), channel order controlnet.MASK_CHANNELS
-    k: np.ndarray                 # (3, 3) intrinsics at the render size
-    cam2ego: np.ndarray           # (4, 4)
-    ego2global: np.ndarray        # (4, 4) current frame
-    prev_ego2global: np.ndarray   # (4, 4) (not used by the model: the previous frame has no PE)
-    ref_ego2global: np.ndarray    # (2, 4, 4) front, rear
-    camera: str
-
-
-class SampleSource(Protocol):
-    render_size: Tuple[int, int]      # (H, W)
-    cameras: List[str]
-
-    def __len__(self) -> int: ...
-
-    def __getitem__(self, i: int) -> Sample: ...
-
-
-def _rot_z(yaw: float, xyz=(0.0, 0.0, 0.0)) -> np.ndarray:
-    c, s = math.cos(yaw), math.sin(yaw)
-    m = np.eye(4)
-    m[:2, :2] = [[c, -s], [s, c]]
-    m[:3, 3] = xyz
-    return m
-
-
-class SyntheticSource:
-    """Random but learnable samples: the target paints the mask classes with fixed colours over a sky/ground
-    split; prev / refs are shifted copies. Deterministic per index (seed, i)."""
-
-    def __init__(self, n: int = 16, render_size=(56, 104), cameras=("CAM_FRONT", "CAM_BACK"), seed: int = 0):
-        self.n = n
-        self.render_size = (int(render_size[0]), int(render_size[1]))
-        self.cameras = list(cameras)
-        self.seed = seed
-        self.palette = np.random.default_rng(1234).integers(0, 256, size=(len(MASK_CHANNELS), 3))
-
-    def __len__(self):
-        return self.n
-
-    def _image(self, masks, shift):
-        h, w = self.render_size
-        img = np.zeros((3, h, w), np.float64)
-        img[:, : h // 2] = np.array([120, 170, 230])[:, None, None]
-        img[:, h // 2:] = np.array([90, 120, 70])[:, None, None]
-        for c in range(masks.shape[0]):
-            m = np.roll(masks[c], shift, axis=1) > 0
-            img[:, m] = self.palette[c][:, None]
-        return img.clip(0, 255).astype(np.uint8)
-
-    def __getitem__(self, i: int) -> Sample:
-        rng = np.random.default_rng((self.seed, int(i)))
-        h, w = self.render_size
-        masks = np.zeros((len(MASK_CHANNELS), h, w), np.uint8)
-        masks[10, h // 2:] = 1                                      # drivable area
-        for _ in range(3):
-            c = int(rng.integers(0, 10))
-            y0, x0 = int(rng.integers(h // 3, h - 8)), int(rng.integers(0, w - 12))
-            masks[c, y0:y0 + int(rng.integers(4, 12)), x0:x0 + int(rng.integers(6, 24))] = 1
-        cam = self.cameras[int(i) % len(self.cameras)]
-        f = 0.8 * w
-        k = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
-        yaw = 0.0 if cam.endswith("FRONT") else math.pi
-        cam2ego = _rot_z(yaw, (1.5, 0.0, 1.6)) @ np.array([[0, 0, 1, 0], [-1, 0, 0, 0], [0, -1, 0, 0], [0, 0, 0, 1.0]])
-        x = float(rng.uniform(-50, 50))
-        e2g = _rot_z(float(rng.uniform(-0.3, 0.3)), (x, float(rng.uniform(-5, 5)), 0.0))
-        d = rng.choice([rng.uniform(2, 5), rng.uniform(5, 10), rng.uniform(10, 15)], p=[0.1, 0.3, 0.6])
-        refs_pose = np.stack([e2g @ _rot_z(0.0, (d, 0, 0)), e2g @ _rot_z(0.0, (-d, 0, 0))])
-        return Sample(target=self._image(masks, 0), prev=self._image(masks, 2),
-                      refs=np.stack([self._image(masks, 5), self._image(masks, -5)]), masks=masks, k=k,
-                      cam2ego=cam2ego, ego2global=e2g, prev_ego2global=e2g @ _rot_z(0.0, (-3.0, 0, 0)),
-                      ref_ego2global=refs_pose, camera=cam)
-
-
-class DatasetSource:
-    """The exported training data (world.md 2, docs/training_data.md) read by ``b2dr_ref.dataset.TrainingSet``,
-    one Sample per (frame, camera): index ``i = frame * n_cameras + camera``. ``ds``: an opened TrainingSet (or
-    anything with its interface: cameras, mask_channels, height, width, __len__, __getitem__ -> the sample dict)."""
-
-    def __init__(self, directory: Optional[str] = None, ds=None):
-        if ds is None:
-            from .dataset import TrainingSet      # python/b2dr_ref/dataset.py (the export's reader)
-
-            ds = TrainingSet(directory)
-        self.ds = ds
-        if list(ds.mask_channels) != list(MASK_CHANNELS):
-            raise ValueError(f"{directory}: mask channels {list(ds.mask_channels)} differ from the model's "
-                             f"{MASK_CHANNELS}")
-        self.render_size = (int(ds.height), int(ds.width))
-        self.cameras = list(ds.cameras)
-        self._frame = (None, None)
-
-    def __len__(self):
-        return len(self.ds) * len(self.cameras)
-
-    def __getitem__(self, i: int) -> Sample:
-        f, c = divmod(int(i), len(self.cameras))
-        if self._frame[0] != f:
-            self._frame = (f, self.ds[f])
-        s = self._frame[1]
-        return Sample(target=s["target"][c], prev=s["prev"][c], refs=s["ref"][c], masks=s["masks"][c],
-                      k=np.asarray(s["intrinsics"][c], np.float64), cam2ego=np.asarray(s["cam2ego"][c], np.float64),
-                      ego2global=np.asarray(s["ego2global"][c], np.float64),
-                      prev_ego2global=np.asarray(s["prev_ego2global"][c], np.float64),
-                      ref_ego2global=np.asarray(s["ref_ego2global"][c], np.float64), camera=self.cameras[c])
-
-
-def open_source(data: str, render_size=None) -> SampleSource:
-    """``synthetic[:N]`` -> SyntheticSource (at the config's render size), else the exported dataset folder."""
-    if data.startswith("synthetic"):
-        n = int(data.split(":")[1]) if ":" in data else 16
-        return SyntheticSource(n=n, render_size=render_size or (56, 104))
-    return DatasetSource(data)
-
-
-# ---------------------------------------------------------------------------------------------------------------
-# PETR geometry (pe.py's formulas, vectorised over pixels and depths)
-# ---------------------------------------------------------------------------------------------------------------
-
-
-def position_encoding_np(k, img_w: int, img_h: int, m, h: int, w: int, cfg: PeConfig) -> np.ndarray:
-    """pe.position_encoding, vectorised: (3 D, h, w) float32, channel d * 3 + axis."""
-    k = np.asarray(k, np.float64)
-    m = np.asarray(m, np.float64)
-    kinv = np.linalg.inv(k)
-    sx, sy = img_w / w, img_h / h
-    xs, ys = np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64)
-    if cfg.grid == PixelGrid.CENTRE:
-        u, v = (xs + 0.5) * sx - 0.5, (ys + 0.5) * sy - 0.5
-    else:
-        u, v = xs * sx, ys * sy
-    uu, vv = np.meshgrid(u, v)                                           # (h, w)
-    pix = np.stack([uu, vv, np.ones_like(uu)], -1)                       # (h, w, 3)
-    ray = pix @ kinv.T
-    d = np.maximum(np.asarray(depth_bins(cfg)), cfg.eps)
-    q = ray[None] * d[:, None, None, None]                               # (D, h, w, 3)
-    p = q @ m[:3, :3].T + m[:3, 3]
-    r = cfg.position_range
-    lo, span = np.array(r[:3]), np.array(r[3:]) - np.array(r[:3])
-    x = np.clip((p - lo) / span, 0.0, 1.0)
-    x = np.log(np.maximum(x, cfg.eps) / np.maximum(1.0 - x, cfg.eps))
-    return np.ascontiguousarray(x.transpose(0, 3, 1, 2).reshape(-1, h, w)).astype(np.float32)
-
-
-def sample_pe(s: Sample, cfg: PeConfig, sizes, render_hw) -> Tuple[List[np.ndarray], List[np.ndarray]]:
-    """pe_cur[j] (3D, h_j, w_j), pe_ref[j] (2, 3D, h_j, w_j) of one sample (pe.pe_inputs for one camera)."""
-    H, W = render_hw
-    m_cur = cam2cur(s.cam2ego, s.ego2global, s.ego2global)
-    m_ref = [cam2cur(s.cam2ego, s.ref_ego2global[r], s.ego2global) for r in range(2)]
-    cur, ref = [], []
-    for (h, w) in sizes:
-        cur.append(position_encoding_np(s.k, W, H, m_cur, h, w, cfg))
-        ref.append(np.stack([position_encoding_np(s.k, W, H, m, h, w, cfg) for m in m_ref]))
-    return cur, ref
+# The data (Sample, its sources, the PETR geometry), the loss pieces and the CSV log live in b2dr_ref.training,
+# shared with the sd15 recipe; their names stay importable from here.
+from .training.common import CsvLog  # noqa: E402,F401
+from .training.data import (DatasetSource, Sample, SampleSource, SyntheticSource, _rot_z,  # noqa: E402,F401
+                            open_source, position_encoding_np, sample_pe)
+from .training.loss import (LOSS_WEIGHTS, NO_PREV_NOISE_LEVEL, OBJECT_CHANNELS, PREDICTIONS,  # noqa: E402,F401
+                            denoise, draw_noise, loss_weight, noised_inputs, object_loss_weight, prediction_loss)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -292,27 +130,6 @@ class Ema:
     def state_for(self, i: int) -> Dict[str, torch.Tensor]:
         p = f"{i}."
         return {k[len(p):]: v for k, v in self.shadow.items() if k.startswith(p)}
-
-
-class CsvLog:
-    def __init__(self, path: str, fields: Sequence[str], resume_step: int):
-        rows = []
-        if resume_step > 0 and os.path.exists(path):
-            with open(path) as f:
-                rows = [r for r in csv.DictReader(f) if int(r["step"]) <= resume_step]
-        self.f = open(path, "w", newline="")
-        self.w = csv.DictWriter(self.f, fieldnames=list(fields))
-        self.w.writeheader()
-        for r in rows:
-            self.w.writerow(r)
-        self.f.flush()
-
-    def write(self, row):
-        self.w.writerow(row)
-        self.f.flush()
-
-    def close(self):
-        self.f.close()
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -472,32 +289,6 @@ class Batcher:
                     pe_ref=[torch.stack([it[6][j] for it in items]).to(dev) for j in range(nl)])
 
 
-LOSS_WEIGHTS = ("eps", "v", "min-snr")
-
-
-def loss_weight(kind: str, abar_t: torch.Tensor, max_weight: float = 0.0, gamma: float = 5.0) -> torch.Tensor:
-    """Per-sample weight of the epsilon MSE at noise levels with alpha-bar ``abar_t`` (SNR = abar / (1 - abar)):
-    - ``eps``: 1 (the plain epsilon loss);
-    - ``v``: 1 + 1 / SNR, which makes the epsilon-parameterised loss equal to the v-prediction loss
-      ||v - v_hat||^2 (v_hat from the predicted epsilon): the x_0 error at high noise levels is no longer weighted
-      by SNR ~ 0.005, so the model learns the global layout that the first sampling steps decide;
-    - ``min-snr``: min(SNR, gamma) / SNR (Min-SNR-gamma, Hang et al. 2023): down-weights the lowest noise levels.
-    ``max_weight`` > 0 caps the weight."""
-    snr = abar_t / (1 - abar_t)
-    if kind == "eps":
-        w = torch.ones_like(snr)
-    elif kind == "v":
-        w = 1 + 1 / snr
-    elif kind == "min-snr":
-        w = torch.clamp(snr, max=gamma) / snr
-    else:
-        raise ValueError(f"loss weight {kind!r} (one of {', '.join(LOSS_WEIGHTS)})")
-    return torch.clamp(w, max=max_weight) if max_weight > 0 else w
-
-
-PREDICTIONS = ("epsilon", "v_prediction")
-
-
 def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: torch.Tensor, p_noprev: float = 0.1,
                    ref_dropout: Optional[float] = None, weighting: str = "eps", max_weight: float = 0.0,
                    prediction: str = "epsilon", object_weight: float = 0.0, fast: FastPath = PLAIN):
@@ -507,62 +298,19 @@ def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: tor
     ``object_weight`` W > 0: latent pixels whose 8x8 image cell holds an object (mask channels car .. bicycle)
     weigh 1 + W in the MSE (small vehicles cover ~5 % of the pixels and otherwise barely move the loss).
     ``fast`` (fastpath.py): memory format and autocast of the forward; ``unet`` / ``controlnet`` may then be the
-    compiled wrappers of ``FastPath.prepare``. The random draws and the loss are the same in every mode."""
+    compiled wrappers of ``FastPath.prepare``. The random draws and the loss are the same in every mode.
+    The pieces (draw_noise, noised_inputs, denoise, prediction_loss) are shared with b2dr_ref.training."""
     cfg = controlnet.config
     dev = b["x0"].device
-    B = b["x0"].shape[0]
-    t = torch.randint(0, 1000, (B,), generator=gen)
-    eps = torch.randn(b["x0"].shape, generator=gen).to(dev)
-    n = torch.randint(0, int(cfg.prev_noise_max) + 1, (B,), generator=gen)
-    eps_p = torch.randn(b["z_prev"].shape, generator=gen).to(dev)
-    noprev = torch.rand((B,), generator=gen) < p_noprev
     rd = float(cfg.ref_dropout) if ref_dropout is None else ref_dropout
-    ref_mask = torch.rand((B,), generator=gen) >= rd
-
-    a = abar.to(dev)
-    at = a[t.to(dev)].reshape(B, 1, 1, 1)
-    x_t = at.sqrt() * b["x0"] + (1 - at).sqrt() * eps                  # DDPMScheduler.add_noise
-    an = a[n.to(dev)].reshape(B, 1, 1, 1)
-    z = an.sqrt() * b["z_prev"] + (1 - an).sqrt() * eps_p
-    keep = (~noprev).to(dev).float().reshape(B, 1, 1, 1)
-    z = z * keep
-    n = torch.where(noprev, torch.full_like(n, NO_PREV_NOISE_LEVEL), n)
+    d = draw_noise(b, gen, int(cfg.prev_noise_max), p_noprev, rd)
+    x_t, z, n, at = noised_inputs(b, d, abar)
     ctx = context.to(dev)[b["cams"].to(dev)]
-    with fast.autocast_ctx(dev):
-        refs = None
-        if bool(ref_mask.any()):
-            m = ref_mask.to(dev)
-            refs = controlnet.prepare_references(fast.inputs(b["ref_latents"][m]), [p[m] for p in b["pe_cur"]],
-                                                 [p[m] for p in b["pe_ref"]])
-        xi = fast.inputs(x_t)
-        down, mid = controlnet(xi, t.to(dev), ctx, fast.inputs(b["masks"]), fast.inputs(z), n.to(dev), refs=refs,
-                               ref_mask=ref_mask.to(dev) if refs is not None else None)
-        pred = unet(xi, t.to(dev), ctx, down_block_additional_residuals=down,
-                    mid_block_additional_residual=mid).sample
-    if prediction == "v_prediction":
-        target = at.sqrt() * eps - (1 - at).sqrt() * b["x0"]
-    elif prediction == "epsilon":
-        target = eps
-    else:
-        raise ValueError(f"prediction {prediction!r} (one of {', '.join(PREDICTIONS)})")
-    sq = (pred.float() - target.float()) ** 2
-    if object_weight > 0:
-        sq = sq * object_loss_weight(b["masks"], sq.shape[-2:], object_weight)
-    if weighting == "eps":
-        return sq.mean()
-    per = sq.mean(dim=(1, 2, 3))
-    return (loss_weight(weighting, at.reshape(B), max_weight) * per).mean()
-
-
-# the mask channels (controlnet.MASK_CHANNELS order) of the objects: car .. bicycle
-OBJECT_CHANNELS = slice(0, 8)
-
-
-def object_loss_weight(masks: torch.Tensor, latent_hw, w: float) -> torch.Tensor:
-    """(B, 15, H, W) image-size masks -> (B, 1, h, w) latent-size weights 1 + w * [an object in the cell]."""
-    obj = masks[:, OBJECT_CHANNELS].amax(1, keepdim=True).float()
-    cell = F.adaptive_max_pool2d(obj, tuple(int(v) for v in latent_hw))
-    return 1.0 + w * cell
+    # (a batch may leave the references out when every row drops them: ref_mask all False)
+    pred = denoise(unet, controlnet, x_t, d["t"].to(dev), ctx, b["masks"], z, n, b.get("ref_latents"),
+                   b.get("pe_cur"), b.get("pe_ref"), d["ref_mask"], fast=fast)
+    return prediction_loss(pred, b, d, at, weighting=weighting, max_weight=max_weight, prediction=prediction,
+                           object_weight=object_weight)
 
 
 def run_config(args) -> Dict:
