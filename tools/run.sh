@@ -15,14 +15,15 @@ out="${1:-out}"
 cargo build --release --quiet
 b="${CARGO_TARGET_DIR:-target}/release/b2dr"
 $b info
-# 6 s of driving (12 planner steps at 2 Hz) with the three front cameras keeps the b2dr renderer's part to a few
-# minutes on a 2-core CPU (lavapipe); drop --cameras and raise --steps for the full 6-camera, 15 s run.
+# 15 s of driving (30 planner steps at 2 Hz) with the three front cameras: long enough for the renderers to change
+# the trained planner's drive (6 s was not: b2dr and masks-only tied), short enough for ~10 minutes on 2 cores
+# (lavapipe); drop --cameras for the full 6-camera run.
 # the planner command (run from python/, where b2dr_ref and b2dr_planner live); the pixel-rule planner
 # examples/image_planner.py stays as an example (`cmd:python3 examples/image_planner.py`)
 planner="cmd:cd $(printf %q "$PWD/python") && exec $(printf %q "$B2DR_PLANNER_PY") -m b2dr_ref.e2e_numpy serve --weights $(printf %q "$PWD/models/e2e-planner")"
 $b run --scenario builtin:town --planner "$planner" --agents idm \
   --renderer b2dr,b2dr-noref-noprev,log-replay,groundtruth \
-  --cameras CAM_FRONT_LEFT,CAM_FRONT,CAM_FRONT_RIGHT --steps 60 --out "$out/run"
+  --cameras CAM_FRONT_LEFT,CAM_FRONT,CAM_FRONT_RIGHT --steps 150 --out "$out/run"
 echo
 echo "comparison table (score per metric, per renderer): $out/run/comparison.md"
 echo "the generative renderer's run (frames, mosaics, GIF, trace, metrics with per-stage timing): $out/run/b2dr/town-0/"
