@@ -4,14 +4,14 @@
 //! what b2dr sends: the `start` message, each `plan` message's fields and every camera entry's calibration. A
 //! failure means the wire format changed: re-record the fixture (the command in record_planner.py) and check
 //! the package's parser (python/b2dr_planner/records.py).
+mod common;
+
 use std::path::PathBuf;
-use std::sync::Arc;
 
 use b2dr::scene::geometry::Pose2;
 use b2dr::scene::import::{ego2global, resolve};
 use b2dr::sim::external::{camera_entry, start_message};
 use b2dr::sim::lidar::ego_in_lidar;
-use b2dr::sim::sensors::CameraFrame;
 use serde_json::Value;
 
 fn fixture() -> Value {
@@ -113,15 +113,7 @@ fn the_recorded_plan_messages_are_what_b2dr_sends() {
                 c["width"].as_u64().unwrap() as u32,
                 c["height"].as_u64().unwrap() as u32,
             );
-            let frame = CameraFrame {
-                camera: cam.name.clone(),
-                width: w,
-                height: h,
-                rgb: Arc::new(vec![]),
-                intrinsic: cam.intrinsic_scaled(w, h),
-                cam2ego: cam.cam2ego,
-                ego2global: e2g,
-            };
+            let frame = common::frame_without_pixels(cam, e2g, w, h);
             let mut want = camera_entry(&frame, &e2g, &l2e);
             // the recorded pixels' checksum is the renderer's; this frame has none
             want["fnv1a64"] = c["fnv1a64"].clone();

@@ -3,35 +3,23 @@
 //! as b2dr's own projection (`CameraProjector`) of the same global points, within 1 px: on every camera of the
 //! synthetic rig (native and delivered sizes), and on the shared real nuScenes keyframe (each camera with its
 //! own ego pose at exposure; skipped with a printed reason when `../shared/data` is absent).
+mod common;
+
 use std::path::PathBuf;
-use std::sync::Arc;
 
 use b2dr::projection::geometry::mat4_from_rows;
 use b2dr::projection::{CameraProjector, KeyFrame};
 use b2dr::scene::camera::{nuscenes_lidar2ego, Camera};
 use b2dr::scene::import::ego2global;
 use b2dr::sim::external::{camera_entry, start_message};
-use b2dr::sim::sensors::CameraFrame;
 use b2dr::world::town as synthetic;
+use common::frame_without_pixels as frame;
 use glam::{DMat4, DVec3, DVec4};
 use serde_json::Value;
 
 fn rows4(v: &Value) -> DMat4 {
     let rows: [[f64; 4]; 4] = serde_json::from_value(v.clone()).expect("a 4x4 matrix of rows");
     mat4_from_rows(&rows)
-}
-
-/// A camera delivered at `w x h` (intrinsic rescaled as the renderer's frames are), no pixels needed.
-fn frame(cam: &Camera, image_ego2global: DMat4, w: u32, h: u32) -> CameraFrame {
-    CameraFrame {
-        camera: cam.name.clone(),
-        width: w,
-        height: h,
-        rgb: Arc::new(vec![]),
-        intrinsic: cam.intrinsic_scaled(w, h),
-        cam2ego: cam.cam2ego,
-        ego2global: image_ego2global,
-    }
 }
 
 /// Projects lidar-frame points with a message's `lidar2img` and compares with b2dr's projection of the global

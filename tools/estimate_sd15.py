@@ -49,23 +49,24 @@ with FlopCounterMode(display=False) as fc:
 f_vae = fc.get_total_flops()
 print(f"forward FLOPs per camera sample: unet+controlnet {f_model/1e9:.1f} GFLOP; VAE encoder x4 images {f_vae/1e9:.1f} GFLOP")
 
-for train_unet in (True, False):
+
+def saved_gib(train_unet: bool) -> float:
+    """Bytes autograd saves for backward in one training forward of one camera sample, in GiB."""
     unet.requires_grad_(train_unet)
     saved = [0]
+
     def pack(t):
         saved[0] += t.numel() * t.element_size()
         return t
+
     with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
         fwd(inputs())
-    print(f"saved activations per camera sample (f32, train_unet={train_unet}): {saved[0]/2**30:.2f} GiB")
+    return saved[0] / 2**30
 
+
+for train_unet in (True, False):
+    print(f"saved activations per camera sample (f32, train_unet={train_unet}): {saved_gib(train_unet):.2f} GiB")
 unet.enable_gradient_checkpointing(); cn.enable_gradient_checkpointing()
 for train_unet in (True, False):
-    unet.requires_grad_(train_unet)
-    saved = [0]
-    def pack(t):
-        saved[0] += t.numel() * t.element_size()
-        return t
-    with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
-        fwd(inputs())
-    print(f"saved activations per camera sample with gradient checkpointing (f32, train_unet={train_unet}): {saved[0]/2**30:.3f} GiB")
+    print(f"saved activations per camera sample with gradient checkpointing (f32, train_unet={train_unet}): "
+          f"{saved_gib(train_unet):.3f} GiB")

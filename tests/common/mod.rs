@@ -82,3 +82,22 @@ pub fn elementwise_tol(dtype: DType) -> f64 {
         DType::F16 => 1e-6,
     }
 }
+
+/// A camera delivered at `w x h` (intrinsic rescaled as the renderer's frames are), no pixels: what the protocol's
+/// camera entry is computed from.
+pub fn frame_without_pixels(
+    cam: &b2dr::scene::camera::Camera,
+    image_ego2global: glam::DMat4,
+    w: u32,
+    h: u32,
+) -> b2dr::sim::sensors::CameraFrame {
+    b2dr::sim::sensors::CameraFrame {
+        camera: cam.name.clone(),
+        width: w,
+        height: h,
+        rgb: std::sync::Arc::new(vec![]),
+        intrinsic: cam.intrinsic_scaled(w, h),
+        cam2ego: cam.cam2ego,
+        ego2global: image_ego2global,
+    }
+}
