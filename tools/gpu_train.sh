@@ -8,7 +8,8 @@
 #                                     # seconds, trains, exports; writes $OUT/gpu_run.tar and $OUT/gpu_train.log
 #
 # Settings (environment): TRAIN_S (300: seconds of training steps), BATCH (128), LR (2e-4), WARMUP (200), INIT
-# (models/b2dr-nano: the package to continue from), DEVICE (cuda; cpu for a dry run), SCENARIOS (default: the 36
+# (models/b2dr-nano: the package to continue from), CONFIG (nano; nano-z16-g4 for the 16-channel L2-VAE design of
+# issue #32, whose VAE is frozen and taken from VAE), VAE (default: INIT/vae when CONFIG is not nano), DEVICE (cuda; cpu for a dry run), SCENARIOS (default: the 36
 # training scenarios of the committed model), SAMPLES (12 per scenario), B2DR (.gpu/b2dr), PY (python3), THREADS
 # (CPU threads; default all cores), WORK.
 set -euo pipefail
@@ -34,8 +35,11 @@ run() {
     : "${OUT:?OUT (the folder whose files come back) must be set}"
     local dev=${DEVICE:-cuda} train_s=${TRAIN_S:-300} batch=${BATCH:-128} lr=${LR:-2e-4} warmup=${WARMUP:-200}
     local init=${INIT:-models/b2dr-nano} samples=${SAMPLES:-12} b2dr=${B2DR:-.gpu/b2dr} py=${PY:-python3}
-    local work=${WORK:-/tmp/b2dr-gpu}
+    local work=${WORK:-/tmp/b2dr-gpu} config=${CONFIG:-nano} vae=${VAE:-}
     init=$(cd "$init" && pwd)
+    # a design other than nano trains its diffusion stage on a frozen VAE of its own latent width (the package's)
+    if [ "$config" != nano ] && [ -z "$vae" ]; then vae=$init/vae; fi
+    if [ -n "$vae" ]; then vae=$(cd "$vae" && pwd); fi
     b2dr=$(cd "$(dirname "$b2dr")" && pwd)/$(basename "$b2dr")
     rm -rf "$work" && mkdir -p "$work"
     exec > >(tee "$OUT/gpu_train.log") 2>&1
@@ -60,7 +64,7 @@ run() {
         --offsets "0,0,0;0,1.5,0;0,-1.5,0;0,0,8" --seed 0 --quiet
     echo "data exported ($((SECONDS - t0)) s)"
     cd python
-    local common=(--data "$work/data" --init-from "$init" --batch "$batch" --device "$dev" --ema 0.999
+    local common=(--data "$work/data" --config "$config" ${vae:+--vae "$vae"} --init-from "$init" --batch "$batch" --device "$dev" --ema 0.999
         --warmup "$warmup" --lr "$lr" --prediction v_prediction --object-weight 4 --p-noprev 0.2 --log-every 100 ${THREADS:+--threads $THREADS})
     # encode the data once and time real steps (data, cache, optimizer included) in a throwaway run
     "$py" -m b2dr_ref.train "${common[@]}" --out "$work/timing" --steps 60 --precache
@@ -74,7 +78,7 @@ print(st.median(float(x['sec']) for x in r[20:]))")
     # --precache again: the latents come from the file, the position encodings are computed before the clock
     "$py" -m b2dr_ref.train "${common[@]}" --out "$work/run" --steps "$steps" --precache \
         --time-limit "$("$py" -c "print($train_s * 1.15)")"
-    "$py" -m b2dr_ref.train export --run "$work/run" --out "$work/out/b2dr-nano-gpu" --dtype f16
+    "$py" -m b2dr_ref.train export --run "$work/run" --out "$work/out/b2dr-$config-gpu" --dtype f16
     cp "$work/run/log.csv" "$work/run/run.json" "$work/out/"
     tar -C "$work/out" -cf "$OUT/gpu_run.tar" .
     echo "done in $((SECONDS - t0)) s: $OUT/gpu_run.tar ($(du -h "$OUT/gpu_run.tar" | cut -f1))"

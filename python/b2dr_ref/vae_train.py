@@ -216,6 +216,10 @@ def centre_command(argv):
     return mu, sigma, sf
 
 
+# the flags that define the objective: kept in the checkpoint, a resume must repeat them
+LOSS_SETTINGS = ("recon_loss", "object_weight", "marking_weight", "grad_weight", "kl_weight", "crop")
+
+
 def train_vae(args):
     device = torch.device(args.device)
     set_threads(args.device, args.threads)
@@ -225,6 +229,12 @@ def train_vae(args):
         else None
     cfg = ck["cfg"] if ck else nano.get_config(args.config)
     nano.check_config(cfg)
+    loss_settings = {k: getattr(args, k) for k in LOSS_SETTINGS}
+    if ck and "loss" in ck and ck["loss"] != loss_settings:
+        # a resume with other loss flags would silently train a different objective from here on
+        diff = ", ".join(f"--{k.replace('_', '-')} {loss_settings[k]} (the run: {ck['loss'][k]})"
+                         for k in LOSS_SETTINGS if ck["loss"][k] != loss_settings[k])
+        raise SystemExit(f"--resume {args.out}: the loss settings differ from the run's: {diff}; pass the run's")
     source = open_source(args.data, cfg["render_size"])
     vae = build_vae(cfg, args.seed).to(device).train()
     if args.init_from and not ck:
@@ -286,6 +296,7 @@ def train_vae(args):
                 print(f"vae step {step} loss {losses[-1]:.4f} kl {float(kl):.1f}", flush=True)
             if step % args.ckpt_every == 0 or step == steps:
                 save_checkpoint(ck_path, dict(cfg=cfg, total_steps=total, step=step, vae=vae.state_dict(),
+                                              loss=loss_settings,
                                               optimizer=opt.state_dict(), lr_scheduler=sched.state_dict(),
                                               generator=gen.get_state(), torch_rng=torch.get_rng_state()))
                 sf = save_vae(vae, source, args.out, device)

@@ -294,6 +294,9 @@ def test_vae_resume_continues_exactly(tmp_path):
     first = V.main(args + ["--out", str(tmp_path / "b"), "--stop-after", "2"])
     rest = V.main(args + ["--out", str(tmp_path / "b"), "--resume"])
     assert first + rest == pytest.approx(full, rel=1e-6, abs=1e-7)
+    # the checkpoint keeps the loss flags: a resume with another objective is refused, naming the flag
+    with pytest.raises(SystemExit, match=r"--recon-loss l2 \(the run: l1\)"):
+        V.main(args + ["--out", str(tmp_path / "b"), "--resume", "--steps", "6", "--recon-loss", "l2"])
 
 
 def test_export_round_trip(vae_run, tmp_path):
