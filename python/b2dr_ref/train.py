@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 import time
@@ -36,13 +35,13 @@ from .fastpath import AUTOCASTS, PLAIN, FastPath, Prefetcher
 from .frame import SD15_SCHEDULE, gaussian_blur
 from .pe import PeConfig, location_sizes
 
-CKPT = "checkpoint.pt"
-
 # The data (Sample, its sources, the PETR geometry), the loss pieces and the CSV log live in b2dr_ref.training,
 # shared with the sd15 recipe; their names stay importable from here.
 from .training.common import CsvLog  # noqa: E402,F401
 from .training.data import (DatasetSource, Sample, SampleSource, SyntheticSource, _rot_z,  # noqa: E402,F401
                             open_source, position_encoding_np, sample_pe)
+from .training.single import (CKPT, add_common, end_at_anneal, load_vae, lr_lambda,  # noqa: E402,F401
+                              save_checkpoint, set_threads)
 from .training.loss import (LOSS_WEIGHTS, NO_PREV_NOISE_LEVEL, OBJECT_CHANNELS, PREDICTIONS,  # noqa: E402,F401
                             denoise, draw_noise, loss_weight, noised_inputs, object_loss_weight, prediction_loss)
 
@@ -73,44 +72,6 @@ def make_context(cfg, cameras: Sequence[str], seed: int = 0) -> torch.Tensor:
     return torch.randn((len(cameras), 77, int(cfg["context_dim"])), generator=g)
 
 
-def lr_lambda(warmup: int, total: int, min_ratio: float = 0.0, anneal: Optional[List] = None):
-    """Linear warm-up, then cosine to ``min_ratio`` at ``total``. ``anneal = [s0, end, r0]`` (``--end-at``): from
-    step s0 on, a cosine from ratio r0 (the schedule's own value at s0, so the lr is continuous) to 0 at ``end``."""
-    def f(step):
-        if anneal is not None and step >= anneal[0]:
-            s0, end, r0 = anneal
-            return r0 * 0.5 * (1 + math.cos(math.pi * min(1.0, (step - s0) / max(1, end - s0))))
-        if step < warmup:
-            return (step + 1) / max(1, warmup)
-        p = min(1.0, (step - warmup) / max(1, total - warmup))
-        return min_ratio + (1 - min_ratio) * 0.5 * (1 + math.cos(math.pi * p))
-    return f
-
-
-def end_at_anneal(warmup: int, total: int, anneal: Optional[List], step: int, end_at: Optional[int]):
-    """The anneal of ``--end-at END`` on a resume at ``step``: [step, END, the current lr ratio], or the run's own
-    anneal when it already ends at END (a later resume of the same annealed run). None without --end-at."""
-    if end_at is None:
-        return anneal
-    if anneal is not None and anneal[1] == end_at:
-        return anneal
-    if end_at <= step:
-        raise SystemExit(f"--end-at {end_at}: the run is already at step {step}")
-    return [step, end_at, lr_lambda(warmup, total, anneal=anneal)(step)]
-
-
-def set_threads(device: str, threads: Optional[int]):
-    torch.set_flush_denormal(True)     # denormal floats are ~100x slower on x86 CPUs
-    if device == "cpu":
-        torch.set_num_threads(int(threads) if threads else (os.cpu_count() or 1))
-
-
-def save_checkpoint(path: str, state: Dict):
-    tmp = path + ".tmp"
-    torch.save(state, tmp)
-    os.replace(tmp, path)
-
-
 class Ema:
     def __init__(self, models, decay: float):
         self.decay = decay
@@ -135,12 +96,6 @@ class Ema:
 # ---------------------------------------------------------------------------------------------------------------
 # The diffusion stage
 # ---------------------------------------------------------------------------------------------------------------
-
-
-def load_vae(path: str):
-    from diffusers import AutoencoderKL
-
-    return AutoencoderKL.from_pretrained(path, torch_dtype=torch.float32).eval().requires_grad_(False)
 
 
 def pack_masks(masks: np.ndarray) -> torch.Tensor:
@@ -528,27 +483,6 @@ def bench(args):
     from .train_bench import bench as run_bench
 
     return run_bench(args)
-
-
-def add_common(p: argparse.ArgumentParser):
-    p.add_argument("--data", required=True, help="exported dataset folder, or synthetic[:N]")
-    p.add_argument("--out", required=True, help="run folder (checkpoint.pt, log.csv, run.json)")
-    p.add_argument("--config", default="nano", help="model config (nano.py): nano or test")
-    p.add_argument("--steps", type=int, default=10000)
-    p.add_argument("--batch", type=int, default=8)
-    p.add_argument("--lr", type=float, default=1e-4)
-    p.add_argument("--weight-decay", type=float, default=1e-2)
-    p.add_argument("--warmup", type=int, default=500)
-    p.add_argument("--clip", type=float, default=1.0)
-    p.add_argument("--device", default="cpu", help="cpu or cuda")
-    p.add_argument("--threads", type=int, default=None, help="CPU threads (default: all cores)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--ckpt-every", type=int, default=250)
-    p.add_argument("--log-every", type=int, default=10)
-    p.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.pt")
-    p.add_argument("--stop-after", type=int, default=0,
-                   help="stop after this many steps of this invocation (the schedule still spans --steps)")
-    p.add_argument("--fixed-batch", action="store_true", help="always samples 0..B-1 (overfit check)")
 
 
 def main(argv=None):

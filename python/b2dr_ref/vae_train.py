@@ -26,7 +26,10 @@ import numpy as np
 import torch
 
 from . import nano
-from .train import CKPT, OBJECT_CHANNELS, CsvLog, add_common, lr_lambda, open_source, save_checkpoint, set_threads
+from .training.common import CsvLog
+from .training.data import open_source
+from .training.loss import OBJECT_CHANNELS
+from .training.single import CKPT, add_common, load_vae, lr_lambda, save_checkpoint, set_threads
 
 
 def build_vae(cfg, seed: int = 0):
@@ -198,8 +201,6 @@ def save_vae(vae, source, out: str, device, centre: bool = True):
 
 def centre_command(argv):
     """python -m b2dr_ref.vae_train centre --vae IN_DIR --data DATA --out OUT_DIR: centre an existing VAE folder."""
-    from .train import load_vae
-
     p = argparse.ArgumentParser(prog="python -m b2dr_ref.vae_train centre")
     p.add_argument("--vae", required=True, help="a diffusers AutoencoderKL folder (e.g. MODEL/vae)")
     p.add_argument("--data", required=True, help="the exported dataset (256 targets spread over it are measured)")
@@ -240,8 +241,6 @@ def train_vae(args):
     if args.init_from and not ck:
         # continue from an existing VAE folder (e.g. a committed package's vae/, centred or not: it is re-centred
         # whenever it is saved); the architecture must be the config's
-        from .train import load_vae
-
         init = load_vae(args.init_from)
         if dict(init.config)["block_out_channels"] != list(cfg["vae"]["block_out_channels"]):
             raise SystemExit(f"--init-from {args.init_from}: its blocks differ from config {cfg['name']!r}")
