@@ -1,5 +1,8 @@
-//! `b2dr forward` and `b2dr sample` end to end (the binary): a diffusers component checked against its golden
-//! output through the CLI, the files `sample` writes, and clear errors for bad input files.
+//! `b2dr forward` and `b2dr sample` end to end (the binary): a diffusers component and a whole B2D-R frame of a
+//! model package checked against their golden outputs through the CLI, the files `sample` writes, and clear
+//! errors for bad input files.
+#[path = "golden/b2dr_package.rs"]
+mod b2dr_package;
 mod common;
 #[path = "golden/common.rs"]
 mod golden;
@@ -196,6 +199,110 @@ fn sample_refuses_a_vae_of_another_factor_and_non_finite_scales() {
             !out.status.success() && err.contains(flag) && err.contains("finite"),
             "{flag}: {err}"
         );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// `forward --component frame`: the golden B2D-R config saved as a one-camera model package renders, through the
+/// CLI on the golden case's named inputs (its own context), the golden frame of tools/make_golden_b2dr.py (UniPC 3
+/// steps, reference guidance 2); and missing or mis-shaped inputs, and options of the other mode, are errors
+/// naming the tensor (and its expected shape) or the flag, found before a device is opened.
+#[test]
+fn forward_frame_renders_the_golden_frame_and_names_bad_inputs() {
+    let dir = std::env::temp_dir().join(format!("b2dr-forward-frame-{}", std::process::id()));
+    let model = dir.join("model");
+    let case = golden::golden_case("b2dr_case_n1_7x13.safetensors");
+    let mut pkg = b2dr_package::small_package();
+    pkg.meta.cameras = vec!["CAM_FRONT".into()];
+    pkg.meta.steps = 3;
+    pkg.context = case.get("in.context").unwrap().clone();
+    pkg.save(&model, FileDType::F32).unwrap();
+    let frame = |inputs: &Weights, extra: &[&str]| {
+        let path = dir.join("in.safetensors");
+        inputs.save(&path, FileDType::F32).unwrap();
+        bin()
+            .env("B2DR_VALIDATION", "1")
+            .args(["forward", "--component", "frame", "--model"])
+            .arg(&model)
+            .args(extra)
+            .arg("--inputs")
+            .arg(&path)
+            .arg("--out")
+            .arg(dir.join("out.safetensors"))
+            .output()
+            .unwrap()
+    };
+    let fails = |o: &std::process::Output, want: &[&str]| {
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            !o.status.success() && want.iter().all(|w| err.contains(w)),
+            "want {want:?} in: {err}"
+        );
+        assert!(!err.contains("panicked"), "{err}");
+    };
+    let without = |name: &str| {
+        let mut w = case.clone();
+        w.tensors.remove(name);
+        w
+    };
+    fails(
+        &frame(&without("in.eps_prev"), &[]),
+        &["`in.eps_prev` is missing", "(1, 4, 7, 13)"],
+    );
+    fails(
+        &frame(&without("in.pe_ref.2"), &[]),
+        &["`in.pe_ref.2` is missing", "(1, 2, "],
+    );
+    let mut bad = case.clone();
+    let m = bad.tensors.get_mut("in.masks").unwrap();
+    m.shape = vec![1, 15, 104, 56];
+    fails(
+        &frame(&bad, &[]),
+        &["`in.masks` has shape (1, 15, 104, 56), expected (1, 15, 56, 104)"],
+    );
+    // two cameras need two rows of every input
+    fails(
+        &frame(&case, &["--cameras", "CAM_FRONT,CAM_BACK"]),
+        &["`in.x_T` has shape (1, 4, 7, 13), expected (2, 4, 7, 13)"],
+    );
+    fails(
+        &frame(&case, &["--config", "unet/config.json"]),
+        &["--config and --weights are for one component"],
+    );
+    let o = bin()
+        .args(["forward", "--component", "unet", "--steps", "2", "--inputs"])
+        .arg(dir.join("in.safetensors"))
+        .arg("--out")
+        .arg(dir.join("o.safetensors"))
+        .output()
+        .unwrap();
+    fails(&o, &["--steps is an option of --component frame"]);
+
+    if common::ctx().is_none() {
+        return;
+    }
+    let o = frame(
+        &case,
+        &["--steps", "3", "--sampler", "unipc", "--ref-guidance", "2"],
+    );
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{err}");
+    assert!(!err.contains("[vulkan validation error]"), "{err}");
+    let got =
+        Weights::from_bytes_unchecked(&std::fs::read(dir.join("out.safetensors")).unwrap(), "out")
+            .unwrap();
+    for (out, want) in [
+        ("image", "out.frame_w2.image"),
+        ("latent", "out.frame_w2.latent.2"),
+        ("prev_latent", "out.prev.z"),
+    ] {
+        let (g, w) = (&got.tensors[out], case.get(want).unwrap());
+        assert_eq!(g.shape, w.shape, "{out}");
+        eprintln!(
+            "cli frame {out}: nmse {:.2e}",
+            golden::nmse(&g.data, &w.data)
+        );
+        golden::assert_close(&format!("cli frame {out}"), &g.data, &w.data, 1e-5);
     }
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -11,7 +11,9 @@
   the same step from the same checkpoint with 1 process x batch 2 (in this process) gives the same weights
   (UPDATE_TOL);
 - the package exported from run B loads (b2dr_ref.package), carries the CLIP per-camera context, and the engine
-  computes its UNet as diffusers does.
+  computes its UNet as diffusers does and renders its whole frame (`b2dr forward --component frame` on named inputs)
+  as b2dr_ref.frame.render_frame does, also with its ControlNet made visible (its zero-initialised layers drawn at
+  random).
 
 Budget: the module's tests take <= 60 s on the 2-core machine (docs/training.md "At the paper's scale").
 """
@@ -42,6 +44,8 @@ SIZE = "32x56"
 # f32, 2 processes x batch 1 against 1 process x batch 2, one AdamW step (lr 1e-4) from the same checkpoint: the
 # largest weight difference measured 1.5e-8 against a largest update of 2.5e-5 (0.06 %; float summation order)
 UPDATE_TOL = 1e-7
+# the engine's whole frame against render_frame: tests/nn_b2dr_golden.rs fn tol (f32), normalised MSE
+FRAME_TOL = 1e-5
 MODEL_ARGS = ["--resolution", SIZE, "--pe_depth_num", "4", "--conditioning_embedding_out_channels", "8,16,16,32",
               "--max_train_steps", "3", "--lr_warmup_steps", "1", "--validation_sampling_steps", "2",
               "--num_validation_images", "2", "--use_ema", "--ema_decay", "0.9"]
@@ -240,20 +244,28 @@ def test_two_processes_equal_one_process(run_b):
     assert abs(la - lb) <= 1e-5 * max(1.0, abs(lb)), (la, lb)
 
 
-def test_export_package_loads_and_the_engine_computes_its_unet(run_b, pretrained, tmp_path):
+@pytest.fixture(scope="module")
+def exported(run_b, tmp_path_factory):
+    """The package exported from run B (EMA weights, f32)."""
+    out, _ = run_b
+    model = tmp_path_factory.mktemp("package") / "model"
+    r = common.export_package(out, str(model), dtype="f32")
+    return model, r
+
+
+def test_export_package_loads_and_the_engine_computes_its_unet(run_b, exported, pretrained, tmp_path):
     """The package exported from run B (EMA weights) loads with b2dr_ref.package, carries the CLIP per-camera
     context; the engine (`b2dr forward --component unet`, Vulkan) computes its trained UNet, fed the B2D-R
     ControlNet's residuals from PyTorch, equal to diffusers within the golden tests' f32 tolerance (normalised
-    MSE 1e-5). (A whole engine frame against frame.render_frame needs the engine's seeded noise and projected
-    inputs on the Python side: not done here; the validation grid of run A renders frames in PyTorch.)"""
+    MSE 1e-5); and `b2dr render` renders a frame of a keyframe with it (a smoke test: the whole frame against
+    PyTorch is test_engine_frame_equals_the_pytorch_frame)."""
     from safetensors.torch import load_file, save_file
 
     from b2dr_ref.package import load_package
     from b2dr_ref.training.sd15 import PROMPT, camera_prompt, encode_prompts
 
     out, _ = run_b
-    model = tmp_path / "model"
-    r = common.export_package(out, str(model), dtype="f32")
+    model, r = exported
     assert r["step"] == 3 and r["ema"]
     pkg = load_package(str(model))
     assert pkg.meta["render_size"] == [32, 56] and pkg.meta["cameras"] == ["CAM_FRONT", "CAM_BACK"]
@@ -297,6 +309,140 @@ def test_export_package_loads_and_the_engine_computes_its_unet(run_b, pretrained
         with open(tmp_path / "render" / "render.json") as f:
             assert json.load(f)
         assert (tmp_path / "render" / "CAM_FRONT.png").exists() and (tmp_path / "render" / "CAM_BACK.png").exists()
+
+
+def nmse(got, want) -> float:
+    """Normalised MSE sum((got - want)^2) / sum(want^2): the measure of tests/golden/common.rs nmse."""
+    got, want = got.double(), want.double()
+    return float(((got - want) ** 2).sum() / (want ** 2).sum().clamp_min(1e-30))
+
+
+def frame_inputs(pkg, seed):
+    """Named frame inputs (as the golden files name them) for the package's cameras at its render size: random
+    masks, images, noise and position encodings at the ControlNet's Ref-Attn locations (helpers.frame_inputs)."""
+    sys.path.insert(0, str(HERE))
+    from helpers import frame_inputs as random_inputs
+
+    h, w = pkg.meta["render_size"]
+    x = random_inputs(pkg.controlnet, n=len(pkg.meta["cameras"]), h=h // 8, w=w // 8, seed=seed)
+    named = {"in.x_T": x["x_T"], "in.eps_prev": x["eps_prev"], "in.masks": x["masks"], "in.prev_image": x["prev"],
+             "in.ref_images": x["ref_images"]}
+    for j, (c, r) in enumerate(zip(x["pe_cur"], x["pe_ref"])):
+        named[f"in.pe_cur.{j}"], named[f"in.pe_ref.{j}"] = c, r
+    return named
+
+
+def pytorch_frame(pkg, x, steps, ref_guidance):
+    from b2dr_ref.frame import render_frame
+
+    nl = sum(k.startswith("in.pe_cur.") for k in x)
+    return render_frame(pkg.unet, pkg.controlnet, pkg.vae, x["in.x_T"], pkg.context, x["in.masks"],
+                        x["in.prev_image"], x["in.eps_prev"], ref_images=x["in.ref_images"],
+                        pe_cur=[x[f"in.pe_cur.{j}"] for j in range(nl)],
+                        pe_ref=[x[f"in.pe_ref.{j}"] for j in range(nl)], steps=steps, ref_guidance=ref_guidance,
+                        sampler=pkg.meta["sampler"], prediction_type=pkg.meta.get("prediction_type", "epsilon"))
+
+
+def engine_frame(exe, model, x, tmp, steps, ref_guidance):
+    from safetensors.torch import load_file, save_file
+
+    save_file({k: v.float().contiguous() for k, v in x.items()}, str(tmp / "frame_in.safetensors"))
+    r = subprocess.run([exe, "forward", "--component", "frame", "--model", str(model), "--steps", str(steps),
+                        "--ref-guidance", str(ref_guidance), "--inputs", str(tmp / "frame_in.safetensors"),
+                        "--out", str(tmp / "frame_out.safetensors")], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return load_file(str(tmp / "frame_out.safetensors"))
+
+
+def sensitized(model, out):
+    """A copy of the package whose ControlNet the frame sees. Three training steps moved its zero-initialised layers
+    (zero convs, conditioning-embedding conv_out, noise-embedding linear_2, Ref-Attn output projections, conv_in's
+    previous-latent channels) by ~1e-4 only, so the exported package's frame does not see its ControlNet (w 1 against
+    w 2: ~1e-14): here they are drawn at random (seeded; the Ref-Attn projections x 100), and the conditioning
+    embedding's other convs are scaled by 3 (at PyTorch's initialisation they shrink the masks' signal ~3x per
+    layer: another draw of the masks would move the frame by ~1e-9)."""
+    from b2dr_ref.package import load_package
+
+    pkg = load_package(str(model))
+    g = torch.Generator().manual_seed(0)
+    sd = pkg.controlnet.state_dict()
+    new = {}
+    for k, v in sd.items():
+        ref_out = k.startswith("ref_attn.") and ".to_out." in k
+        if k.endswith(".weight") and (ref_out or k.startswith((
+                "controlnet_cond_embedding.conv_out.", "controlnet_down_blocks.", "controlnet_mid_block.",
+                "noise_embedding.linear_2."))):
+            assert float(v.abs().max()) < 1e-3, k
+            new[k] = torch.randn(v.shape, generator=g) * (100.0 if ref_out else 1.0) / v[0].numel() ** 0.5
+        elif k.startswith("controlnet_cond_embedding.") and k.endswith(".weight"):
+            new[k] = 3.0 * v
+    w = sd["conv_in.weight"].clone()
+    assert float(w[:, 4:].abs().max()) < 1e-3
+    w[:, 4:] = torch.randn(w[:, 4:].shape, generator=g) / w[0].numel() ** 0.5
+    new["conv_in.weight"] = w
+    pkg.controlnet.load_state_dict(new, strict=False)
+    shutil.copytree(model, out)
+    pkg.controlnet.save_pretrained(str(out / "controlnet"), dtype=torch.float32)
+    return pkg
+
+
+def compare_frames(exe, model, pkg, x, tmp, steps, w):
+    """The engine's frame against render_frame's: normalised MSE of image, latent and previous-frame latent, and
+    the two frames."""
+    ref = pytorch_frame(pkg, x, steps, w)
+    got = engine_frame(exe, model, x, tmp, steps, w)
+    errs = {"image": nmse(got["image"], ref.image), "latent": nmse(got["latent"], ref.latent),
+            "prev_latent": nmse(got["prev_latent"], ref.prev.z)}
+    return errs, ref
+
+
+def test_engine_frame_equals_the_pytorch_frame(exported, tmp_path):
+    """The engine renders a whole B2D-R frame of the exported package (`b2dr forward --component frame`: both
+    cameras, 2 UniPC steps, reference guidance 2, f32) equal to b2dr_ref.frame.render_frame on the same named inputs
+    (noise, masks, previous frame, references, position encodings at the Ref-Attn locations; the package's
+    per-camera context) within tests/nn_b2dr_golden.rs's f32 tolerance (normalised MSE 1e-5) for the image, the
+    final latent and the noised previous-frame latent; and so it does for the package with its ControlNet made
+    visible (`sensitized`). The comparison can fail: another seed's noise moves the frame far beyond the tolerance,
+    and on the sensitized package so do its ControlNet, reference guidance 1 instead of 2, and another draw of the
+    masks, of the previous latent's noise or of the reference images (all printed)."""
+    from b2dr_ref.package import load_package
+
+    exe = b2dr_binary()
+    if exe is None:
+        pytest.skip("no b2dr binary for the engine half (cargo build, or B2DR_BIN)")
+    model, _ = exported
+    pkg = load_package(str(model))
+    steps, w = 2, 2.0
+    x = frame_inputs(pkg, seed=1)
+    t = time.perf_counter()
+    errs, ref = compare_frames(exe, model, pkg, x, tmp_path, steps, w)
+    other_seed = nmse(pytorch_frame(pkg, dict(x, **{"in.x_T": frame_inputs(pkg, seed=2)["in.x_T"]}), steps, w).image,
+                      ref.image)
+    unguided = nmse(pytorch_frame(pkg, x, steps, 1.0).latent, ref.latent)
+    print(f"engine vs PyTorch frame of the exported package ({steps} UniPC steps, w {w}): normalised MSE "
+          + ", ".join(f"{k} {v:.2e}" for k, v in errs.items()) + f" (tol {FRAME_TOL:.0e}); PyTorch image with "
+          f"another seed's x_T: {other_seed:.2e}; latent with w 1: {unguided:.2e} (the ControlNet is not seen)")
+    for k, e in errs.items():
+        assert e <= FRAME_TOL, (k, e)
+    assert other_seed > 1e3 * FRAME_TOL, other_seed
+
+    visible = tmp_path / "sensitized"
+    spkg = sensitized(model, visible)
+    serrs, sref = compare_frames(exe, visible, spkg, x, tmp_path, steps, w)
+    # what the sensitized frame's latent moves by when one thing changes: were the engine to miss it, it would
+    # differ from PyTorch by about as much
+    other = frame_inputs(pkg, seed=2)
+    moves = {"its ControlNet (the exported package's frame)": nmse(ref.latent, sref.latent),
+             "w 1": nmse(pytorch_frame(spkg, x, steps, 1.0).latent, sref.latent)}
+    for k in ("in.masks", "in.eps_prev", "in.ref_images"):
+        moves[k] = nmse(pytorch_frame(spkg, dict(x, **{k: other[k]}), steps, w).latent, sref.latent)
+    print("engine vs PyTorch frame of the sensitized package: normalised MSE "
+          + ", ".join(f"{k} {v:.2e}" for k, v in serrs.items()) + "; its PyTorch latent moves with "
+          + ", ".join(f"{k}: {v:.2e}" for k, v in moves.items()) + f"; {time.perf_counter() - t:.1f} s")
+    for k, e in serrs.items():
+        assert e <= FRAME_TOL, ("sensitized", k, e)
+    for k, m in moves.items():
+        assert m > 30 * FRAME_TOL, (k, m)
 
 
 def test_controlnet_starts_as_the_unet_encoder_with_zero_outputs(pretrained):

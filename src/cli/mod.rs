@@ -40,7 +40,8 @@ pub enum Command {
     Bench(BenchCmd),
     /// Project a keyframe's boxes (and a map) into its cameras: masks, overlays, projection.json.
     Project(project::ProjectArgs),
-    /// Run one model component (unet, controlnet, vae-encoder, vae-decoder) on named input tensors.
+    /// Run one model component (unet, controlnet, vae-encoder, vae-decoder), or one B2D-R frame of a model
+    /// package (frame), on named input tensors.
     Forward(forward::ForwardArgs),
     /// Run a full guided sampling loop (UNet + ControlNet + VAE decode) and write PNG and EXR.
     Sample(sample::SampleArgs),

@@ -23,6 +23,18 @@ pub enum Component {
     VaeDecoder,
 }
 
+impl Component {
+    /// The name `--component` takes.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Unet => "unet",
+            Self::ControlNet => "controlnet",
+            Self::VaeEncoder => "vae-encoder",
+            Self::VaeDecoder => "vae-decoder",
+        }
+    }
+}
+
 impl std::str::FromStr for Component {
     type Err = anyhow::Error;
     fn from_str(s: &str) -> Result<Self> {
