@@ -391,11 +391,9 @@ def pack(data: str, out: str, shard_rows: int = 256, image_format: str = "png", 
 
 
 def is_shard_dir(path: str) -> bool:
-    p = os.path.join(path, "index.json")
-    if not os.path.isfile(p):
-        return False
-    with open(p, "r", encoding="utf-8") as f:
-        return json.load(f).get("format") == FORMAT
+    """A folder with index.json and rows.npy (ShardSet checks the format; a raw export's index.json, which grows
+    with its rows, is not parsed here)."""
+    return all(os.path.isfile(os.path.join(path, f)) for f in ("index.json", "rows.npy"))
 
 
 def _npy_layout(path: str) -> Tuple[int, np.dtype, int]:
