@@ -225,6 +225,9 @@ class ShardWriter:
         self.out = out
         self.header = {k: header[k] for k in HEADER_KEYS if k in header}
         self.cameras = list(header["cameras"])
+        bad = [c for c in self.cameras if not c or any(ch in c for ch in "./\\")]
+        if bad:
+            raise ValueError(f"camera names {bad}: tar member names KEY.CAM.member take no '.', '/' or '\\'")
         self.fmt, self.quality, self.shard_rows = image_format, int(quality), int(shard_rows)
         self.dtype = row_dtype(len(self.cameras))
         os.makedirs(out, exist_ok=True)
