@@ -1,7 +1,12 @@
 """Training of the B2D-R renderer (docs/training.md; "At the paper's scale" for the accelerate recipe).
 
 Shared by every recipe:
-- ``data``: one camera sample (``Sample``), its sources (the exported set, a synthetic one) and its PETR geometry;
+- ``data``: one camera sample (``Sample``), its sources (the exported set, its shard form, a synthetic one) and its
+  PETR geometry;
+- ``shards``: the export packed into compressed tar shards with an index (``python -m b2dr_ref.training.shards
+  pack``) and ``ShardSource``, which reads them on demand and draws the references again every epoch;
+  ``shard_bench``: a synthetic log of any size in that form and the DataLoader memory measurement
+  (tools/bench_shards.py);
 - ``loss``: the diffusion loss in pieces (draw_noise, noised_inputs, denoise, prediction_loss, loss weights);
 - ``common``: the accelerate side: arguments, the Accelerator, checkpoint rotation and resume, trackers and
   log.csv, EMA, the DataLoader's data set and collate function, batched VAE encoding, validation grids, the

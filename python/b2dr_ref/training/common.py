@@ -12,8 +12,9 @@ holds the parts that do not depend on where the weights come from:
   ``resume_path``: ``--resume_from_checkpoint latest`` or a path);
 - trackers (TensorBoard when importable, else a printed message; always ``log.csv``);
 - EMA (diffusers' EMAModel over the trainable parameters, saved in each checkpoint);
-- data (``CameraSamples``: one (frame, camera) per item, read and PETR-encoded in DataLoader workers;
-  ``collate_fn``; ``encode_batch``: batched VAE encoding on the device, blur of the previous frame there);
+- data (``CameraSamples``: one (frame, camera) per item, read and PETR-encoded in DataLoader workers, its
+  ``set_epoch`` passed to the source (a shard folder re-draws its references each epoch); ``collate_fn``;
+  ``encode_batch``: batched VAE encoding on the device, blur of the previous frame there);
 - the per-sample noise (``per_sample_draws``: every random draw of a sample comes from a generator seeded by
   (seed, micro-batch number, sample index), so the update does not depend on how the batch is split over
   processes or accumulation steps);
@@ -68,7 +69,8 @@ def add_training_args(p: argparse.ArgumentParser, recipe: Dict[str, Any]):
             kw["default"] = recipe[name]
         p.add_argument(*names, dest=name, **kw)
 
-    opt("data", required=True, help="an exported training set (b2dr export-training), or synthetic[:N]")
+    opt("data", required=True, help="an exported training set (b2dr export-training), a shard folder of one "
+        "(python -m b2dr_ref.training.shards pack), or synthetic[:N]")
     opt("output_dir", required=True, help="run folder: checkpoint-{step}/, run.json, context.safetensors, logs/")
     opt("resolution", type=parse_size, help="render size HxW (multiples of 8; the data's size)")
     opt("seed", type=int, default=0)
@@ -114,7 +116,8 @@ def add_training_args(p: argparse.ArgumentParser, recipe: Dict[str, Any]):
     opt("conditioning_embedding_out_channels", type=lambda s: [int(v) for v in s.split(",")],
         help="the ControlNet's mask embedding channels, comma-separated")
     opt("reference_bins", type=json.loads,
-        help="JSON [[lo, hi, p], ...]: the reference distance bins the data must have been exported with")
+        help="JSON [[lo, hi, p], ...]: the reference distance bins (a shard folder draws its references from "
+             "them each epoch; a raw export must have been exported with them)")
 
 
 def checked_args(args):
@@ -305,8 +308,14 @@ class CameraSamples(torch.utils.data.Dataset):
     """One item per (frame, camera) of the data (b2dr_ref.train's sources), read and PETR-encoded where the
     DataLoader runs it (its workers). Images stay uint8 here; the device blurs, scales and VAE-encodes them."""
 
-    def __init__(self, data: str, render_size, controlnet_config):
+    def __init__(self, data: str, render_size, controlnet_config, seed: int = 0, reference_bins=None):
+        import multiprocessing
+
         self.data = data
+        self.seed, self.reference_bins = int(seed), reference_bins
+        # the epoch, shared with the DataLoader's (persistent) workers: set_epoch in the main process, read by the
+        # worker for each item (open_clip's SharedEpoch does the same for its WebDataset pipeline)
+        self._epoch = multiprocessing.Value("i", 0, lock=False)
         self.render_size = tuple(int(v) for v in render_size)
         self.pe_cfg = PeConfig.from_controlnet_config(controlnet_config)
         h, w = self.render_size
@@ -318,6 +327,7 @@ class CameraSamples(torch.utils.data.Dataset):
             raise SystemExit(f"{data}: render size {tuple(src.render_size)} != --resolution {self.render_size}")
         self.cameras = list(src.cameras)
         self.n = len(src)
+        self.redraws = hasattr(src, "set_epoch")      # references drawn per epoch (a shard folder)
         self.index = {}
         if os.path.isdir(data):
             with open(os.path.join(data, "index.json")) as f:
@@ -326,14 +336,21 @@ class CameraSamples(torch.utils.data.Dataset):
 
     def source(self):
         if self._source is None:
-            self._source = open_source(self.data, self.render_size)
+            self._source = open_source(self.data, self.render_size, seed=self.seed, reference_bins=self.reference_bins)
         return self._source
+
+    def set_epoch(self, epoch: int):
+        """The trainer's epoch: a source that re-draws its references draws them for this epoch."""
+        self._epoch.value = int(epoch)
 
     def __len__(self):
         return self.n
 
     def __getitem__(self, i: int) -> Dict[str, Any]:
-        s = self.source()[int(i)]
+        src = self.source()
+        if self.redraws:
+            src.set_epoch(self._epoch.value)
+        s = src[int(i)]
         pc, pr = sample_pe(s, self.pe_cfg, self.sizes, self.render_size)
         return dict(index=int(i), cam=self.cameras.index(s.camera),
                     target=torch.from_numpy(np.ascontiguousarray(s.target)),
@@ -361,7 +378,10 @@ def collate_fn(items: Sequence[Dict[str, Any]]) -> Dict[str, Any]:
 
 
 def check_reference_bins(dataset: CameraSamples, bins):
-    """The references were drawn at export time: the data's bins must be the recipe's."""
+    """A raw export's references were drawn at export time: its bins must be the recipe's. (A shard folder draws
+    them each epoch with the recipe's bins.)"""
+    if dataset.redraws:
+        return
     have = dataset.index.get("reference_intervals")
     if have is not None and bins is not None and \
             not np.allclose(np.asarray(have, np.float64), np.asarray(bins, np.float64)):

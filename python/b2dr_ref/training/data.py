@@ -30,6 +30,8 @@ class Sample:
 
 
 class SampleSource(Protocol):
+    """Item i is one camera of one frame. A source that draws its references per epoch (shards.ShardSource) also
+    has ``set_epoch(epoch)``; the trainers call it (through common.CameraSamples) before each epoch."""
     render_size: Tuple[int, int]      # (H, W)
     cameras: List[str]
 
@@ -127,11 +129,20 @@ class DatasetSource:
                       ref_ego2global=np.asarray(s["ref_ego2global"][c], np.float64), camera=self.cameras[c])
 
 
-def open_source(data: str, render_size=None) -> SampleSource:
-    """``synthetic[:N]`` -> SyntheticSource (at the config's render size), else the exported dataset folder."""
+def open_source(data: str, render_size=None, seed: int = 0, reference_bins=None) -> SampleSource:
+    """``synthetic[:N]`` -> SyntheticSource (at the config's render size); a shard folder (training/shards.py) ->
+    ShardSource (references re-drawn each epoch with ``reference_bins``, default the export's, seeded by ``seed``);
+    else the exported dataset folder (references fixed at export time)."""
     if data.startswith("synthetic"):
         n = int(data.split(":")[1]) if ":" in data else 16
         return SyntheticSource(n=n, render_size=render_size or (56, 104))
+    from .shards import ShardSource, is_shard_dir
+
+    if is_shard_dir(data):
+        src = ShardSource(data, bins=reference_bins, seed=seed)
+        if list(src.mask_channels) != list(MASK_CHANNELS):
+            raise ValueError(f"{data}: mask channels {src.mask_channels} differ from the model's {MASK_CHANNELS}")
+        return src
     return DatasetSource(data)
 
 

@@ -18,6 +18,7 @@ optimizer steps; gradients are clipped when they sync.
 from __future__ import annotations
 
 import argparse
+import gc
 import math
 import os
 import sys
@@ -136,7 +137,8 @@ def main(args):
     ema = common.make_ema(model, args.ema_decay) if args.use_ema else None
     common.register_checkpoint_hooks(accelerator, ema, train_unet=not args.freeze_unet)
 
-    dataset = common.CameraSamples(args.data, args.resolution, controlnet.config)
+    dataset = common.CameraSamples(args.data, args.resolution, controlnet.config, seed=args.seed,
+                                   reference_bins=args.reference_bins)
     common.check_reference_bins(dataset, args.reference_bins)
     context = camera_context(accelerator, args, dataset.cameras)
 
@@ -196,6 +198,12 @@ def main(args):
                       f"mixed precision {accelerator.mixed_precision}")
 
     accelerator.print(f"sd15: set-up {time.perf_counter() - t_main:.1f} s")
+    if args.dataloader_num_workers > 0:
+        # the set-up's objects out of the cyclic GC before the DataLoader forks its workers: a worker's collections
+        # would write to them and so copy the parent's pages into every worker, the group's memory growing over an
+        # epoch (Python's gc.freeze docs; measured: docs/training.md "The data pipeline")
+        gc.collect()
+        gc.freeze()
     micro = global_step * args.gradient_accumulation_steps       # micro-batch number: the noise stream
     saved_at = global_step
     t0 = time.perf_counter()
@@ -205,6 +213,9 @@ def main(args):
             break
         if hasattr(loader, "set_epoch"):
             loader.set_epoch(epoch)
+        # accelerate passes the epoch to the sampler, not also to the data set: the references of a shard folder
+        # are drawn for this epoch (the same on every process, and again after a resume)
+        dataset.set_epoch(epoch)
         it = loader
         if epoch == first_epoch and skip:
             it = accelerator.skip_first_batches(loader, skip * args.gradient_accumulation_steps)
