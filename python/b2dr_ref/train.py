@@ -371,6 +371,10 @@ def train(args):
 
     fast = FastPath(channels_last=args.channels_last, compile=args.compile, autocast=args.autocast)
     unet_f, controlnet_f = fast.prepare(unet, controlnet)     # state_dict from the originals
+    # fp16 autocast: gradients of fp16 activations underflow without loss scaling (bf16 has f32's range and needs none)
+    scaler = torch.amp.GradScaler(device.type) if fast.autocast == "fp16" else None
+    if scaler is not None and ck is not None and ck.get("grad_scaler"):
+        scaler.load_state_dict(ck["grad_scaler"])
     prefetch = Prefetcher(batcher.batch) if args.prefetch else None
     pending = dict(gen_state=None, batch=None)   # the prefetched step: gen state before its index draw, its batch
 
@@ -382,7 +386,8 @@ def train(args):
         save_checkpoint(ck_path, dict(
             run_meta, step=step, unet=unet.state_dict(), controlnet=controlnet.state_dict(),
             optimizer=opt.state_dict(), lr_scheduler=sched.state_dict(), generator=g_state,
-            torch_rng=torch.get_rng_state(), ema=ema.shadow if ema is not None else None, context=context))
+            torch_rng=torch.get_rng_state(), ema=ema.shadow if ema is not None else None, context=context,
+            grad_scaler=scaler.state_dict() if scaler is not None else None))
         batcher.save_latents()
 
     def draw_idx():
@@ -412,10 +417,10 @@ def train(args):
                 # that of a run without prefetch
                 pending["gen_state"] = gen.get_state()
                 prefetch.submit(draw_idx())
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            gn = torch.nn.utils.clip_grad_norm_(params, args.clip)
-            opt.step()
+            gn, skipped = optimizer_step(loss, params, opt, args.clip, scaler)
+            if skipped:
+                print(f"step {step + 1}: fp16 gradients overflowed, update skipped (loss scale now "
+                      f"{scaler.get_scale():g})", flush=True)
             sched.step()
             if ema is not None:
                 ema.update([unet, controlnet])
@@ -438,6 +443,24 @@ def train(args):
             prefetch.take()
         log.close()
     return losses
+
+
+def optimizer_step(loss, params, opt, clip: float, scaler=None):
+    """Backward, gradient clipping and the optimizer step; with ``scaler`` (a torch.amp.GradScaler, fp16 autocast)
+    the loss is scaled before backward, the gradients unscaled before clipping, and a step whose gradients hold an
+    inf or NaN is skipped (the scale halves; it doubles after 2,000 clean steps). Returns (gradient norm,
+    skipped)."""
+    opt.zero_grad(set_to_none=True)
+    if scaler is None:
+        loss.backward()
+        return torch.nn.utils.clip_grad_norm_(params, clip), False
+    scaler.scale(loss).backward()
+    scaler.unscale_(opt)
+    gn = torch.nn.utils.clip_grad_norm_(params, clip)
+    before = scaler.get_scale()
+    scaler.step(opt)
+    scaler.update()
+    return gn, scaler.get_scale() < before
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -115,7 +115,7 @@ def make_batch(cfg, batch: int, device):
 
 def time_setting(cfg, s: Setting, steps: int, device, ref_dropout: float, profile: bool = False,
                  warmup: Optional[int] = None) -> Dict:
-    from .train import diffusion_loss, make_context, make_noise_scheduler
+    from .train import diffusion_loss, make_context, make_noise_scheduler, optimizer_step
 
     torch.set_num_threads(s.threads)
     unet, controlnet = build(cfg, device)
@@ -127,13 +127,12 @@ def time_setting(cfg, s: Setting, steps: int, device, ref_dropout: float, profil
     gen = torch.Generator().manual_seed(0)
     abar = make_noise_scheduler().alphas_cumprod.to(torch.float32)
     warm = (3 if s.fast.compile else 1) if warmup is None else warmup
+    # fp16 steps as the trainer takes them: with its loss scaler
+    scaler = torch.amp.GradScaler(device.type) if s.fast.autocast == "fp16" else None
 
     def step():
         loss = diffusion_loss(unet_f, cn_f, ctx, b, gen, abar, ref_dropout=ref_dropout, fast=s.fast)
-        opt.zero_grad(set_to_none=True)
-        loss.backward()
-        torch.nn.utils.clip_grad_norm_(params, 1.0)
-        opt.step()
+        optimizer_step(loss, params, opt, 1.0, scaler)
         if device.type == "cuda":
             torch.cuda.synchronize()
         return float(loss.detach())

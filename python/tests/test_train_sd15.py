@@ -500,6 +500,16 @@ def test_freeze_unet_trains_the_controlnet_only(pretrained, data, tmp_path):
     assert len(moved) > 10 and r["step"] == 1
 
 
+def test_fp16_on_the_cpu_is_refused_by_name(pretrained, data, tmp_path):
+    """accelerate would run fp16 on the CPU without autocast or a gradient scaler (f32 training, fp16 frozen
+    models): the recipe says so instead of training something else."""
+    with pytest.raises(SystemExit, match="fp16 on the CPU"):
+        in_process(["--pretrained", pretrained, "--data", data, "--output_dir", str(tmp_path / "fp16"), *MODEL_ARGS,
+                    "--mixed_precision", "fp16", "--train_batch_size", "2", "--stop_after_steps", "1",
+                    "--validation_steps", "0", "--report_to", "none"])
+    assert not os.path.exists(tmp_path / "fp16" / "checkpoint-1")
+
+
 def test_checkpoint_rotation_and_resume_path(tmp_path):
     for s in (10, 2, 30):
         os.makedirs(tmp_path / f"checkpoint-{s}")

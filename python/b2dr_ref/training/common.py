@@ -155,12 +155,18 @@ def make_accelerator(args):
                   f"the losses go to {os.path.join(args.output_dir, 'log.csv')} only", flush=True)
     project = ProjectConfiguration(project_dir=args.output_dir,
                                    logging_dir=os.path.join(args.output_dir, args.logging_dir))
-    return Accelerator(gradient_accumulation_steps=args.gradient_accumulation_steps,
+    acc = Accelerator(gradient_accumulation_steps=args.gradient_accumulation_steps,
                        mixed_precision=args.mixed_precision, log_with=log_with, project_config=project,
                        # the shuffle order: a permutation seeded by (seed, epoch), the same for any number of
                        # processes (each takes every N-th batch of it); its epoch is saved with the checkpoint
                        dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True, data_seed=args.seed),
                        kwargs_handlers=[DistributedDataParallelKwargs(find_unused_parameters=True)])
+    if acc.mixed_precision == "fp16" and acc.device.type == "cpu":
+        # accelerate applies fp16 autocast and its GradScaler only on an accelerator: on the CPU the run would train
+        # in f32 while the frozen models were cast to fp16
+        raise SystemExit("--mixed_precision fp16 on the CPU: accelerate applies neither fp16 autocast nor a "
+                         "gradient scaler there; use --mixed_precision bf16 (or no) on the CPU, fp16 on a GPU")
+    return acc
 
 
 def weight_dtype_of(accelerator) -> torch.dtype:

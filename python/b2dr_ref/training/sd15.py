@@ -242,7 +242,14 @@ def main(args):
                 ema.step(params)
             lv = float(accelerator.gather(loss.detach().reshape(1)).mean())
             lr = lr_scheduler.get_last_lr()[0]
-            accelerator.log({"loss": lv, "lr": lr, "grad_norm": float(gn)}, step=global_step)
+            scalars = {"loss": lv, "lr": lr, "grad_norm": float(gn)}
+            if accelerator.scaler is not None:
+                # fp16 on a GPU: accelerate's GradScaler; an overflowing step is skipped and the scale halves
+                scalars["loss_scale"] = accelerator.scaler.get_scale()
+                if accelerator.optimizer_step_was_skipped:
+                    accelerator.print(f"step {global_step}: fp16 gradients overflowed, update skipped (loss scale "
+                                      f"now {scalars['loss_scale']:g})")
+            accelerator.log(scalars, step=global_step)
             if log is not None:
                 log.write(dict(step=global_step, loss=f"{lv:.6f}", lr=f"{lr:.3e}", grad_norm=f"{float(gn):.4f}",
                                sec=f"{time.perf_counter() - t0:.3f}"))

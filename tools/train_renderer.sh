@@ -1,0 +1,74 @@
+#!/usr/bin/env bash
+# Issue #32's CPU training pipeline for the 16-channel L2-VAE design (nano-z16-g4), from nothing to a package, in
+# one resumable command (docs/training.md "Item 3"): every stage is skipped when its output is complete and resumed
+# from its checkpoint when it was interrupted, so after a reboot or on a new machine the same command continues.
+#
+#   nohup bash tools/train_renderer.sh > WORK/pipeline.out 2>&1 &     # WORK defaults to /work/train
+#   bash tools/train_renderer.sh export STEP                            # snapshot + f16 package WORK/pkg_STEP
+#
+# Stages: (1) the training data (36 scenarios: seeds 0-3 of the six layouts + seeds 0-1 at 60 vehicles, 12 targets
+# each, 4 ego offsets: 1,728 frames x 6 cameras, 112 x 200); (2) the VAE, L2 with object and marking weight 4, its
+# body from the committed b2dr-nano VAE, 16 latent channels; (3) the diffusion stage (UNet + B2D-R ControlNet) on
+# the frozen VAE, v prediction, initialised from the committed b2dr-nano (the latent-facing tensors fresh), a
+# 40,000-step cosine schedule. Settings (environment): WORK, PY (~/.cache/b2dr-venv/bin/python), B2DR
+# (target/release/b2dr, built when missing), THREADS (1: the other core builds and tests), VAE_STEPS (4000),
+# STEPS (40000).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+root=$(pwd)
+work=${WORK:-/work/train}
+py=${PY:-$HOME/.cache/b2dr-venv/bin/python}
+b2dr=${B2DR:-$root/target/release/b2dr}
+threads=${THREADS:-1}
+vae_steps=${VAE_STEPS:-4000}
+steps=${STEPS:-40000}
+config=nano-z16-g4
+export PYTHONPATH="$root/python${PYTHONPATH:+:$PYTHONPATH}"
+export OMP_WAIT_POLICY=PASSIVE
+mkdir -p "$work/runs"
+
+say() { echo "[$(date -u +%FT%TZ)] $*"; }
+
+if [ "${1:-}" = export ]; then
+    step=${2:?export STEP: the step of the snapshot name}
+    snap=$work/snap_$step
+    rm -rf "$snap" && mkdir -p "$snap"
+    cp "$work/runs/full/checkpoint.pt" "$work/runs/full/run.json" "$work/runs/full/log.csv" "$snap/"
+    "$py" -m b2dr_ref.train export --run "$snap" --out "$work/pkg_$step" --dtype f16
+    say "package $work/pkg_$step"
+    exit 0
+fi
+
+if [ ! -x "$b2dr" ]; then say "building $b2dr"; cargo build --release --quiet; fi
+
+# (1) data
+if [ ! -f "$work/data/index.json" ]; then
+    s=""
+    for l in town cross tjunction straight curve multilane; do
+        for k in 0 1 2 3; do s="$s builtin:$l:$k"; done
+        for k in 0 1; do s="$s builtin:$l:$k:60"; done
+    done
+    say "exporting the training data to $work/data"
+    rm -rf "$work/data.tmp"
+    # shellcheck disable=SC2086
+    "$b2dr" export-training --scenario $s --out "$work/data.tmp" --size 112x200 --samples-per-scenario 12 \
+        --offsets "0,0,0;0,1.5,0;0,-1.5,0;0,0,8" --seed 0 --quiet
+    mv "$work/data.tmp" "$work/data"
+fi
+
+# (2) VAE: done when a run to VAE_STEPS returned (its marker file)
+vae_run=$work/runs/vae_l2
+if [ ! -f "$vae_run/done" ]; then
+    say "VAE stage ($vae_steps steps) in $vae_run"
+    "$py" -m b2dr_ref.vae_train --config "$config" --init-from "$root/models/b2dr-nano/vae" --data "$work/data" \
+        --out "$vae_run" --steps "$vae_steps" --batch 8 --lr 2e-4 --warmup 100 --crop 56x104 --recon-loss l2 \
+        --object-weight 4 --marking-weight 4 --threads "$threads" --resume
+    touch "$vae_run/done"
+fi
+
+# (3) diffusion stage
+say "diffusion stage ($steps-step schedule) in $work/runs/full"
+exec "$py" -m b2dr_ref.train --config "$config" --data "$work/data" --vae "$vae_run/vae" \
+    --init-from "$root/models/b2dr-nano" --out "$work/runs/full" --steps "$steps" --batch 8 --lr 2e-4 \
+    --warmup 200 --object-weight 4 --prediction v_prediction --precache --prefetch --channels-last \
+    --threads "$threads" --resume
