@@ -453,7 +453,9 @@ def optimizer_step(loss, params, opt, clip: float, scaler=None):
     opt.zero_grad(set_to_none=True)
     if scaler is None:
         loss.backward()
-        return torch.nn.utils.clip_grad_norm_(params, clip), False
+        gn = torch.nn.utils.clip_grad_norm_(params, clip)
+        opt.step()
+        return gn, False
     scaler.scale(loss).backward()
     scaler.unscale_(opt)
     gn = torch.nn.utils.clip_grad_norm_(params, clip)
