@@ -13,7 +13,8 @@
 # the frozen VAE, v prediction, initialised from the committed b2dr-nano (the latent-facing tensors fresh), a
 # 40,000-step cosine schedule. Settings (environment): WORK, PY (~/.cache/b2dr-venv/bin/python), B2DR
 # (target/release/b2dr, built when missing), THREADS (1: the other core builds and tests), VAE_STEPS (4000),
-# VAE2_STEPS (6000: a second VAE run from the first's weights; 0 skips it), STEPS (40000).
+# VAE2_STEPS (6000: a second VAE run from the first's weights; 0 skips it), STEPS (40000), VAE_DIR (default:
+# models/b2dr-z16-vae, the VAE of stages 2 + 2b as committed, so stages 2 and 2b are skipped; "train": train it).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
@@ -58,9 +59,13 @@ if [ ! -f "$work/data/index.json" ]; then
     mv "$work/data.tmp" "$work/data"
 fi
 
-# (2) VAE: done when a run to VAE_STEPS returned (its marker file)
+# (2) VAE: done when a run to VAE_STEPS returned (its marker file); skipped when the committed one is used
 vae_run=$work/runs/vae_l2
-if [ ! -f "$vae_run/done" ]; then
+committed=$root/models/b2dr-z16-vae
+if [ "${VAE_DIR:-}" != train ] && [ -f "$committed/config.json" ]; then
+    say "the frozen VAE: $committed (VAE_DIR=train trains it again)"
+    vae_dir=$committed
+elif [ ! -f "$vae_run/done" ]; then
     say "VAE stage ($vae_steps steps) in $vae_run"
     "$py" -m b2dr_ref.vae_train --config "$config" --init-from "$root/models/b2dr-nano/vae" --data "$work/data" \
         --out "$vae_run" --steps "$vae_steps" --batch 8 --lr 2e-4 --warmup 100 --crop 56x104 --recon-loss l2 \
@@ -69,7 +74,7 @@ if [ ! -f "$vae_run/done" ]; then
 fi
 # (2b) the VAE again from (2)'s weights with a fresh schedule: (2) flattens at a mean loss of ~0.040 with its lr
 # decayed (measured 2026-12-04: held-out ceiling 23.93 dB, session 19's VAE with more steps behind it 25.43)
-if [ "$vae2_steps" -gt 0 ]; then
+if [ -z "${vae_dir:-}" ] && [ "$vae2_steps" -gt 0 ]; then
     if [ ! -f "$work/runs/vae_l2b/done" ]; then
         say "VAE stage 2b ($vae2_steps steps) in $work/runs/vae_l2b"
         "$py" -m b2dr_ref.vae_train --config "$config" --init-from "$vae_run/vae" --data "$work/data" \
@@ -79,10 +84,11 @@ if [ "$vae2_steps" -gt 0 ]; then
     fi
     vae_run=$work/runs/vae_l2b
 fi
+vae_dir=${vae_dir:-$vae_run/vae}
 
 # (3) diffusion stage
 say "diffusion stage ($steps-step schedule) in $work/runs/full"
-exec "$py" -m b2dr_ref.train --config "$config" --data "$work/data" --vae "$vae_run/vae" \
+exec "$py" -m b2dr_ref.train --config "$config" --data "$work/data" --vae "$vae_dir" \
     --init-from "$root/models/b2dr-nano" --out "$work/runs/full" --steps "$steps" --batch 8 --lr 2e-4 \
     --warmup 200 --object-weight 4 --prediction v_prediction --precache --prefetch --channels-last \
     --threads "$threads" --resume

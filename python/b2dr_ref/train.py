@@ -134,6 +134,8 @@ def latent_cache_key(data: str, vae_path: str, sigma: float) -> str:
     else:
         h.update(data.encode())
     for name in sorted(os.listdir(vae_path)):
+        if name != "config.json" and not name.endswith((".safetensors", ".bin")):
+            continue        # what diffusers reads; not a README beside it
         with open(os.path.join(vae_path, name), "rb") as fh:
             h.update(name.encode() + hashlib.sha256(fh.read()).digest())
     return h.hexdigest()
