@@ -249,6 +249,17 @@ def test_latents_file_spares_a_resume_the_encoding(vae_run, tmp_path, monkeypatc
     assert with_file < sum(encoded)
     assert T.latent_cache_key("synthetic:6", vae, 1.0) != T.latent_cache_key("synthetic:6", vae, 2.0)
     assert T.latent_cache_key("synthetic:6", vae, 1.0) != T.latent_cache_key("synthetic:7", vae, 1.0)
+    # the key follows the VAE's weights and config, not a README beside them (models/b2dr-z16-vae has one)
+    import shutil
+    vae2 = str(tmp_path / "vae_copy")
+    shutil.copytree(vae, vae2)
+    with open(os.path.join(vae2, "README.md"), "w") as fh:
+        fh.write("notes\n")
+    assert T.latent_cache_key("synthetic:6", vae2, 1.0) == T.latent_cache_key("synthetic:6", vae, 1.0)
+    w = [n for n in os.listdir(vae2) if n.endswith(".safetensors")][0]
+    with open(os.path.join(vae2, w), "ab") as fh:
+        fh.write(b"\0")
+    assert T.latent_cache_key("synthetic:6", vae2, 1.0) != T.latent_cache_key("synthetic:6", vae, 1.0)
     capsys.readouterr()
     b = T.Batcher(src, T.load_vae(vae), cn, "cpu", latents=(f, "another key"))
     assert not b.disk and "encoding again" in capsys.readouterr().out
