@@ -12,6 +12,8 @@ It prints, averaged over the chosen camera of up to --frames samples:
 - the sampled frame (the package's sampler, steps and reference guidance; previous frame = the recorded one at
   the model's noise level), and the sampled latent's per-channel means vs the truth's: a model that cannot make
   the latent's channel offsets from zero-mean noise draws washed-out colour fields;
+- the prediction loss on --data at fixed t (t = 100, 300, 500, 700, 900; the prediction type's MSE, unweighted, fixed
+  noise, previous frame at the model's noise level, references on): a validation curve beside the training loss;
 - the per-channel mean / std of the target latents (a VAE whose latents are far from zero-mean leaks the offset
   into x_T during training; `python -m b2dr_ref.vae_train centre` fixes that without changing the VAE's function).
 All noise is seeded: reruns print the same figures.
@@ -31,6 +33,7 @@ import torch
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "python"))
 
 from b2dr_ref.frame import decode_image, render_frame  # noqa: E402
+from b2dr_ref.training.loss import prediction_loss  # noqa: E402
 from b2dr_ref.train import CKPT, Batcher, DatasetSource, checkpoint_models, load_vae, make_noise_scheduler  # noqa: E402
 
 
@@ -100,6 +103,16 @@ def main(argv=None):
             x0 = (x_t - (1 - at).sqrt() * out_t) / at.sqrt()
         one_shot[t] = psnr(decode_image(vae, x0), tgt)
     out["one_shot_x0_psnr"] = one_shot
+    val = {}
+    for t in (100, 300, 500, 700, 900):
+        at = abar[t]
+        eps = torch.randn(bt["x0"].shape, generator=torch.Generator().manual_seed(1000 + t))
+        x_t = at.sqrt() * bt["x0"] + (1 - at).sqrt() * eps
+        down, mid = cn(x_t, torch.full((n,), t), c, bt["masks"], z, torch.full((n,), nl), refs=refs)
+        out_t = unet(x_t, t, c, down_block_additional_residuals=down, mid_block_additional_residual=mid).sample
+        val[t] = float(prediction_loss(out_t, bt, dict(eps=eps), at, prediction=prediction))
+    out["val_loss"] = val
+    out["val_loss_mean"] = float(np.mean(list(val.values())))
     g = torch.Generator().manual_seed(0)
     x_T = torch.randn(bt["x0"].shape, generator=g)
     eps_prev = torch.randn(bt["x0"].shape, generator=g)
@@ -114,6 +127,8 @@ def main(argv=None):
     print(f"  ceilings: VAE reconstruction {out['vae_ceiling_psnr']:.2f} dB, copy the previous frame "
           f"{out['copy_prev_psnr']:.2f} dB")
     print("  one-shot x0 from the true x_t: " + ", ".join(f"t={t} {v:.2f}" for t, v in one_shot.items()) + " dB")
+    print(f"  {prediction} MSE at fixed t (unweighted): " + ", ".join(f"t={t} {v:.4f}" for t, v in val.items())
+          + f"; mean {out['val_loss_mean']:.4f}")
     print(f"  sampled ({meta['sampler']}, {meta['steps']} steps, w {meta['ref_guidance']}): {out['sampled_psnr']:.2f} dB")
     fmt = lambda v: "[" + ", ".join(f"{x:+.2f}" for x in v) + "]"   # noqa: E731
     print(f"  latent channel means: target {fmt(out['target_latent_channel_means'])}, sampled "
