@@ -9,20 +9,9 @@ held-out PSNRs, all from `tools/diagnose_renderer.py --json` files.
 Needs matplotlib (a development tool, not part of the test environment: pip install matplotlib).
 """
 import argparse
-import csv
 import json
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-
-
-def running(x, n):
-    c = np.cumsum(np.insert(x, 0, 0.0))
-    lo = np.maximum(np.arange(len(x)) + 1 - n, 0)
-    return (c[1:] - c[lo]) / (np.arange(len(x)) + 1 - lo)
+from plot_training import plt, read, running, save   # tools/ (the script's folder) is on sys.path
 
 
 def snapshots(specs):
@@ -47,10 +36,8 @@ def main(argv=None):
     p.add_argument("--out", required=True)
     p.add_argument("--title", default="diffusion run")
     a = p.parse_args(argv)
-    with open(a.log) as f:
-        rows = list(csv.DictReader(f))
-    step = np.array([float(r["step"]) for r in rows])
-    loss = np.array([float(r["loss"]) for r in rows])
+    log = read(a.log)
+    step, loss = log["step"], log["loss"]
     hs, hd = snapshots(a.held_out)
     ts, td = snapshots(a.train)
 
@@ -71,10 +58,7 @@ def main(argv=None):
     ax[2].axhline(hd[-1]["copy_prev_psnr"], color="0.5", ls="-.", label="copy the previous frame")
     ax[2].set(title="held-out PSNR (dB)", xlabel="step")
     ax[2].legend(fontsize=8)
-    fig.suptitle(a.title)
-    fig.tight_layout()
-    fig.savefig(a.out, dpi=90)
-    print(f"wrote {a.out}")
+    save(fig, a.title, a.out)
 
 
 if __name__ == "__main__":

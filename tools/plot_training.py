@@ -35,6 +35,13 @@ def running(x, n=50):
     return out
 
 
+def save(fig, title, out):
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(out, dpi=90)
+    print(f"wrote {out}")
+
+
 def main():
     p = argparse.ArgumentParser()
     p.add_argument("--diffusion", required=True, nargs="+", help="log.csv[:LAST_STEP] of each continued run, in order")
@@ -73,10 +80,7 @@ def main():
     ax[2].plot(v["step"], v["lr"], color="k", ls="--", label="VAE")
     ax[2].set(title="learning rate", xlabel="step")
     ax[2].legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16))
-    fig.suptitle(a.title)
-    fig.tight_layout()
-    fig.savefig(a.out, dpi=90)
-    print(f"wrote {a.out}")
+    save(fig, a.title, a.out)
 
 
 if __name__ == "__main__":

@@ -1,8 +1,6 @@
 """The layout segmenter (b2dr_ref/layout_seg.py) and the colour classifier's port (tools/layout_ceiling.py)."""
 
-import importlib.util
 import math
-import os
 
 import numpy as np
 import pytest
@@ -10,15 +8,6 @@ import torch
 from PIL import Image
 
 from b2dr_ref import layout_seg as L
-
-ROOT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..")
-
-
-def _ceiling_tool():
-    spec = importlib.util.spec_from_file_location("layout_ceiling", os.path.join(ROOT, "tools", "layout_ceiling.py"))
-    m = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(m)
-    return m
 
 
 def test_class_ids_maps_the_display_colours_and_refuses_others():
@@ -53,7 +42,7 @@ def test_iou_is_summed_over_images():
     assert r[4] == pytest.approx(2 / 4)
 
 
-def test_the_colour_classifier_port_matches_the_rust_test_case():
+def test_the_colour_classifier_port_matches_the_rust_test_case(tool):
     # src/eval/fidelity/metrics.rs classifier_and_iou: red (class 4) left, blue (class 11) right
     h, w = 4, 8
     rgb = np.zeros((h, w, 3), np.uint8)
@@ -62,7 +51,7 @@ def test_the_colour_classifier_port_matches_the_rust_test_case():
     cls = np.zeros((h, w), np.uint8)
     cls[:, : w // 2] = 4
     cls[:, w // 2:] = 11
-    k = _ceiling_tool().PaletteClassifier([(rgb, cls)])
+    k = tool("layout_ceiling").PaletteClassifier([(rgb, cls)])
     assert (k.classify(rgb) == cls).all()
     assert k.classify(np.array([[[30, 40, 180], [180, 50, 40]]], np.uint8)).tolist() == [[11, 4]]
 
