@@ -43,7 +43,8 @@ from .training.data import (DatasetSource, Sample, SampleSource, SyntheticSource
 from .training.single import (CKPT, add_common, end_at_anneal, load_vae, lr_lambda,  # noqa: E402,F401
                               save_checkpoint, set_threads)
 from .training.loss import (LOSS_WEIGHTS, NO_PREV_NOISE_LEVEL, OBJECT_CHANNELS, PREDICTIONS,  # noqa: E402,F401
-                            denoise, draw_noise, loss_weight, noised_inputs, object_loss_weight, prediction_loss)
+                            denoise, draw_noise, layout_loss_weight, loss_weight, noised_inputs, object_loss_weight,
+                            prediction_loss)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -248,12 +249,14 @@ class Batcher:
 
 def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: torch.Tensor, p_noprev: float = 0.1,
                    ref_dropout: Optional[float] = None, weighting: str = "eps", max_weight: float = 0.0,
-                   prediction: str = "epsilon", object_weight: float = 0.0, fast: FastPath = PLAIN):
+                   prediction: str = "epsilon", object_weight: float = 0.0, fast: FastPath = PLAIN,
+                   marking_weight: float = 0.0):
     """One batch's (weighted) MSE of the model's prediction (all random draws from ``gen``, on the CPU, then moved to
     the device). ``prediction``: the model predicts epsilon, or v = sqrt(abar) eps - sqrt(1 - abar) x_0
     (diffusers' v_prediction; the sampler then reads x_0 = sqrt(abar) x_t - sqrt(1 - abar) v).
     ``object_weight`` W > 0: latent pixels whose 8x8 image cell holds an object (mask channels car .. bicycle)
-    weigh 1 + W in the MSE (small vehicles cover ~5 % of the pixels and otherwise barely move the loss).
+    weigh 1 + W in the MSE (small vehicles cover ~5 % of the pixels and otherwise barely move the loss);
+    ``marking_weight`` the same for lane dividers and crosswalks (the two add up in a cell holding both).
     ``fast`` (fastpath.py): memory format and autocast of the forward; ``unet`` / ``controlnet`` may then be the
     compiled wrappers of ``FastPath.prepare``. The random draws and the loss are the same in every mode.
     The pieces (draw_noise, noised_inputs, denoise, prediction_loss) are shared with b2dr_ref.training."""
@@ -267,7 +270,7 @@ def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: tor
     pred = denoise(unet, controlnet, x_t, d["t"].to(dev), ctx, b["masks"], z, n, b.get("ref_latents"),
                    b.get("pe_cur"), b.get("pe_ref"), d["ref_mask"], fast=fast)
     return prediction_loss(pred, b, d, at, weighting=weighting, max_weight=max_weight, prediction=prediction,
-                           object_weight=object_weight)
+                           object_weight=object_weight, marking_weight=marking_weight)
 
 
 def run_config(args) -> Dict:
@@ -412,7 +415,8 @@ def train(args):
                 b = batcher.batch(draw_idx())
             loss = diffusion_loss(unet_f, controlnet_f, context, b, gen, abar, p_noprev=args.p_noprev,
                                   weighting=args.loss_weight, max_weight=args.max_weight, prediction=prediction,
-                                  object_weight=args.object_weight, fast=fast)
+                                  object_weight=args.object_weight, fast=fast,
+                                  marking_weight=args.marking_weight)
             pending["gen_state"] = None
             if prefetch is not None and step + 1 < steps:
                 # the next step's indices are drawn now, after this step's noise: the generator's sequence is
@@ -565,6 +569,8 @@ def main(argv=None):
     p.add_argument("--object-weight", type=float, default=0.0,
                    help="extra MSE weight on latent cells holding an object (vehicles, pedestrians, two-wheelers): "
                         "1 + this there (0 = plain)")
+    p.add_argument("--marking-weight", type=float, default=0.0,
+                   help="extra MSE weight on latent cells holding a lane divider or crosswalk pixel (0 = plain)")
     p.add_argument("--channels-last", action="store_true", help="NHWC memory format (fastpath.py)")
     p.add_argument("--compile", action="store_true", help="torch.compile the UNet and ControlNet forward")
     p.add_argument("--autocast", default="none", choices=AUTOCASTS, help="autocast dtype of the forward")

@@ -28,7 +28,7 @@ import torch
 from . import nano
 from .training.common import CsvLog
 from .training.data import open_source
-from .training.loss import OBJECT_CHANNELS
+from .training.loss import MARKING_CHANNELS, OBJECT_CHANNELS
 from .training.single import CKPT, add_common, load_vae, lr_lambda, save_checkpoint, set_threads
 
 
@@ -50,9 +50,6 @@ def object_masks(source, idx, device, channels=OBJECT_CHANNELS) -> torch.Tensor:
     m = np.stack([source[i].masks[channels].max(0) for i in idx])
     return torch.from_numpy(m).float()[:, None].to(device)
 
-
-# the painted structures of the road: lane dividers and crosswalks (controlnet.MASK_CHANNELS order)
-MARKING_CHANNELS = [12, 13]
 
 
 def pixel_weights(source, idx, device, object_weight: float, marking_weight: float):

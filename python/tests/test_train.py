@@ -150,11 +150,20 @@ def test_v_prediction_target_and_export(vae_run, tmp_path):
     w = torch.ones(3, 1, 7, 13)
     w[1, 0, 1, 2] = 4.0
     torch.testing.assert_close(lo, (w * v ** 2).mean())
+    # --marking-weight: a lane-divider pixel adds its weight to its cell, on top of the object's
+    masks[2, 13, 50, 100] = 1                          # latent cell (6, 12) of sample 2
+    masks[1, 13, 9, 17] = 1                            # the car's cell (1, 2) of sample 1 too
+    g.set_state(gen_state)
+    lm = T.diffusion_loss(Zero(), NoCn(), torch.zeros(1, 77, 8), b, g, abar, p_noprev=0.0, ref_dropout=1.0,
+                          prediction="v_prediction", object_weight=3.0, marking_weight=2.0)
+    w[1, 0, 1, 2] = 6.0
+    w[2, 0, 6, 12] = 3.0
+    torch.testing.assert_close(lm, (w * v ** 2).mean())
     b["masks"] = None
 
     run = str(tmp_path / "run")
     losses = diffusion(os.path.join(vae_run[0], "vae"), run, "--steps", "3", "--prediction", "v_prediction",
-                       "--object-weight", "2")
+                       "--object-weight", "2", "--marking-weight", "2")
     assert all(np.isfinite(losses))
     T.main(["export", "--run", run, "--out", str(tmp_path / "model")])
     with open(tmp_path / "model" / "b2dr.json") as f:
@@ -429,6 +438,24 @@ def test_object_loss_weight_marks_the_object_cells():
     want[0, 0, 1, 2] = 5.0
     want[1, 0, 0, 0] = 5.0
     torch.testing.assert_close(w, want)
+
+
+def test_layout_loss_weight_adds_object_and_marking_cells():
+    """train.layout_loss_weight (--object-weight, --marking-weight): 1 + wo on cells holding an object pixel, + wm on
+    cells holding a crosswalk or lane-divider pixel (both in one cell add up); lane area and road boundary never
+    count; wm = 0 is object_loss_weight."""
+    m = torch.zeros((1, 15, 16, 24))
+    m[0, 13, 3, 5] = 1          # one lane-divider pixel -> latent cell (0, 0)
+    m[0, 12, 12, 20] = 1        # crosswalk -> cell (1, 2)
+    m[0, 0, 15, 23] = 1         # car in the same cell (1, 2)
+    m[0, 11] = 1                # lane area everywhere: no weight
+    m[0, 14, 9, 9] = 1          # road boundary -> cell (1, 1): no weight
+    w = T.layout_loss_weight(m, (2, 3), 4.0, 2.0)
+    want = torch.ones((1, 1, 2, 3))
+    want[0, 0, 0, 0] = 3.0
+    want[0, 0, 1, 2] = 7.0
+    torch.testing.assert_close(w, want)
+    torch.testing.assert_close(T.layout_loss_weight(m, (2, 3), 4.0, 0.0), T.object_loss_weight(m, (2, 3), 4.0))
 
 
 def test_vae_object_weight_and_init_from(vae_run, tmp_path):

@@ -86,8 +86,9 @@ def denoise(unet, controlnet, x_t, t, ctx, masks, z, n, ref_latents, pe_cur, pe_
 
 
 def prediction_loss(pred, b, d: Dict, at, weighting: str = "eps", max_weight: float = 0.0,
-                    prediction: str = "epsilon", object_weight: float = 0.0):
-    """The (weighted) MSE between the prediction and its target (epsilon, or v)."""
+                    prediction: str = "epsilon", object_weight: float = 0.0, marking_weight: float = 0.0):
+    """The (weighted) MSE between the prediction and its target (epsilon, or v); ``object_weight`` /
+    ``marking_weight`` weigh up the latent cells over objects / lane markings (layout_loss_weight)."""
     dev = b["x0"].device
     B = b["x0"].shape[0]
     eps = d["eps"].to(dev)
@@ -98,8 +99,8 @@ def prediction_loss(pred, b, d: Dict, at, weighting: str = "eps", max_weight: fl
     else:
         raise ValueError(f"prediction {prediction!r} (one of {', '.join(PREDICTIONS)})")
     sq = (pred.float() - target.float()) ** 2
-    if object_weight > 0:
-        sq = sq * object_loss_weight(b["masks"], sq.shape[-2:], object_weight)
+    if object_weight > 0 or marking_weight > 0:
+        sq = sq * layout_loss_weight(b["masks"], sq.shape[-2:], object_weight, marking_weight)
     if weighting == "eps":
         return sq.mean()
     per = sq.mean(dim=(1, 2, 3))
@@ -108,10 +109,23 @@ def prediction_loss(pred, b, d: Dict, at, weighting: str = "eps", max_weight: fl
 
 # the mask channels (controlnet.MASK_CHANNELS order) of the objects: car .. bicycle
 OBJECT_CHANNELS = slice(0, 8)
+# ... and of the painted structures of the road: lane dividers and crosswalks
+MARKING_CHANNELS = [12, 13]
 
 
 def object_loss_weight(masks: torch.Tensor, latent_hw, w: float) -> torch.Tensor:
     """(B, 15, H, W) image-size masks -> (B, 1, h, w) latent-size weights 1 + w * [an object in the cell]."""
-    obj = masks[:, OBJECT_CHANNELS].amax(1, keepdim=True).float()
-    cell = F.adaptive_max_pool2d(obj, tuple(int(v) for v in latent_hw))
-    return 1.0 + w * cell
+    return layout_loss_weight(masks, latent_hw, w, 0.0)
+
+
+def layout_loss_weight(masks: torch.Tensor, latent_hw, object_weight: float, marking_weight: float) -> torch.Tensor:
+    """(B, 15, H, W) image-size masks -> (B, 1, h, w) latent-size weights 1 + object_weight * [an object in the
+    cell] + marking_weight * [a lane divider or crosswalk pixel in the cell]. A marking is one or two pixels
+    wide, so it barely moves a latent cell's value and, unweighted, is the last thing the model learns."""
+    hw = tuple(int(v) for v in latent_hw)
+    w = torch.ones((masks.shape[0], 1) + hw, device=masks.device)
+    for weight, ch in ((object_weight, OBJECT_CHANNELS), (marking_weight, MARKING_CHANNELS)):
+        if weight > 0:
+            m = masks[:, ch].amax(1, keepdim=True).float()
+            w = w + weight * F.adaptive_max_pool2d(m, hw)
+    return w
