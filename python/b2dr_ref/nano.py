@@ -93,9 +93,26 @@ NANO_Z16_G4 = copy.deepcopy(NANO_Z16)
 NANO_Z16_G4["name"] = "b2dr-nano-z16-g4"
 NANO_Z16_G4["vae"]["norm_num_groups"] = 4
 
+# ... and b2dr-nano at the paper's render size, 224 x 400 (latent 28 x 50: a lane marking is 2-4 pixels wide and
+# a car covers several latent cells; the UNet and ControlNet cost ~4x). The same tensors as b2dr-nano (every
+# tensor of a nano package loads). Measured (docs/training.md, session 23): the 4-channel L2 VAE gains nothing at
+# this size, so no model was trained in it; kept for `train bench` and a GPU user's larger designs.
+NANO_224 = copy.deepcopy(NANO)
+NANO_224["name"] = "b2dr-nano-224"
+NANO_224["render_size"] = [224, 400]
+
+# ... and the z16 design with a UNet and ControlNet twice as wide at every level (SD3: 16-channel latents pay off only
+# with larger denoisers); its step cost is in docs/training.md (session 23).
+NANO_Z16_G4_W2 = copy.deepcopy(NANO_Z16_G4)
+NANO_Z16_G4_W2["name"] = "b2dr-nano-z16-g4-w2"
+for _part in ("unet", "controlnet"):
+    NANO_Z16_G4_W2[_part]["block_out_channels"] = [64, 128, 128, 128]
+    NANO_Z16_G4_W2[_part]["attention_head_dim"] = [4, 8, 8, 8]      # head dim 16, as in b2dr-nano
+
 CONFIGS = {"nano": NANO, "b2dr-nano": NANO, "test": TEST, "b2dr-test": TEST, "nano-z8": NANO_Z8,
            "nano-z16": NANO_Z16, "test-z8": TEST_Z8, "nano-z16-wvae": NANO_Z16_WVAE,
-           "nano-z16-g4": NANO_Z16_G4}
+           "nano-z16-g4": NANO_Z16_G4, "nano-224": NANO_224,
+           "nano-z16-g4-w2": NANO_Z16_G4_W2}
 
 
 def get_config(name: str) -> Dict[str, Any]:
