@@ -51,7 +51,6 @@ def object_masks(source, idx, device, channels=OBJECT_CHANNELS) -> torch.Tensor:
     return torch.from_numpy(m).float()[:, None].to(device)
 
 
-
 def pixel_weights(source, idx, device, object_weight: float, marking_weight: float):
     """(B, 1, H, W) L1 weights 1 + object_weight [object pixel] + marking_weight [marking pixel], or None."""
     w = None
