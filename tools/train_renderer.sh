@@ -18,7 +18,10 @@
 # python), B2DR (target/release/b2dr, built when missing), THREADS (1: the other core builds and tests), VAE_STEPS
 # (4000), VAE2_STEPS (z16 only, 6000: a second VAE run from the first's weights; 0 skips it), STEPS (z4 20000, z16
 # 40000), VAE_DIR (default: the design's committed VAE, models/b2dr-z4-vae or models/b2dr-z16-vae, so the VAE stages
-# are skipped; "train": train it).
+# are skipped; "train": train it; "continue": (2c) the committed VAE trained further on the data, VAE3_STEPS (60000)
+# steps of a fresh schedule on whole frames (batch 2: the pixels of 8 crops) in WORK/runs/vae_l2c, resumed like the
+# rest: the full-data z16 VAE still improves with steps, and whole frames beat crops at the same step cost,
+# docs/training.md session 25).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
@@ -69,7 +72,17 @@ if [ ! -f "$work/data/index.json" ]; then
 fi
 
 # (2) VAE: done when a run to VAE_STEPS returned (its marker file); skipped when the committed one is used
-if [ "${VAE_DIR:-}" != train ] && [ -f "$committed/config.json" ]; then
+if [ "${VAE_DIR:-}" = continue ]; then
+    vae_run=$work/runs/vae_l2c
+    if [ ! -f "$vae_run/done" ]; then
+        say "VAE stage 2c: $committed trained further (${VAE3_STEPS:-60000} steps) in $vae_run"
+        "$py" -m b2dr_ref.vae_train --config "$config" --init-from "$committed" --data "$work/data" \
+            --out "$vae_run" --steps "${VAE3_STEPS:-60000}" --batch 2 --lr 1e-4 --warmup 100 --recon-loss l2 \
+            --object-weight 4 --marking-weight 4 --threads "$threads" --resume
+        touch "$vae_run/done"
+    fi
+    vae_dir=$vae_run/vae
+elif [ "${VAE_DIR:-}" != train ] && [ -f "$committed/config.json" ]; then
     say "the frozen VAE: $committed (VAE_DIR=train trains it again)"
     vae_dir=$committed
 elif [ ! -f "$vae_run/done" ]; then

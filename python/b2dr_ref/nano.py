@@ -109,10 +109,18 @@ for _part in ("unet", "controlnet"):
     NANO_Z16_G4_W2[_part]["block_out_channels"] = [64, 128, 128, 128]
     NANO_Z16_G4_W2[_part]["attention_head_dim"] = [4, 8, 8, 8]      # head dim 16, as in b2dr-nano
 
+# ... and the z16 VAE two resnets deep per encoder level (three per decoder level, as SD's VAE) instead of one: the
+# committed z16 VAE, trained on all layouts, keeps markings only on frames it was fitted to (docs/training.md,
+# session 24), so capacity is the next suspect. `tools/deepen_vae.py` grows a trained z16 VAE into this shape
+# with the added resnets initialised as identities (conv2 zero), so training continues from the same function.
+NANO_Z16_G4_D2 = copy.deepcopy(NANO_Z16_G4)
+NANO_Z16_G4_D2["name"] = "b2dr-nano-z16-g4-d2"
+NANO_Z16_G4_D2["vae"]["layers_per_block"] = 2
+
 CONFIGS = {"nano": NANO, "b2dr-nano": NANO, "test": TEST, "b2dr-test": TEST, "nano-z8": NANO_Z8,
            "nano-z16": NANO_Z16, "test-z8": TEST_Z8, "nano-z16-wvae": NANO_Z16_WVAE,
            "nano-z16-g4": NANO_Z16_G4, "nano-224": NANO_224,
-           "nano-z16-g4-w2": NANO_Z16_G4_W2}
+           "nano-z16-g4-w2": NANO_Z16_G4_W2, "nano-z16-g4-d2": NANO_Z16_G4_D2}
 
 
 def get_config(name: str) -> Dict[str, Any]:
