@@ -97,12 +97,30 @@ def grad_l1(rec: torch.Tensor, x: torch.Tensor, weight: torch.Tensor = None) -> 
     return dx.flatten(1).sum(1) + dy.flatten(1).sum(1)
 
 
+def half_size(t: torch.Tensor, hw) -> torch.Tensor:
+    """t (B, C, H, W) resized to hw with an antialiased bilinear filter (the same filter for images and latents)."""
+    return torch.nn.functional.interpolate(t, size=hw, mode="bilinear", antialias=True, align_corners=False)
+
+
+def scale_equivariance(vae, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Per-sample mean squared error per pixel value between D(down(z)) and down(x), down = half size
+    (Skorokhodov et al. 2025, "Improving the Diffusability of Autoencoders"; EQ-VAE, Kouzelis et al. 2025): a latent that decodes
+    correctly at half size carries no content in its finest band that the decoder needs, so it is smoother and
+    easier to denoise. z: (B, C, h, w) -> (h // 2, w // 2); x: (B, 3, H, W) -> the same fraction of each side,
+    (8 (h // 2), 8 (w // 2)) pixels (the decoder's factor is 8 for every config here)."""
+    h, w = z.shape[-2] // 2, z.shape[-1] // 2
+    f = x.shape[-1] // z.shape[-1]
+    small = vae.decode(half_size(z, (h, w))).sample
+    return (small - half_size(x, (f * h, f * w))).square().flatten(1).mean(1)
+
+
 def vae_loss(vae, x, gen: torch.Generator, kl_weight: float, weight: torch.Tensor = None, grad_weight: float = 0.0,
-             recon: str = "l1"):
+             recon: str = "l1", se_weight: float = 0.0):
     """(loss, plain per-pixel L1, KL). ``weight`` (B, 1, H, W) >= 1 scales the L1 per pixel (--object-weight);
     ``grad_weight`` adds that multiple of grad_l1 (--grad-weight); the loss is still divided by 3 H W, the logged
     L1 is the unweighted one. ``recon`` "l2": squared error per pixel instead of the absolute one (--recon-loss;
-    the logged L1 stays the absolute error)."""
+    the logged L1 stays the absolute error). ``se_weight`` adds that multiple of the half-size decode's squared
+    error per pixel value of the half-size image (scale_equivariance; --se-weight)."""
     post = vae.encode(x).latent_dist
     eps = torch.randn(post.mean.shape, generator=gen).to(x.device)
     z = post.mean + post.std * eps
@@ -118,7 +136,10 @@ def vae_loss(vae, x, gen: torch.Generator, kl_weight: float, weight: torch.Tenso
     if grad_weight:
         wl1 = wl1 + grad_weight * grad_l1(rec, x, weight).mean()
     kl = post.kl().mean()
-    return (wl1 + kl_weight * kl) / per_pixel, (l1 / per_pixel).detach(), kl.detach()
+    loss = (wl1 + kl_weight * kl) / per_pixel
+    if se_weight:
+        loss = loss + se_weight * scale_equivariance(vae, z, x).mean()
+    return loss, (l1 / per_pixel).detach(), kl.detach()
 
 
 def spread(source, n: int):
@@ -214,7 +235,9 @@ def centre_command(argv):
 
 
 # the flags that define the objective: kept in the checkpoint, a resume must repeat them
-LOSS_SETTINGS = ("recon_loss", "object_weight", "marking_weight", "grad_weight", "kl_weight", "crop")
+LOSS_SETTINGS = ("recon_loss", "object_weight", "marking_weight", "grad_weight", "kl_weight", "crop", "se_weight")
+# settings added later, with the value a run that predates them trained with
+LOSS_DEFAULTS = {"se_weight": 0.0}
 
 
 def train_vae(args):
@@ -227,6 +250,8 @@ def train_vae(args):
     cfg = ck["cfg"] if ck else nano.get_config(args.config)
     nano.check_config(cfg)
     loss_settings = {k: getattr(args, k) for k in LOSS_SETTINGS}
+    if ck and "loss" in ck:
+        ck["loss"] = {**LOSS_DEFAULTS, **ck["loss"]}
     if ck and "loss" in ck and ck["loss"] != loss_settings:
         # a resume with other loss flags would silently train a different objective from here on
         diff = ", ".join(f"--{k.replace('_', '-')} {loss_settings[k]} (the run: {ck['loss'][k]})"
@@ -277,7 +302,8 @@ def train_vae(args):
             w = pixel_weights(source, idx, device, args.object_weight, args.marking_weight)
             if args.crop:
                 x, w = random_crop(x, args.crop, gen, w) if w is not None else (random_crop(x, args.crop, gen), None)
-            loss, l1, kl = vae_loss(vae, x, gen, args.kl_weight, w, args.grad_weight, args.recon_loss)
+            loss, l1, kl = vae_loss(vae, x, gen, args.kl_weight, w, args.grad_weight, args.recon_loss,
+                                    args.se_weight)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(vae.parameters(), args.clip)
@@ -324,6 +350,9 @@ def main(argv=None):
     p.add_argument("--recon-loss", choices=["l1", "l2"], default="l1",
                    help="per-pixel reconstruction error: absolute (l1, LDM's) or squared (l2: a thin bright line "
                         "whose place the decoder has not learnt yet costs more, so it is learnt sooner)")
+    p.add_argument("--se-weight", type=float, default=0.0,
+                   help="weight of the scale-equivariance term: the half-size latent must decode to the half-size "
+                        "image (smoother, easier-to-denoise latents; docs/training.md); 0 = off")
     return train_vae(p.parse_args(argv))
 
 

@@ -317,6 +317,14 @@ def test_vae_resume_continues_exactly(tmp_path):
     # the checkpoint keeps the loss flags: a resume with another objective is refused, naming the flag
     with pytest.raises(SystemExit, match=r"--recon-loss l2 \(the run: l1\)"):
         V.main(args + ["--out", str(tmp_path / "b"), "--resume", "--steps", "6", "--recon-loss", "l2"])
+    with pytest.raises(SystemExit, match=r"--se-weight 1.0 \(the run: 0.0\)"):
+        V.main(args + ["--out", str(tmp_path / "b"), "--resume", "--steps", "6", "--se-weight", "1"])
+    # a checkpoint written before --se-weight existed (no such key) resumes as a run without it
+    ck_path = tmp_path / "b" / "checkpoint.pt"
+    ck = torch.load(ck_path, weights_only=False)
+    del ck["loss"]["se_weight"]
+    torch.save(ck, ck_path)
+    assert len(V.main(args + ["--out", str(tmp_path / "b"), "--resume", "--steps", "5"])) == 1
 
 
 def test_export_round_trip(vae_run, tmp_path):
@@ -561,3 +569,26 @@ def test_recon_loss_l2_is_the_squared_error():
     torch.testing.assert_close(l1a, l1b)
     with pytest.raises(ValueError, match="l1 or l2"):
         V.vae_loss(vae, x, torch.Generator().manual_seed(3), 0.0, recon="huber")
+
+
+def test_scale_equivariance_term():
+    """vae_loss(se_weight=w) adds w times the squared error per pixel value of the half-size latent's decode
+    against the half-size image (the same antialiased bilinear filter on both, sizes from the latent's halves);
+    w = 0 leaves the loss as it was; a resume of a run that predates the flag reads it as 0."""
+    vae = V.build_vae(nano.get_config("test"), 0).eval()
+    x = torch.rand(2, 3, 24, 40) * 2 - 1
+    base, _, _ = V.vae_loss(vae, x, torch.Generator().manual_seed(3), 0.0, recon="l2")
+    off, _, _ = V.vae_loss(vae, x, torch.Generator().manual_seed(3), 0.0, recon="l2", se_weight=0.0)
+    on, _, _ = V.vae_loss(vae, x, torch.Generator().manual_seed(3), 0.0, recon="l2", se_weight=0.5)
+    torch.testing.assert_close(base, off)
+    gen = torch.Generator().manual_seed(3)
+    post = vae.encode(x).latent_dist
+    z = post.mean + post.std * torch.randn(post.mean.shape, generator=gen)
+    h, w = z.shape[-2] // 2, z.shape[-1] // 2
+    f = x.shape[-1] // z.shape[-1]
+    small = vae.decode(torch.nn.functional.interpolate(z, size=(h, w), mode="bilinear", antialias=True)).sample
+    assert small.shape[-2:] == (f * h, f * w)
+    target = torch.nn.functional.interpolate(x, size=(f * h, f * w), mode="bilinear", antialias=True)
+    torch.testing.assert_close(on, base + 0.5 * (small - target).square().mean())
+    assert float(on.detach()) > float(base.detach())
+    assert V.LOSS_DEFAULTS["se_weight"] == 0.0 and "se_weight" in V.LOSS_SETTINGS
