@@ -5,7 +5,7 @@ the width, erased the markings").
 
     python -m b2dr_ref.vae_train --data DIR --out VAE_RUN [--config nano] [--steps N] [--batch B] [--device cpu|cuda]
                                  [--crop HxW] [--init-from VAE_DIR] [--object-weight W] [--marking-weight W]
-                                 [--recon-loss l1|l2] [--grad-weight W] [--resume]
+                                 [--recon-loss l1|l2] [--grad-weight W] [--se-weight W] [--resume]
 
 Loss per step (LDM's autoencoder without the perceptual / GAN terms): the sums over pixels and latent elements
 per image, averaged over the batch, divided by 3 H W so the figure reads as a per-pixel L1:
