@@ -104,10 +104,10 @@ def half_size(t: torch.Tensor, hw) -> torch.Tensor:
 
 def scale_equivariance(vae, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
     """Per-sample mean squared error per pixel value between D(down(z)) and down(x), down = half size
-    (Skorokhodov et al. 2025, "Improving the Diffusability of Autoencoders"; EQ-VAE, Kouzelis et al. 2025): a latent that decodes
-    correctly at half size carries no content in its finest band that the decoder needs, so it is smoother and
-    easier to denoise. z: (B, C, h, w) -> (h // 2, w // 2); x: (B, 3, H, W) -> the same fraction of each side,
-    (8 (h // 2), 8 (w // 2)) pixels (the decoder's factor is 8 for every config here)."""
+    (Skorokhodov et al. 2025, "Improving the Diffusability of Autoencoders"; EQ-VAE, Kouzelis et al. 2025): a
+    latent that decodes correctly at half size carries no content in its finest band that the decoder needs, so
+    it is smoother and easier to denoise. z: (B, C, h, w) -> (h // 2, w // 2); x: (B, 3, H, W) -> (f (h // 2),
+    f (w // 2)) pixels, f = W / w the decoder's factor: the same fraction of each side as the latent keeps."""
     h, w = z.shape[-2] // 2, z.shape[-1] // 2
     f = x.shape[-1] // z.shape[-1]
     small = vae.decode(half_size(z, (h, w))).sample
