@@ -32,8 +32,7 @@ def main(argv=None) -> int:
     if args.layers <= old:
         print(f"--layers {args.layers}: the source already has layers_per_block {old}", file=sys.stderr)
         return 2
-    cfg = dict(src.config)
-    cfg = {k: v for k, v in cfg.items() if not k.startswith("_")}
+    cfg = {k: v for k, v in dict(src.config).items() if not k.startswith("_")}
     cfg["layers_per_block"] = args.layers
     torch.manual_seed(0)
     dst = AutoencoderKL(**cfg).eval()
