@@ -291,6 +291,34 @@ def load_matching(model: torch.nn.Module, sd: Dict[str, torch.Tensor]) -> List[s
     return fresh
 
 
+def package_context_rows(pkg) -> Dict[str, torch.Tensor]:
+    """A package's context row (77, D) per camera (a (77, D) context serves every camera)."""
+    cams, ctx = list(pkg.meta["cameras"]), pkg.context
+    return {c: ctx if ctx.dim() == 2 else ctx[i] for i, c in enumerate(cams)}
+
+
+def init_context(init: str, pkg, cameras: Sequence[str], extra: Optional[str]) -> torch.Tensor:
+    """The starting context (n_cams, 77, D) in the data's camera order: the --init-from package's rows, and for the
+    cameras it lacks (e.g. a one-camera gate denoiser started on six-camera data) the --init-context-from
+    package's rows."""
+    rows = package_context_rows(pkg)
+    if extra:
+        from .package import load_package
+
+        for c, r in package_context_rows(load_package(extra)).items():
+            if r.shape != next(iter(rows.values())).shape:
+                raise SystemExit(f"--init-context-from {extra}: its context rows {tuple(r.shape)} differ from "
+                                 f"--init-from's {tuple(next(iter(rows.values())).shape)}")
+            rows.setdefault(c, r)
+    lacking = [c for c in cameras if c not in rows]
+    if lacking:
+        hint = (" nor among --init-context-from's" if extra else
+                "; --init-context-from PKG takes the missing cameras' context rows from another package")
+        raise SystemExit(f"--init-from {init}: the data's cameras {lacking} are not among the package's "
+                         f"{list(pkg.meta['cameras'])}{hint}")
+    return torch.stack([rows[c] for c in cameras]).clone()
+
+
 def train(args):
     device = torch.device(args.device)
     set_threads(args.device, args.threads)
@@ -303,6 +331,8 @@ def train(args):
     if list(source.render_size) != list(cfg["render_size"]):
         raise SystemExit(f"data render size {source.render_size} != config {cfg['render_size']}")
     init = getattr(args, "init_from", None) if not ck else None
+    if getattr(args, "init_context_from", None) and not getattr(args, "init_from", None):
+        raise SystemExit("--init-context-from fills the context rows an --init-from package lacks: give --init-from")
     vae_path = ck["vae_path"] if ck and not args.vae else args.vae
     if not vae_path and init:
         vae_path = os.path.join(init, "vae")
@@ -322,11 +352,7 @@ def train(args):
         if fresh:
             # a design with another latent width: the tensors that touch the latent start fresh
             print(f"--init-from {init}: fresh (other shapes): {', '.join(fresh)}", flush=True)
-        pcams = list(pkg.meta["cameras"])
-        if not set(cameras) <= set(pcams):
-            raise SystemExit(f"--init-from {init}: the data's cameras {cameras} are not among the package's {pcams}")
-        # the package's per-camera context rows, in the data's camera order (a subset: e.g. CAM_FRONT only)
-        context = pkg.context[[pcams.index(c) for c in cameras]].clone()
+        context = init_context(init, pkg, cameras, getattr(args, "init_context_from", None))
     unet.to(device).train()
     controlnet.to(device).train()
     params = list(unet.parameters()) + list(controlnet.parameters())
@@ -395,6 +421,13 @@ def train(args):
             grad_scaler=scaler.state_dict() if scaler is not None else None))
         batcher.save_latents()
 
+    def keep():
+        # the weights alone (no optimizer): what export --step needs to package this step later
+        os.makedirs(os.path.join(args.out, "keep"), exist_ok=True)
+        save_checkpoint(keep_path(args.out, step), dict(
+            run_meta, step=step, unet=unet.state_dict(), controlnet=controlnet.state_dict(),
+            ema=ema.shadow if ema is not None else None, context=context))
+
     def draw_idx():
         return list(range(args.batch)) if args.fixed_batch else \
             torch.randint(0, len(source), (args.batch,), generator=gen).tolist()
@@ -437,6 +470,8 @@ def train(args):
                            sec=f"{time.perf_counter() - t0:.3f}"))
             if step % args.log_every == 0:
                 print(f"step {step} loss {lv:.4f} ({time.perf_counter() - t0:.2f} s)", flush=True)
+            if args.keep_every and step % args.keep_every == 0:
+                keep()
             if step % args.ckpt_every == 0 or step == steps:
                 checkpoint()
             elif args.time_limit and time.perf_counter() - t_start > args.time_limit:
@@ -491,10 +526,20 @@ def checkpoint_models(ck, ema: bool = True):
     return unet, controlnet, use_ema
 
 
+def keep_path(run: str, step: int) -> str:
+    return os.path.join(run, "keep", f"step_{step:07d}.pt")
+
+
 def export(args):
     from .package import make_meta, save_package
 
-    ck = torch.load(os.path.join(args.run, CKPT), map_location="cpu", weights_only=False)
+    path = os.path.join(args.run, CKPT) if args.step is None else keep_path(args.run, args.step)
+    if not os.path.exists(path):
+        kdir = os.path.join(args.run, "keep")
+        kept = sorted(os.listdir(kdir)) if os.path.isdir(kdir) else []
+        raise SystemExit(f"export: {path} does not exist" + (f" (kept: {', '.join(kept) or 'none'})"
+                                                               if args.step is not None else ""))
+    ck = torch.load(path, map_location="cpu", weights_only=False)
     cfg = ck["cfg"]
     unet, controlnet, use_ema = checkpoint_models(ck, ema=not args.no_ema)
     vae = load_vae(args.vae or ck["vae_path"])
@@ -525,6 +570,8 @@ def main(argv=None):
         p.add_argument("--dtype", default="f16", choices=["f16", "f32"])
         p.add_argument("--vae", default=None, help="VAE folder (default: the one the run trained with)")
         p.add_argument("--no-ema", action="store_true", help="export the raw weights even when the run kept an EMA")
+        p.add_argument("--step", type=int, default=None,
+                       help="export the weights kept at this step (a run trained with --keep-every), not the last")
         return export(p.parse_args(argv[1:]))
     if argv and argv[0] == "bench":
         p = argparse.ArgumentParser(prog="python -m b2dr_ref.train bench")
@@ -551,6 +598,12 @@ def main(argv=None):
                         "along a cosine between the resume step and this one (kept by later resumes)")
     p.add_argument("--init-from", default=None,
                    help="start a new run from an exported model package (weights, context, VAE unless --vae)")
+    p.add_argument("--init-context-from", default=None,
+                   help="with --init-from: a package whose per-camera context rows serve the data's cameras that "
+                        "the --init-from package lacks (e.g. b2dr-nano's six rows around a one-camera denoiser)")
+    p.add_argument("--keep-every", type=int, default=0,
+                   help="also keep the weights of every N-th step in RUN/keep/ (export --step N packages one): the "
+                        "points of a learning curve scored after the run")
     p.add_argument("--ema", type=float, default=0.0, help="EMA decay (0 = off); export uses the EMA when kept")
     p.add_argument("--p-noprev", type=float, default=0.1, help="probability of 'no previous frame' (z = 0, n = 999)")
     p.add_argument("--cache", type=int, default=100000, help="samples whose latents + PE are kept in memory")

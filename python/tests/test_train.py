@@ -434,6 +434,52 @@ def test_init_from_package_starts_from_its_weights(vae_run, tmp_path):
     torch.testing.assert_close(ck["context"], pkg.context, rtol=0, atol=0)
 
 
+def test_init_context_from_fills_the_cameras_the_package_lacks(vae_run, tmp_path):
+    """A one-camera package (CAM_FRONT) starts a run on two-camera data only with --init-context-from: CAM_FRONT's
+    row from --init-from, CAM_BACK's from the other package; without it, or without --init-from, a clear exit."""
+    from b2dr_ref.package import load_package, save_package
+
+    run = str(tmp_path / "run")
+    diffusion(os.path.join(vae_run[0], "vae"), run, "--steps", "1")
+    both = str(tmp_path / "both")
+    T.main(["export", "--run", run, "--out", both, "--dtype", "f32"])
+    pkg = load_package(both)
+    assert list(pkg.meta["cameras"]) == ["CAM_FRONT", "CAM_BACK"]
+    front = str(tmp_path / "front")
+    meta = dict(pkg.meta, cameras=["CAM_FRONT"])
+    save_package(front, pkg.unet, pkg.controlnet, pkg.vae, pkg.context[:1] + 1.0, meta)   # its own row
+    args = ["--data", "synthetic:4", "--steps", "1", "--batch", "2", "--lr", "0"] + COMMON
+    with pytest.raises(SystemExit, match="CAM_BACK.*--init-context-from"):
+        T.main(args + ["--out", str(tmp_path / "a"), "--init-from", front])
+    with pytest.raises(SystemExit, match="give --init-from"):
+        T.main(args + ["--out", str(tmp_path / "b"), "--vae", os.path.join(vae_run[0], "vae"),
+                       "--init-context-from", both])
+    cont = str(tmp_path / "c")
+    T.main(args + ["--out", cont, "--init-from", front, "--init-context-from", both])
+    ctx = torch.load(os.path.join(cont, T.CKPT), weights_only=False)["context"]
+    torch.testing.assert_close(ctx[0], pkg.context[0] + 1.0, rtol=0, atol=0)    # --init-from's CAM_FRONT
+    torch.testing.assert_close(ctx[1], pkg.context[1], rtol=0, atol=0)          # --init-context-from's CAM_BACK
+
+
+def test_keep_every_keeps_steps_that_export_step_packages(vae_run, tmp_path):
+    """--keep-every N keeps every N-th step's weights in RUN/keep/; export --step N packages them (the last kept
+    step's weights are the final checkpoint's, an earlier one's differ); a step not kept is a clear exit."""
+    from b2dr_ref.package import load_package
+
+    run = str(tmp_path / "run")
+    diffusion(os.path.join(vae_run[0], "vae"), run, "--steps", "4", "--keep-every", "2")
+    assert sorted(os.listdir(os.path.join(run, "keep"))) == ["step_0000002.pt", "step_0000004.pt"]
+    last = torch.load(os.path.join(run, T.CKPT), weights_only=False)
+    for step in (2, 4):
+        out = str(tmp_path / f"m{step}")
+        T.main(["export", "--run", run, "--out", out, "--dtype", "f32", "--step", str(step)])
+        sd = load_package(out).unet.state_dict()
+        same = all(torch.equal(v, last["unet"][k]) for k, v in sd.items())
+        assert same == (step == 4), step
+    with pytest.raises(SystemExit, match="kept: step_0000002.pt, step_0000004.pt"):
+        T.main(["export", "--run", run, "--out", str(tmp_path / "m3"), "--step", "3"])
+
+
 def test_object_loss_weight_marks_the_object_cells():
     """train.object_loss_weight: 1 + w on the latent cells whose 8x8 image cell holds any object-class pixel
     (channels car .. bicycle), 1 elsewhere (road, lanes and the other map channels never count)."""
