@@ -21,7 +21,8 @@
 # are skipped; "train": train it; "continue": (2c) the committed VAE trained further on the data, VAE3_STEPS (60000)
 # steps of a fresh schedule on whole frames (batch 2: the pixels of 8 crops) in WORK/runs/vae_l2c, resumed like the
 # rest: the full-data z16 VAE still improves with steps, and whole frames beat crops at the same step cost,
-# docs/training.md session 25).
+# docs/training.md session 25), KEEP_EVERY (2000: the diffusion stage keeps every N-th step's weights in RUN/keep/,
+# `train export --run RUN --step N` packages one).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
@@ -111,4 +112,4 @@ say "diffusion stage, design $design ($steps-step schedule) in $run"
 exec "$py" -m b2dr_ref.train --config "$config" --data "$work/data" --vae "$vae_dir" \
     --init-from "$root/models/b2dr-nano" --out "$run" --steps "$steps" --batch 8 --lr 2e-4 \
     --warmup 200 --object-weight 4 --prediction v_prediction --precache --prefetch --channels-last \
-    --threads "$threads" --resume
+    --threads "$threads" --keep-every "${KEEP_EVERY:-2000}" --resume
