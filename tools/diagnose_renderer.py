@@ -14,6 +14,9 @@ It prints, averaged over the chosen camera of up to --frames samples:
   the latent's channel offsets from zero-mean noise draws washed-out colour fields;
 - the prediction loss on --data at fixed t (t = 100, 300, 500, 700, 900; the prediction type's MSE, unweighted, fixed
   noise, previous frame at the model's noise level, references on): a validation curve beside the training loss;
+- with --from-prev T0[,T0...]: the frame sampled by DDIM (the package's steps) from the previous frame's latent
+  noised to T0 (SDEdit) instead of pure noise at T, same conditioning: does the previous frame as the start keep
+  what the full trajectory loses? (docs/training.md session 27: +1.9 dB at T0 = 401, still under the copy);
 - the per-channel mean / std of the target latents (a VAE whose latents are far from zero-mean leaks the offset
   into x_T during training; `python -m b2dr_ref.vae_train centre` fixes that without changing the VAE's function).
 All noise is seeded: reruns print the same figures.
@@ -54,6 +57,37 @@ def psnr(img: torch.Tensor, tgt: torch.Tensor) -> float:
 
 
 @torch.no_grad()
+def sample_from_prev(unet, cn, vae, c, bt, prev, ref_images, meta, t0: int, noise) -> torch.Tensor:
+    """SDEdit from the previous frame: x = sqrt(abar_t0) E(prev) + sqrt(1 - abar_t0) noise, then the DDIM steps at
+    or below t0 with render_frame's conditioning (previous frame at the model's noise level, reference guidance)."""
+    from b2dr_ref.frame import encode_reference_images, make_scheduler, prev_frame_chain, vae_encode_mean
+
+    n = c.shape[0]
+    nl = int(cn.config.prev_noise_level)
+    eps_prev = torch.randn(noise.shape, generator=torch.Generator().manual_seed(2))
+    chain = prev_frame_chain(vae, prev, eps_prev, float(cn.config.prev_blur_sigma), nl)
+    refs = cn.prepare_references(encode_reference_images(vae, ref_images), bt["pe_cur"], bt["pe_ref"])
+    w = float(meta["ref_guidance"])
+    sched = make_scheduler("ddim", meta.get("prediction_type", "epsilon"))
+    sched.set_timesteps(int(meta["steps"]))
+    ts = [t for t in sched.timesteps if int(t) <= t0]
+    if not ts:
+        raise SystemExit(f"--from-prev {t0}: no sampler step at or below it")
+    a = sched.alphas_cumprod[int(ts[0])]
+    x = a.sqrt() * vae_encode_mean(vae, prev) + (1 - a).sqrt() * noise
+    ctx_b, masks_b, z_b = torch.cat([c] * 2), torch.cat([bt["masks"]] * 2), torch.cat([chain.z] * 2)
+    ref_mask = torch.tensor([False] * n + [True] * n)
+    noise_b = torch.full((2 * n,), nl, dtype=torch.int64)
+    for t in ts:
+        xin = torch.cat([x] * 2)
+        down, mid = cn(xin, t, ctx_b, masks_b, z_b, noise_b, refs=refs, ref_mask=ref_mask)
+        e = unet(xin, t, ctx_b, down_block_additional_residuals=down, mid_block_additional_residual=mid).sample
+        eu, ec = e.chunk(2)
+        x = sched.step(eu + w * (ec - eu), t, x).prev_sample
+    return decode_image(vae, x)
+
+
+@torch.no_grad()
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--model", required=True)
@@ -64,6 +98,8 @@ def main(argv=None):
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--strip", default=None, help="write truth | sampled pairs of every frame to this PNG")
     ap.add_argument("--json", default=None, help="also write the figures as JSON")
+    ap.add_argument("--from-prev", default=None,
+                    help="T0[,T0...]: also sample (DDIM) from the previous frame's latent noised to T0 (SDEdit)")
     a = ap.parse_args(argv)
     torch.set_num_threads(a.threads)
     unet, cn, vae, ctx, meta = load(a.model, a.raw)
@@ -133,6 +169,13 @@ def main(argv=None):
     fmt = lambda v: "[" + ", ".join(f"{x:+.2f}" for x in v) + "]"   # noqa: E731
     print(f"  latent channel means: target {fmt(out['target_latent_channel_means'])}, sampled "
           f"{fmt(out['sampled_latent_channel_means'])}; target stds {fmt(out['target_latent_channel_stds'])}")
+    if a.from_prev:
+        out["from_prev_psnr"] = {}
+        for t0 in (int(v) for v in a.from_prev.split(",")):
+            img = sample_from_prev(unet, cn, vae, c, bt, prev, u8([s.refs for s in ss]), meta, t0, x_T)
+            out["from_prev_psnr"][t0] = psnr(img, tgt)
+            print(f"  sampled (ddim, {meta['steps']} steps) from the previous frame noised to t = {t0}: "
+                  f"{out['from_prev_psnr'][t0]:.2f} dB")
     if a.strip:
         from PIL import Image
 
