@@ -35,7 +35,7 @@ import torch
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "python"))
 
-from b2dr_ref.frame import decode_image, render_frame  # noqa: E402
+from b2dr_ref.frame import decode_image, render_frame, vae_encode_mean  # noqa: E402
 from b2dr_ref.training.loss import prediction_loss  # noqa: E402
 from b2dr_ref.train import CKPT, Batcher, DatasetSource, checkpoint_models, load_vae, make_noise_scheduler  # noqa: E402
 
@@ -54,37 +54,6 @@ def load(path: str, raw: bool):
 
 def psnr(img: torch.Tensor, tgt: torch.Tensor) -> float:
     return float(np.mean([10 * math.log10(1 / max(float(((a - b) ** 2).mean()), 1e-12)) for a, b in zip(img, tgt)]))
-
-
-@torch.no_grad()
-def sample_from_prev(unet, cn, vae, c, bt, prev, ref_images, meta, t0: int, noise) -> torch.Tensor:
-    """SDEdit from the previous frame: x = sqrt(abar_t0) E(prev) + sqrt(1 - abar_t0) noise, then the DDIM steps at
-    or below t0 with render_frame's conditioning (previous frame at the model's noise level, reference guidance)."""
-    from b2dr_ref.frame import encode_reference_images, make_scheduler, prev_frame_chain, vae_encode_mean
-
-    n = c.shape[0]
-    nl = int(cn.config.prev_noise_level)
-    eps_prev = torch.randn(noise.shape, generator=torch.Generator().manual_seed(2))
-    chain = prev_frame_chain(vae, prev, eps_prev, float(cn.config.prev_blur_sigma), nl)
-    refs = cn.prepare_references(encode_reference_images(vae, ref_images), bt["pe_cur"], bt["pe_ref"])
-    w = float(meta["ref_guidance"])
-    sched = make_scheduler("ddim", meta.get("prediction_type", "epsilon"))
-    sched.set_timesteps(int(meta["steps"]))
-    ts = [t for t in sched.timesteps if int(t) <= t0]
-    if not ts:
-        raise SystemExit(f"--from-prev {t0}: no sampler step at or below it")
-    a = sched.alphas_cumprod[int(ts[0])]
-    x = a.sqrt() * vae_encode_mean(vae, prev) + (1 - a).sqrt() * noise
-    ctx_b, masks_b, z_b = torch.cat([c] * 2), torch.cat([bt["masks"]] * 2), torch.cat([chain.z] * 2)
-    ref_mask = torch.tensor([False] * n + [True] * n)
-    noise_b = torch.full((2 * n,), nl, dtype=torch.int64)
-    for t in ts:
-        xin = torch.cat([x] * 2)
-        down, mid = cn(xin, t, ctx_b, masks_b, z_b, noise_b, refs=refs, ref_mask=ref_mask)
-        e = unet(xin, t, ctx_b, down_block_additional_residuals=down, mid_block_additional_residual=mid).sample
-        eu, ec = e.chunk(2)
-        x = sched.step(eu + w * (ec - eu), t, x).prev_sample
-    return decode_image(vae, x)
 
 
 @torch.no_grad()
@@ -172,8 +141,11 @@ def main(argv=None):
     if a.from_prev:
         out["from_prev_psnr"] = {}
         for t0 in (int(v) for v in a.from_prev.split(",")):
-            img = sample_from_prev(unet, cn, vae, c, bt, prev, u8([s.refs for s in ss]), meta, t0, x_T)
-            out["from_prev_psnr"][t0] = psnr(img, tgt)
+            r = render_frame(unet, cn, vae, x_T, c, bt["masks"], prev, eps_prev, ref_images=u8([s.refs for s in ss]),
+                             pe_cur=bt["pe_cur"], pe_ref=bt["pe_ref"], steps=int(meta["steps"]),
+                             ref_guidance=float(meta["ref_guidance"]), sampler="ddim", prediction_type=prediction,
+                             sdedit=(t0, vae_encode_mean(vae, prev)))
+            out["from_prev_psnr"][t0] = psnr(r.image, tgt)
             print(f"  sampled (ddim, {meta['steps']} steps) from the previous frame noised to t = {t0}: "
                   f"{out['from_prev_psnr'][t0]:.2f} dB")
     if a.strip:

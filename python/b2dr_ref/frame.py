@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Dict, List, Optional, Sequence
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 import torch
@@ -152,8 +152,13 @@ def render_frame(unet, controlnet: B2DRControlNetModel, vae, x_T: torch.Tensor, 
                  ref_images: Optional[torch.Tensor] = None, pe_cur: Optional[Sequence[torch.Tensor]] = None,
                  pe_ref: Optional[Sequence[torch.Tensor]] = None, steps: int = 20, ref_guidance: float = 2.0,
                  sampler: str = "unipc", noise_level: Optional[int] = None,
-                 conditioning_scale: float = 1.0, prediction_type: str = "epsilon") -> FrameResult:
+                 conditioning_scale: float = 1.0, prediction_type: str = "epsilon",
+                 sdedit: Optional[Tuple[int, torch.Tensor]] = None) -> FrameResult:
     """A full frame of N cameras.
+
+    sdedit = (t0, z_start) (a diagnostic, not the engine's path): the sampler starts at its first timestep <= t0
+    from sqrt(abar) z_start + sqrt(1 - abar) x_T instead of x_T at its first timestep (SDEdit; z_start e.g. the
+    previous frame's latent).
 
     x_T (N, 4, h, w); context (77, D) or (N, 77, D); masks (N, 15, H, W); prev (N, 3, H, W) in [0, 1]; eps_prev
     (N, 4, h, w); ref_images (N, 2, 3, H, W) in [0, 1] or None (references off); pe_cur / pe_ref: per Ref-Attn
@@ -178,13 +183,22 @@ def render_frame(unet, controlnet: B2DRControlNetModel, vae, x_T: torch.Tensor, 
     res = FrameResult(image=None, latent=None, timesteps=[int(t) for t in sched.timesteps], prev=chain,
                       ref_latents=ref_latents, refs=refs)
     x = x_T.clone()
+    timesteps = sched.timesteps
+    if sdedit is not None:
+        t0, z_start = sdedit
+        timesteps = [t for t in sched.timesteps if int(t) <= int(t0)]
+        if not timesteps:
+            raise ValueError(f"sdedit t0 {t0}: no sampler timestep at or below it")
+        a = sched.alphas_cumprod[int(timesteps[0])]
+        x = a.sqrt() * z_start + (1 - a).sqrt() * x_T
+        res.timesteps = [int(t) for t in timesteps]
     if guided:
         ctx_b, masks_b, z_b = torch.cat([ctx] * 2), torch.cat([masks] * 2), torch.cat([chain.z] * 2)
         ref_mask = torch.tensor([False] * n + [True] * n)
     else:
         ctx_b, masks_b, z_b, ref_mask = ctx, masks, chain.z, None
     noise_b = torch.full((ctx_b.shape[0],), nl, dtype=torch.int64)
-    for t in sched.timesteps:
+    for t in timesteps:
         xin = torch.cat([x] * 2) if guided else x
         down, mid = controlnet(xin, t, ctx_b, masks_b, z_b, noise_b, refs=refs, ref_mask=ref_mask,
                                conditioning_scale=conditioning_scale)

@@ -120,3 +120,28 @@ def test_render_frame_without_refs_runs_noref_rows(models):
     x, _ = _manual_loop(models, fi, False, 2)
     assert res.eps_ref == [] and torch.equal(res.latent, x)
     assert res.image.shape == (1, 3, 32, 48) and res.image.min() >= 0 and res.image.max() <= 1
+
+
+@torch.no_grad()
+def test_sdedit_starts_at_the_first_timestep_at_or_below_t0(models):
+    """render_frame(sdedit=(t0, z)): the steps at or below t0 only, from z noised to the first of them with x_T;
+    the loop written out by hand gives the same latent; t0 below every timestep is an error."""
+    fi = frame_inputs(models["controlnet"], n=1, h=4, w=6, seed=5)
+    fi["ref_images"] = None
+    unet, cn, vae = models["unet"], models["controlnet"], models["vae"]
+    z = torch.randn(fi["x_T"].shape, generator=torch.Generator().manual_seed(6))
+    res = fr.render_frame(unet, cn, vae, ref_guidance=1.0, steps=4, sampler="ddim", sdedit=(600, z), **fi)
+    s = fr.make_scheduler("ddim")
+    s.set_timesteps(4)
+    ts = [t for t in s.timesteps if int(t) <= 600]
+    assert res.timesteps == [int(t) for t in ts] and len(ts) < 4
+    chain = fr.prev_frame_chain(vae, fi["prev"], fi["eps_prev"], 1.0, 200)
+    a = s.alphas_cumprod[int(ts[0])]
+    x = a.sqrt() * z + (1 - a).sqrt() * fi["x_T"]
+    for t in ts:
+        d, m = cn(x, t, fi["context"][None], fi["masks"], chain.z, torch.full((1,), 200))
+        eps = unet(x, t, fi["context"][None], down_block_additional_residuals=d, mid_block_additional_residual=m).sample
+        x = s.step(eps, t, x).prev_sample
+    assert torch.equal(res.latent, x)
+    with pytest.raises(ValueError, match="no sampler timestep"):
+        fr.render_frame(unet, cn, vae, ref_guidance=1.0, steps=4, sampler="ddim", sdedit=(0, z), **fi)
