@@ -347,6 +347,20 @@ fn renderer(
     w: f64,
     dt: DType,
 ) -> FrameRenderer {
+    renderer_with_base(ctx, g, d, c, n, w, dt, false)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn renderer_with_base(
+    ctx: &Context,
+    g: &Golden,
+    d: &Dev,
+    c: &Case,
+    n: usize,
+    w: f64,
+    dt: DType,
+    x0_base_prev: bool,
+) -> FrameRenderer {
     let img = &c.get("in.masks").shape;
     let m = B2drModel {
         unet: &d.unet,
@@ -355,6 +369,7 @@ fn renderer(
         vae_decoder: &d.dec,
         scaling_factor: g.vcfg.scaling_factor,
         dtype: dt,
+        x0_base_prev,
     };
     let plan = unipc::plan(&NoiseSchedule::sd15(), &Default::default(), 3).unwrap();
     FrameRenderer::new(
@@ -450,6 +465,78 @@ fn frame_matches(g: &Golden, cases: &[(&str, usize, (usize, usize))]) {
             }
         }
     }
+    common::assert_no_validation_errors();
+}
+
+/// b2dr.json x0_base "prev": the same sampling loop as the reference (the sampled latent is the golden one),
+/// the base is the previous frame's clean latent (the golden noised latent with its noise taken out), and the
+/// frame is the VAE decode of latent + base; "no previous frame" zeroes the base.
+#[test]
+fn x0_base_prev_decodes_the_sampled_residual_plus_the_previous_latent() {
+    let Some(ctx) = common::ctx() else { return };
+    let g = golden();
+    let locs = g.ccfg.ref_attn.len();
+    let (file, n, _) = CASES[0];
+    let c = Case(golden::golden_case(file));
+    let d = device_model(&ctx, &g, DType::F32);
+    let r = renderer_with_base(&ctx, &g, &d, &c, n, 2.0, DType::F32, true);
+    r.render(&inputs(&c, locs)).unwrap();
+    check(
+        "x0 base: sampled latent",
+        &r.latent().unwrap(),
+        c.get("out.frame_w2.latent.2"),
+        tol(DType::F32),
+    );
+    // z_clean = (z_noised - sqrt(1 - abar) eps_prev) / sqrt(abar)
+    let a = r.prev_alpha_bar();
+    let eps = &c.get("in.eps_prev").data;
+    let want: Vec<f32> = c
+        .get("out.prev.z")
+        .data
+        .iter()
+        .zip(eps)
+        .map(|(z, e)| ((*z as f64 - (1.0 - a).sqrt() * *e as f64) / a.sqrt()) as f32)
+        .collect();
+    let base = r.base_latent().unwrap().expect("a base");
+    let e = golden::nmse(&base, &want);
+    assert!(e <= 1e-6, "base latent nmse {e:e}");
+    assert!(
+        base.iter().any(|v| v.abs() > 1e-3),
+        "a zero base would test nothing"
+    );
+    // the decode of latent + base, written out
+    let lat = r.latent().unwrap();
+    let (lc, h, w) = r.latent_size();
+    let s = g.vcfg.scaling_factor;
+    let z: Vec<f32> = lat
+        .iter()
+        .zip(&base)
+        .map(|(x, b)| ((*x as f64 + *b as f64) / s) as f32)
+        .collect();
+    let zt = Tensor::from_f32(&ctx, &[n, lc, h, w], DType::F32, &z, "z").unwrap();
+    let mut ws = Workspace::new(&ctx, DType::F32);
+    let dec = record(&ctx, &mut ws, |f| d.dec.forward(f, &zt));
+    let want_img: Vec<f32> = dec
+        .to_f32(&ctx)
+        .unwrap()
+        .iter()
+        .map(|v| (v / 2.0 + 0.5).clamp(0.0, 1.0))
+        .collect();
+    let img = r.image().unwrap();
+    let e = golden::nmse(&img, &want_img);
+    assert!(e <= 1e-10, "image vs decode(latent + base): nmse {e:e}");
+    // (the golden's random VAE maps most latents near one colour: the base moves the image little, but far
+    // more than the tolerance above)
+    let plain = golden::nmse(&img, &c.get("out.frame_w2.image").data);
+    assert!(
+        plain > 1e3 * e.max(1e-12),
+        "the base changed nothing (nmse {plain:e} to the plain frame, {e:e} to decode(latent + base))"
+    );
+    // no previous frame: the base is zero
+    let mut x = inputs(&c, locs);
+    x.prev = Prev::None;
+    r.render(&x).unwrap();
+    assert!(r.base_latent().unwrap().unwrap().iter().all(|v| *v == 0.0));
     common::assert_no_validation_errors();
 }
 

@@ -48,7 +48,8 @@ def load(path: str, raw: bool):
         return p.unet, p.controlnet, p.vae, p.context, p.meta
     ck = torch.load(os.path.join(path, CKPT), map_location="cpu", weights_only=False)
     unet, cn, _ = checkpoint_models(ck, ema=not raw)
-    meta = dict(sampler="unipc", steps=20, ref_guidance=2.0, prediction_type=ck.get("prediction", "epsilon"))
+    meta = dict(sampler="unipc", steps=20, ref_guidance=2.0, prediction_type=ck.get("prediction", "epsilon"),
+                x0_base=ck.get("x0_base", "none"))
     return unet, cn, load_vae(ck["vae_path"]), ck["context"], meta
 
 
@@ -89,7 +90,12 @@ def main(argv=None):
     n = len(idx)
     nl = int(cn.config.prev_noise_level)
     prediction = meta.get("prediction_type", "epsilon")
-    out = dict(model=a.model, data=a.data, camera=a.camera, frames=n, prediction_type=meta.get("prediction_type", "epsilon"))
+    x0_base = meta.get("x0_base", "none")
+    out = dict(model=a.model, data=a.data, camera=a.camera, frames=n, prediction_type=meta.get("prediction_type", "epsilon"),
+               x0_base=x0_base)
+    # the diffused variable: x_0, or its residual against the previous frame's clean latent (b2dr.json x0_base)
+    base = bt["z_prev"] if x0_base == "prev" else torch.zeros_like(bt["x0"])
+    bt_r = dict(bt, x0=bt["x0"] - base)
     out["vae_ceiling_psnr"] = psnr(decode_image(vae, bt["x0"]), tgt)
     out["copy_prev_psnr"] = psnr(prev, tgt)
     z = abar[nl].sqrt() * bt["z_prev"] + (1 - abar[nl]).sqrt() * torch.randn(bt["z_prev"].shape,
@@ -99,23 +105,23 @@ def main(argv=None):
     one_shot = {}
     for t in (200, 400, 600, 800, 950, 999):
         at = abar[t]
-        x_t = at.sqrt() * bt["x0"] + (1 - at).sqrt() * torch.randn(bt["x0"].shape, generator=torch.Generator().manual_seed(t))
+        x_t = at.sqrt() * bt_r["x0"] + (1 - at).sqrt() * torch.randn(bt["x0"].shape, generator=torch.Generator().manual_seed(t))
         down, mid = cn(x_t, torch.full((n,), t), c, bt["masks"], z, torch.full((n,), nl), refs=refs)
         out_t = unet(x_t, t, c, down_block_additional_residuals=down, mid_block_additional_residual=mid).sample
         if prediction == "v_prediction":
             x0 = at.sqrt() * x_t - (1 - at).sqrt() * out_t
         else:
             x0 = (x_t - (1 - at).sqrt() * out_t) / at.sqrt()
-        one_shot[t] = psnr(decode_image(vae, x0), tgt)
+        one_shot[t] = psnr(decode_image(vae, x0 + base), tgt)
     out["one_shot_x0_psnr"] = one_shot
     val = {}
     for t in (100, 300, 500, 700, 900):
         at = abar[t]
         eps = torch.randn(bt["x0"].shape, generator=torch.Generator().manual_seed(1000 + t))
-        x_t = at.sqrt() * bt["x0"] + (1 - at).sqrt() * eps
+        x_t = at.sqrt() * bt_r["x0"] + (1 - at).sqrt() * eps
         down, mid = cn(x_t, torch.full((n,), t), c, bt["masks"], z, torch.full((n,), nl), refs=refs)
         out_t = unet(x_t, t, c, down_block_additional_residuals=down, mid_block_additional_residual=mid).sample
-        val[t] = float(prediction_loss(out_t, bt, dict(eps=eps), at, prediction=prediction))
+        val[t] = float(prediction_loss(out_t, bt_r, dict(eps=eps), at, prediction=prediction))
     out["val_loss"] = val
     out["val_loss_mean"] = float(np.mean(list(val.values())))
     g = torch.Generator().manual_seed(0)
@@ -123,12 +129,13 @@ def main(argv=None):
     eps_prev = torch.randn(bt["x0"].shape, generator=g)
     res = render_frame(unet, cn, vae, x_T, c, bt["masks"], prev, eps_prev, ref_images=u8([s.refs for s in ss]),
                        pe_cur=bt["pe_cur"], pe_ref=bt["pe_ref"], steps=int(meta["steps"]),
-                       ref_guidance=float(meta["ref_guidance"]), sampler=meta["sampler"], prediction_type=prediction)
+                       ref_guidance=float(meta["ref_guidance"]), sampler=meta["sampler"], prediction_type=prediction,
+                       x0_base=x0_base)
     out["sampled_psnr"] = psnr(res.image, tgt)
     out["sampled_latent_channel_means"] = res.latent.mean((0, 2, 3)).tolist()
     out["target_latent_channel_means"] = bt["x0"].mean((0, 2, 3)).tolist()
     out["target_latent_channel_stds"] = bt["x0"].transpose(0, 1).reshape(bt["x0"].shape[1], -1).std(1).tolist()
-    print(f"{a.model} ({out['prediction_type']}) on {n} x {a.camera} of {a.data}")
+    print(f"{a.model} ({out['prediction_type']}, x0 base {x0_base}) on {n} x {a.camera} of {a.data}")
     print(f"  ceilings: VAE reconstruction {out['vae_ceiling_psnr']:.2f} dB, copy the previous frame "
           f"{out['copy_prev_psnr']:.2f} dB")
     print("  one-shot x0 from the true x_t: " + ", ".join(f"t={t} {v:.2f}" for t, v in one_shot.items()) + " dB")

@@ -153,12 +153,15 @@ def render_frame(unet, controlnet: B2DRControlNetModel, vae, x_T: torch.Tensor, 
                  pe_ref: Optional[Sequence[torch.Tensor]] = None, steps: int = 20, ref_guidance: float = 2.0,
                  sampler: str = "unipc", noise_level: Optional[int] = None,
                  conditioning_scale: float = 1.0, prediction_type: str = "epsilon",
-                 sdedit: Optional[Tuple[int, torch.Tensor]] = None) -> FrameResult:
+                 sdedit: Optional[Tuple[int, torch.Tensor]] = None, x0_base: str = "none") -> FrameResult:
     """A full frame of N cameras.
 
     sdedit = (t0, z_start) (a diagnostic, not the engine's path): the sampler starts at its first timestep <= t0
     from sqrt(abar) z_start + sqrt(1 - abar) x_T instead of x_T at its first timestep (SDEdit; z_start e.g. the
     previous frame's latent).
+
+    x0_base "prev" (b2dr.json x0_base): the model diffuses the residual against the previous frame's clean blurred
+    latent z_prev; the frame's latent is the sampled residual + z_prev.
 
     x_T (N, 4, h, w); context (77, D) or (N, 77, D); masks (N, 15, H, W); prev (N, 3, H, W) in [0, 1]; eps_prev
     (N, 4, h, w); ref_images (N, 2, 3, H, W) in [0, 1] or None (references off); pe_cur / pe_ref: per Ref-Attn
@@ -215,6 +218,10 @@ def render_frame(unet, controlnet: B2DRControlNetModel, vae, x_T: torch.Tensor, 
         res.eps.append(eps)
         x = sched.step(eps, t, x).prev_sample
         res.latents.append(x)
+    if x0_base == "prev":
+        x = x + chain.z_prev
+    elif x0_base != "none":
+        raise ValueError(f"x0_base {x0_base!r} (none or prev)")
     res.latent = x
     res.decoded = vae.decode(x / vae.config.scaling_factor).sample
     res.image = (res.decoded / 2 + 0.5).clamp(0, 1)

@@ -18,8 +18,11 @@ from .controlnet import CLASS_NAME, CONFIG_NAME, B2DRControlNetModel
 FORMAT = "b2dr-model"
 VERSION = 1
 META_KEYS = {"format", "version", "render_size", "cameras", "sampler", "steps", "ref_guidance", "dtype"}
-OPTIONAL_META_KEYS = {"prediction_type"}      # absent = "epsilon" (packages written before it existed)
+# absent: prediction_type "epsilon", x0_base "none" (packages written before they existed)
+OPTIONAL_META_KEYS = {"prediction_type", "x0_base"}
 PREDICTION_TYPES = ("epsilon", "v_prediction")
+# what the sampled x_0 is added to before decoding: nothing, or the previous frame's clean (blurred) latent
+X0_BASES = ("none", "prev")
 DTYPES = {"f32": torch.float32, "f16": torch.float16}
 
 
@@ -37,10 +40,13 @@ class B2DRPackage:
 
 
 def make_meta(render_size: Sequence[int], cameras: Sequence[str], sampler: str = "unipc", steps: int = 20,
-              ref_guidance: float = 2.0, dtype: str = "f32", prediction_type: str = "epsilon") -> Dict[str, Any]:
+              ref_guidance: float = 2.0, dtype: str = "f32", prediction_type: str = "epsilon",
+              x0_base: str = "none") -> Dict[str, Any]:
     meta = {"format": FORMAT, "version": VERSION, "render_size": [int(render_size[0]), int(render_size[1])],
             "cameras": list(cameras), "sampler": sampler, "steps": int(steps), "ref_guidance": float(ref_guidance),
             "dtype": dtype, "prediction_type": prediction_type}
+    if x0_base != "none":       # written only when it matters: older readers then refuse it instead of ignoring it
+        meta["x0_base"] = x0_base
     check_meta(meta, "b2dr.json")
     return meta
 
@@ -66,6 +72,8 @@ def check_meta(meta: Dict[str, Any], where: str):
         raise PackageError(f"{where}: steps must be >= 1")
     if meta.get("prediction_type", "epsilon") not in PREDICTION_TYPES:
         raise PackageError(f"{where}: prediction_type {meta['prediction_type']!r} ({' or '.join(PREDICTION_TYPES)})")
+    if meta.get("x0_base", "none") not in X0_BASES:
+        raise PackageError(f"{where}: x0_base {meta['x0_base']!r} ({' or '.join(X0_BASES)})")
     if meta["dtype"] not in DTYPES:
         raise PackageError(f"{where}: dtype {meta['dtype']!r} (f32 or f16)")
 

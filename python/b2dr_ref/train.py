@@ -33,6 +33,7 @@ from . import nano
 from .controlnet import B2DRControlNetModel, MASK_CHANNELS
 from .fastpath import AUTOCASTS, PLAIN, FastPath, Prefetcher
 from .frame import SD15_SCHEDULE, gaussian_blur
+from .package import X0_BASES
 from .pe import PeConfig, location_sizes
 
 # The data (Sample, its sources, the PETR geometry), the loss pieces and the CSV log live in b2dr_ref.training,
@@ -250,7 +251,7 @@ class Batcher:
 def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: torch.Tensor, p_noprev: float = 0.1,
                    ref_dropout: Optional[float] = None, weighting: str = "eps", max_weight: float = 0.0,
                    prediction: str = "epsilon", object_weight: float = 0.0, fast: FastPath = PLAIN,
-                   marking_weight: float = 0.0):
+                   marking_weight: float = 0.0, x0_base: str = "none"):
     """One batch's (weighted) MSE of the model's prediction (all random draws from ``gen``, on the CPU, then moved to
     the device). ``prediction``: the model predicts epsilon, or v = sqrt(abar) eps - sqrt(1 - abar) x_0
     (diffusers' v_prediction; the sampler then reads x_0 = sqrt(abar) x_t - sqrt(1 - abar) v).
@@ -259,11 +260,18 @@ def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: tor
     ``marking_weight`` the same for lane dividers and crosswalks (the two add up in a cell holding both).
     ``fast`` (fastpath.py): memory format and autocast of the forward; ``unet`` / ``controlnet`` may then be the
     compiled wrappers of ``FastPath.prepare``. The random draws and the loss are the same in every mode.
+    ``x0_base`` "prev": the diffusion runs on the residual x_0 - z_prev (the clean blurred previous latent; 0 for
+    the rows drawn as "no previous frame"), and the sampler adds z_prev back (b2dr.json x0_base).
     The pieces (draw_noise, noised_inputs, denoise, prediction_loss) are shared with b2dr_ref.training."""
     cfg = controlnet.config
     dev = b["x0"].device
     rd = float(cfg.ref_dropout) if ref_dropout is None else ref_dropout
     d = draw_noise(b, gen, int(cfg.prev_noise_max), p_noprev, rd)
+    if x0_base == "prev":
+        keep = (~d["noprev"]).to(dev).float().reshape(-1, 1, 1, 1)
+        b = dict(b, x0=b["x0"] - keep * b["z_prev"])
+    elif x0_base != "none":
+        raise ValueError(f"x0_base {x0_base!r} (none or prev)")
     x_t, z, n, at = noised_inputs(b, d, abar)
     ctx = context.to(dev)[b["cams"].to(dev)]
     # (a batch may leave the references out when every row drops them: ref_mask all False)
@@ -319,6 +327,19 @@ def init_context(init: str, pkg, cameras: Sequence[str], extra: Optional[str]) -
     return torch.stack([rows[c] for c in cameras]).clone()
 
 
+PREV_NOISE_KEYS = ("prev_noise_max", "prev_noise_level")
+
+
+def prev_noise_overrides(cfg: Dict, args) -> Dict:
+    """The config with --prev-noise-max / --prev-noise-level (the previous frame's noise levels: training draws n ~
+    U{0..max}, the package's sampler uses level) in place of the design's, checked to lie in 0..998."""
+    over = {k: int(getattr(args, k)) for k in PREV_NOISE_KEYS if getattr(args, k, None) is not None}
+    for k, v in over.items():
+        if not 0 <= v <= NO_PREV_NOISE_LEVEL - 1:
+            raise SystemExit(f"--{k.replace('_', '-')} {v}: a noise level in 0..{NO_PREV_NOISE_LEVEL - 1}")
+    return dict(cfg, controlnet=dict(cfg["controlnet"], **over)) if over else cfg
+
+
 def train(args):
     device = torch.device(args.device)
     set_threads(args.device, args.threads)
@@ -326,7 +347,12 @@ def train(args):
     ck_path = os.path.join(args.out, CKPT)
     resume = args.resume and os.path.exists(ck_path)
     ck = torch.load(ck_path, map_location="cpu", weights_only=False) if resume else None
-    cfg = ck["cfg"] if ck else run_config(args)
+    cfg = ck["cfg"] if ck else prev_noise_overrides(run_config(args), args)
+    if ck:
+        for k in PREV_NOISE_KEYS:
+            v = getattr(args, k, None)
+            if v is not None and int(v) != int(cfg["controlnet"][k]):
+                raise SystemExit(f"--resume: the run's {k} is {cfg['controlnet'][k]}, not --{k.replace('_', '-')} {v}")
     source = open_source(args.data, cfg["render_size"])
     if list(source.render_size) != list(cfg["render_size"]):
         raise SystemExit(f"data render size {source.render_size} != config {cfg['render_size']}")
@@ -390,10 +416,14 @@ def train(args):
     prediction = ck.get("prediction", "epsilon") if ck else args.prediction
     if ck and prediction != args.prediction:
         raise SystemExit(f"--resume: the run predicts {prediction}, not --prediction {args.prediction}")
+    x0_base = ck.get("x0_base", "none") if ck else args.x0_base
+    if ck and x0_base != args.x0_base:
+        raise SystemExit(f"--resume: the run's x_0 base is {x0_base}, not --x0-base {args.x0_base}")
     if prediction == "v_prediction" and args.loss_weight == "v":
         raise SystemExit("--loss-weight v with --prediction v_prediction would weight the v loss twice "
                          "(the v MSE already is the epsilon MSE x (1 + 1/SNR)): use --loss-weight eps")
     run_meta = dict(cfg=cfg, cameras=cameras, vae_path=os.path.abspath(vae_path), total_steps=total, anneal=anneal, prediction=prediction,
+                    x0_base=x0_base,
                     args={k: v for k, v in vars(args).items() if k != "func"})
     with open(os.path.join(args.out, "run.json"), "w") as f:
         json.dump(run_meta, f, indent=2)
@@ -449,7 +479,7 @@ def train(args):
             loss = diffusion_loss(unet_f, controlnet_f, context, b, gen, abar, p_noprev=args.p_noprev,
                                   weighting=args.loss_weight, max_weight=args.max_weight, prediction=prediction,
                                   object_weight=args.object_weight, fast=fast,
-                                  marking_weight=args.marking_weight)
+                                  marking_weight=args.marking_weight, x0_base=x0_base)
             pending["gen_state"] = None
             if prefetch is not None and step + 1 < steps:
                 # the next step's indices are drawn now, after this step's noise: the generator's sequence is
@@ -544,7 +574,7 @@ def export(args):
     unet, controlnet, use_ema = checkpoint_models(ck, ema=not args.no_ema)
     vae = load_vae(args.vae or ck["vae_path"])
     meta = make_meta(cfg["render_size"], ck["cameras"], sampler="unipc", steps=20, ref_guidance=2.0, dtype=args.dtype,
-                     prediction_type=ck.get("prediction", "epsilon"))
+                     prediction_type=ck.get("prediction", "epsilon"), x0_base=ck.get("x0_base", "none"))
     save_package(args.out, unet.eval(), controlnet.eval(), vae, ck["context"], meta)
     size = sum(os.path.getsize(os.path.join(r, f)) for r, _, fs in os.walk(args.out) for f in fs)
     print(f"exported step {ck['step']}{' (EMA)' if use_ema else ''} to {args.out}: {size / 1e6:.1f} MB")
@@ -629,6 +659,14 @@ def main(argv=None):
     p.add_argument("--autocast", default="none", choices=AUTOCASTS, help="autocast dtype of the forward")
     p.add_argument("--prefetch", action="store_true",
                    help="prepare the next batch on a background thread during backward + optimizer")
+    p.add_argument("--prev-noise-max", type=int, default=None,
+                   help="training draws the previous frame's noise level n ~ U{0..N} (default: the config's, 400)")
+    p.add_argument("--prev-noise-level", type=int, default=None,
+                   help="the noise level of the previous frame at inference, exported in the ControlNet config "
+                        "(default: the config's, 200)")
+    p.add_argument("--x0-base", default="none", choices=X0_BASES,
+                   help="prev: diffuse the residual against the previous frame's clean latent (exported as "
+                        "b2dr.json x0_base; the sampler adds the base back)")
     p.add_argument("--prediction", default="epsilon", choices=PREDICTIONS,
                    help="what the UNet predicts: epsilon, or v (exported as b2dr.json prediction_type)")
     return train(p.parse_args(argv))

@@ -145,3 +145,21 @@ def test_sdedit_starts_at_the_first_timestep_at_or_below_t0(models):
     assert torch.equal(res.latent, x)
     with pytest.raises(ValueError, match="no sampler timestep"):
         fr.render_frame(unet, cn, vae, ref_guidance=1.0, steps=4, sampler="ddim", sdedit=(0, z), **fi)
+
+
+@torch.no_grad()
+def test_x0_base_prev_adds_the_previous_clean_latent(models):
+    """render_frame(x0_base="prev"): the same sampling loop, and the frame's latent is the sampled residual + the
+    previous frame's clean blurred latent (decoded from that sum); an unknown base is an error."""
+    fi = frame_inputs(models["controlnet"], n=1, h=4, w=6, seed=8)
+    fi["ref_images"] = None
+    unet, cn, vae = models["unet"], models["controlnet"], models["vae"]
+    plain = fr.render_frame(unet, cn, vae, ref_guidance=1.0, steps=3, sampler="ddim", **fi)
+    res = fr.render_frame(unet, cn, vae, ref_guidance=1.0, steps=3, sampler="ddim", x0_base="prev", **fi)
+    chain = fr.prev_frame_chain(vae, fi["prev"], fi["eps_prev"], 1.0, 200)
+    assert float(chain.z_prev.abs().max()) > 0
+    torch.testing.assert_close(res.latents[-1], plain.latents[-1], rtol=0, atol=0)
+    torch.testing.assert_close(res.latent, plain.latent + chain.z_prev, rtol=0, atol=0)
+    torch.testing.assert_close(res.decoded, vae.decode(res.latent / vae.config.scaling_factor).sample)
+    with pytest.raises(ValueError, match="x0_base"):
+        fr.render_frame(unet, cn, vae, ref_guidance=1.0, steps=1, sampler="ddim", x0_base="next", **fi)

@@ -60,6 +60,10 @@ def test_package_rejects_bad_meta(tmp_path, models):
     del d["prediction_type"]
     p.write_text(json.dumps(d))
     assert load_package(str(tmp_path)).meta.get("prediction_type", "epsilon") == "epsilon"
+    d["x0_base"] = "next"
+    p.write_text(json.dumps(d))
+    with pytest.raises(PackageError, match="x0_base 'next'"):
+        load_package(str(tmp_path))
 
 
 def test_plain_controlnet_package_loads(tmp_path, models):

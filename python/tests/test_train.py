@@ -637,3 +637,88 @@ def test_scale_equivariance_term():
     target = torch.nn.functional.interpolate(x, size=(f * h, f * w), mode="bilinear", antialias=True)
     torch.testing.assert_close(on, base + 0.5 * (small - target).square().mean())
     assert float(on.detach()) > float(base.detach())
+
+
+def test_x0_base_prev_diffuses_the_residual_against_the_previous_latent(vae_run, tmp_path):
+    """--x0-base prev: the v target is that of x_0 - z_prev for the rows with a previous frame and of x_0 for the
+    rows drawn as 'no previous frame'; the run trains, the export says x0_base prev, a resume with another base
+    is refused, and an unknown base is an error."""
+    gen_state = torch.Generator().manual_seed(7).get_state()
+    B = 4
+    b = dict(x0=torch.randn(B, 4, 7, 13), z_prev=torch.randn(B, 4, 7, 13), masks=None,
+             cams=torch.zeros(B, dtype=torch.int64))
+    abar = T.make_noise_scheduler().alphas_cumprod.to(torch.float32)
+
+    class Zero(torch.nn.Module):      # predicts 0: the loss is the target's mean square
+        def forward(self, x, *a, **k):
+            return type("O", (), {"sample": torch.zeros_like(x)})()
+
+    class NoCn:
+        config = type("C", (), {"prev_noise_max": 400, "ref_dropout": 0.0})()
+
+        def __call__(self, *a, **k):
+            return None, None
+
+    g = torch.Generator()
+    g.set_state(gen_state)
+    d = T.draw_noise(b, g, 400, 0.5, 1.0)
+    assert 0 < int(d["noprev"].sum()) < B                 # both kinds of rows in this draw
+    a = abar[d["t"]].reshape(B, 1, 1, 1)
+    keep = (~d["noprev"]).float().reshape(B, 1, 1, 1)
+    v = a.sqrt() * d["eps"] - (1 - a).sqrt() * (b["x0"] - keep * b["z_prev"])
+    g.set_state(gen_state)
+    lr = T.diffusion_loss(Zero(), NoCn(), torch.zeros(1, 77, 8), b, g, abar, p_noprev=0.5, ref_dropout=1.0,
+                          prediction="v_prediction", x0_base="prev")
+    torch.testing.assert_close(lr, (v ** 2).mean())
+    g.set_state(gen_state)
+    ln = T.diffusion_loss(Zero(), NoCn(), torch.zeros(1, 77, 8), b, g, abar, p_noprev=0.5, ref_dropout=1.0,
+                          prediction="v_prediction")
+    assert not torch.allclose(ln, lr)                     # the plain loss is another target
+    with pytest.raises(ValueError, match="x0_base"):
+        T.diffusion_loss(Zero(), NoCn(), torch.zeros(1, 77, 8), b, g, abar, x0_base="next")
+
+    run = str(tmp_path / "run")
+    losses = diffusion(os.path.join(vae_run[0], "vae"), run, "--steps", "3", "--prediction", "v_prediction",
+                       "--x0-base", "prev")
+    assert all(np.isfinite(losses))
+    T.main(["export", "--run", run, "--out", str(tmp_path / "model")])
+    with open(tmp_path / "model" / "b2dr.json") as f:
+        assert json.load(f)["x0_base"] == "prev"
+    from b2dr_ref.package import load_package
+
+    assert load_package(str(tmp_path / "model")).meta["x0_base"] == "prev"
+    with pytest.raises(SystemExit, match="x_0 base is prev"):
+        diffusion(os.path.join(vae_run[0], "vae"), run, "--steps", "4", "--prediction", "v_prediction", "--resume")
+    plain = str(tmp_path / "plain")
+    diffusion(os.path.join(vae_run[0], "vae"), plain, "--steps", "1")
+    T.main(["export", "--run", plain, "--out", str(tmp_path / "pm")])
+    with open(tmp_path / "pm" / "b2dr.json") as f:
+        assert "x0_base" not in json.load(f)              # older readers keep reading plain packages
+
+
+def test_prev_noise_overrides_reach_the_loss_and_the_package(vae_run, tmp_path, monkeypatch):
+    """--prev-noise-max / --prev-noise-level replace the design's previous-frame noise levels: the loss draws n
+    from 0..max, the exported ControlNet config holds both, a resume with other values and a level outside 0..998
+    are refused."""
+    drawn = []
+    real = T.draw_noise
+
+    def spy(b, gen, prev_noise_max, *a):
+        drawn.append(prev_noise_max)
+        return real(b, gen, prev_noise_max, *a)
+
+    monkeypatch.setattr(T, "draw_noise", spy)
+    run = str(tmp_path / "run")
+    diffusion(os.path.join(vae_run[0], "vae"), run, "--steps", "2", "--prev-noise-max", "30",
+              "--prev-noise-level", "20")
+    assert drawn == [30, 30]
+    T.main(["export", "--run", run, "--out", str(tmp_path / "model")])
+    with open(tmp_path / "model" / "controlnet" / "config.json") as f:
+        c = json.load(f)
+    assert (c["prev_noise_max"], c["prev_noise_level"]) == (30, 20)
+    with pytest.raises(SystemExit, match="prev_noise_max is 30"):
+        diffusion(os.path.join(vae_run[0], "vae"), run, "--steps", "3", "--resume", "--prev-noise-max", "40")
+    diffusion(os.path.join(vae_run[0], "vae"), run, "--steps", "3", "--resume")      # the run's own values
+    assert drawn[-1] == 30
+    with pytest.raises(SystemExit, match="--prev-noise-level 999"):
+        diffusion(os.path.join(vae_run[0], "vae"), str(tmp_path / "r2"), "--steps", "1", "--prev-noise-level", "999")

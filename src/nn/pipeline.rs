@@ -69,12 +69,15 @@ pub struct Sampler {
 impl Sampler {
     /// Plans the loop for `batch` images of latent `(c, h, w)` (c: the VAE's latent channels, 4 for SD1.5); `guidance` doubles the model batch
     /// ([uncond; cond] halves, combined by the plan). `ws` is the model-dtype workspace the denoiser records in.
+    /// `base` (f32, the latent's shape): added to the sampled latent before the decode (a model that diffuses
+    /// the residual against a base latent, b2dr.json `x0_base`); `latent()` stays the sampler's own variable.
     #[allow(clippy::too_many_arguments)]
     pub fn new(
         ctx: &Context,
         ws: &mut Workspace,
         denoiser: &dyn Denoiser,
         vae: Option<(&VaeDecoder, f64)>,
+        base: Option<&Tensor>,
         batch: usize,
         latent: (usize, usize, usize),
         guidance: Option<f64>,
@@ -172,23 +175,33 @@ impl Sampler {
             steps.push(rec.finish()?);
         }
 
-        // VAE decode (f32), then clamp(x / 2 + 0.5, 0, 1) on the device.
+        if let Some(b) = base {
+            ensure!(
+                b.shape() == lat && b.dtype() == DType::F32,
+                "sampler: base latent {:?} {:?}, expected {lat:?} f32",
+                b.shape(),
+                b.dtype()
+            );
+        }
+        // VAE decode (f32) of (sample [+ base]) / scaling, then clamp(x / 2 + 0.5, 0, 1) on the device.
         let decode = match vae {
             Some((dec, scaling)) => {
                 let mut vws = Workspace::new(ctx, DType::F32);
                 let mut rec = ctx.recorder()?;
                 let z = vws.alloc(&lat)?;
-                lincomb(
-                    &mut rec,
-                    &[LinTerm {
-                        x: &sample,
+                let mut terms = vec![LinTerm {
+                    x: &sample,
+                    offset: 0,
+                    coeff: (1.0 / scaling) as f32,
+                }];
+                if let Some(b) = base {
+                    terms.push(LinTerm {
+                        x: b,
                         offset: 0,
                         coeff: (1.0 / scaling) as f32,
-                    }],
-                    &z,
-                    0,
-                    per,
-                )?;
+                    });
+                }
+                lincomb(&mut rec, &terms, &z, 0, per)?;
                 let img = dec.forward(
                     &mut Fwd {
                         rec: &mut rec,
@@ -402,7 +415,17 @@ impl Pipeline {
             conditioning_scale: shape.conditioning_scale,
         };
         let c = unet.cfg.enc.in_channels;
-        let sampler = Sampler::new(ctx, &mut ws, &den, vae, n, (c, h, w), shape.guidance, plan)?;
+        let sampler = Sampler::new(
+            ctx,
+            &mut ws,
+            &den,
+            vae,
+            None,
+            n,
+            (c, h, w),
+            shape.guidance,
+            plan,
+        )?;
         drop(den);
         let planned_bytes = ctx.allocated_bytes().saturating_sub(before);
         Ok(Self {

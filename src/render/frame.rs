@@ -33,6 +33,9 @@ pub struct B2drModel<'a> {
     pub vae_decoder: &'a VaeDecoder,
     pub scaling_factor: f64,
     pub dtype: DType,
+    /// The model diffuses the residual against the previous frame's clean latent (b2dr.json `x0_base` "prev"):
+    /// the frame decodes sampled latent + blur -> encode of the previous frame (zero without one).
+    pub x0_base_prev: bool,
 }
 
 /// The shape and options of a planned frame.
@@ -147,6 +150,7 @@ pub struct FrameRenderer {
     zprev: Tensor,
     /// The noised latent before the cast (N, C, h, w) f32 (kept for checks).
     zprev32: Tensor,
+    zbase32: Option<Tensor>,
     prev_rec: Recording,
     cond_rec: Recording,
     carry: Recording,
@@ -198,6 +202,11 @@ impl FrameRenderer {
         let eps_prev = f32t(&[n, lc, h, w], "eps prev")?;
         let noise_t = f32t(&[1], "noise level")?;
         let zprev32 = f32t(&[n, lc, h, w], "z prev")?;
+        let zbase32 = if m.x0_base_prev {
+            Some(f32t(&[n, lc, h, w], "z prev, clean (x0 base)")?)
+        } else {
+            None
+        };
         let zprev = Tensor::zeros(ctx, &[mb, lc, h, w], dt, "z prev (model dtype)")?;
         let uc = &m.unet.cfg.enc;
         let l = context.len() / (n * uc.cross_attention_dim).max(1);
@@ -304,6 +313,19 @@ impl FrameRenderer {
             } else {
                 encode(&mut rec, &mut vws, &prev_img)?
             };
+            if let Some(b) = &zbase32 {
+                lincomb(
+                    &mut rec,
+                    &[LinTerm {
+                        x: &z,
+                        offset: 0,
+                        coeff: 1.0,
+                    }],
+                    b,
+                    0,
+                    z.numel(),
+                )?;
+            }
             let a = abar[noise_level.min(abar.len() - 1)];
             lincomb(
                 &mut rec,
@@ -408,6 +430,7 @@ impl FrameRenderer {
             &mut ws,
             &den,
             Some((m.vae_decoder, m.scaling_factor)),
+            zbase32.as_ref(),
             n,
             (lc, h, w),
             guided.then_some(shape.ref_guidance),
@@ -460,6 +483,7 @@ impl FrameRenderer {
             pe_ref,
             zprev,
             zprev32,
+            zbase32,
             prev_rec,
             cond_rec,
             carry,
@@ -533,6 +557,9 @@ impl FrameRenderer {
                     .write_f32(&self.ctx, &vec![0.0; self.zprev.numel()])?;
                 self.zprev32
                     .write_f32(&self.ctx, &vec![0.0; self.zprev32.numel()])?;
+                if let Some(b) = &self.zbase32 {
+                    b.write_f32(&self.ctx, &vec![0.0; b.numel()])?;
+                }
             }
         }
         match (&x.refs, &self.ref_imgs) {
@@ -605,5 +632,14 @@ impl FrameRenderer {
     /// The noised previous-frame latent of the last frame (N, C, h, w), read back (checks).
     pub fn prev_latent(&self) -> Result<Vec<f32>> {
         self.zprev32.to_f32(&self.ctx)
+    }
+
+    /// The base the last frame's latent was added to before the decode (x0 base "prev": the previous frame's
+    /// clean blurred latent, (N, C, h, w)); None for a model without a base.
+    pub fn base_latent(&self) -> Result<Option<Vec<f32>>> {
+        self.zbase32
+            .as_ref()
+            .map(|b| b.to_f32(&self.ctx))
+            .transpose()
     }
 }

@@ -36,6 +36,10 @@ pub struct PackageMeta {
     /// written before it existed, which predict epsilon.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub prediction_type: Option<String>,
+    /// What the sampled latent is added to before the decode: "none" (absent) or "prev", the previous frame's
+    /// clean blurred latent (a model that diffuses the residual against it; docs/training.md session 28).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub x0_base: Option<String>,
 }
 
 impl PackageMeta {
@@ -85,7 +89,17 @@ impl PackageMeta {
             "{where_}: prediction_type {:?} (epsilon or v_prediction)",
             self.prediction_type.as_deref().unwrap_or_default()
         );
+        ensure!(
+            matches!(self.x0_base.as_deref(), None | Some("none") | Some("prev")),
+            "{where_}: x0_base {:?} (none or prev)",
+            self.x0_base.as_deref().unwrap_or_default()
+        );
         Ok(())
+    }
+
+    /// Whether the model diffuses the residual against the previous frame's latent (`check` has accepted it).
+    pub fn x0_base_prev(&self) -> bool {
+        self.x0_base.as_deref() == Some("prev")
     }
 
     /// The sampler's reading of the model output (`check` has accepted the value).
@@ -423,6 +437,7 @@ impl ModelPackage {
                 ref_guidance: 2.0,
                 dtype: "f32".into(),
                 prediction_type: None,
+                x0_base: None,
             },
             unet: Weights::random(&expected_unet(&unet_cfg), 1),
             control: Weights::random(&expected_b2dr(&control_cfg), 4),
@@ -497,6 +512,8 @@ pub struct DeviceModel {
     pub vae_decoder: VaeDecoder,
     pub scaling_factor: f64,
     pub dtype: DType,
+    /// b2dr.json `x0_base` "prev" (`PackageMeta::x0_base_prev`).
+    pub x0_base_prev: bool,
     /// Device bytes of the weights.
     pub weight_bytes: u64,
     _weights: Vec<DeviceWeights>,
@@ -515,6 +532,7 @@ impl DeviceModel {
             vae_decoder: VaeDecoder::load(&v, &p.vae_cfg).context("vae decoder")?,
             scaling_factor: p.vae_cfg.scaling_factor,
             dtype,
+            x0_base_prev: p.meta.x0_base_prev(),
             weight_bytes: u.bytes() + c.bytes() + v.bytes(),
             _weights: vec![u, c, v],
         };
@@ -529,6 +547,7 @@ impl DeviceModel {
             vae_decoder: &self.vae_decoder,
             scaling_factor: self.scaling_factor,
             dtype: self.dtype,
+            x0_base_prev: self.x0_base_prev,
         }
     }
 }
@@ -546,6 +565,15 @@ mod tests {
         let m: PackageMeta = serde_json::from_str(&text)?;
         m.check("b2dr.json")?;
         Ok(m)
+    }
+
+    #[test]
+    fn x0_base_is_read_and_checked() {
+        assert!(!meta("").unwrap().x0_base_prev());
+        assert!(!meta(r#", "x0_base": "none""#).unwrap().x0_base_prev());
+        assert!(meta(r#", "x0_base": "prev""#).unwrap().x0_base_prev());
+        let err = meta(r#", "x0_base": "next""#).unwrap_err().to_string();
+        assert!(err.contains("x0_base \"next\" (none or prev)"), "{err}");
     }
 
     #[test]

@@ -38,6 +38,7 @@ pub fn small_package() -> ModelPackage {
             ref_guidance: 2.0,
             dtype: "f32".into(),
             prediction_type: None,
+            x0_base: None,
         },
         unet: w("b2dr_weights_unet.safetensors", &expected_unet(&ucfg)),
         control: w("b2dr_weights_controlnet.safetensors", &expected_b2dr(&ccfg)),
