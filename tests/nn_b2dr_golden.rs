@@ -338,20 +338,8 @@ fn device_model(ctx: &Context, g: &Golden, dt: DType) -> Dev {
     }
 }
 
-fn renderer(
-    ctx: &Context,
-    g: &Golden,
-    d: &Dev,
-    c: &Case,
-    n: usize,
-    w: f64,
-    dt: DType,
-) -> FrameRenderer {
-    renderer_with_base(ctx, g, d, c, n, w, dt, false)
-}
-
 #[allow(clippy::too_many_arguments)]
-fn renderer_with_base(
+fn renderer(
     ctx: &Context,
     g: &Golden,
     d: &Dev,
@@ -437,7 +425,7 @@ fn frame_matches(g: &Golden, cases: &[(&str, usize, (usize, usize))]) {
             }
             for w in ws {
                 let key = if w == 2.0 { "frame_w2" } else { "frame_w1" };
-                let r = renderer(&ctx, g, &d, &c, n, w, dt);
+                let r = renderer(&ctx, g, &d, &c, n, w, dt, false);
                 r.render(&inputs(&c, locs)).unwrap();
                 // the previous-frame chain: blur -> encode -> noise
                 check(
@@ -479,7 +467,7 @@ fn x0_base_prev_decodes_the_sampled_residual_plus_the_previous_latent() {
     let (file, n, _) = CASES[0];
     let c = Case(golden::golden_case(file));
     let d = device_model(&ctx, &g, DType::F32);
-    let r = renderer_with_base(&ctx, &g, &d, &c, n, 2.0, DType::F32, true);
+    let r = renderer(&ctx, &g, &d, &c, n, 2.0, DType::F32, true);
     r.render(&inputs(&c, locs)).unwrap();
     check(
         "x0 base: sampled latent",

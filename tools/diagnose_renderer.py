@@ -91,6 +91,9 @@ def main(argv=None):
     nl = int(cn.config.prev_noise_level)
     prediction = meta.get("prediction_type", "epsilon")
     x0_base = meta.get("x0_base", "none")
+    if a.from_prev and x0_base != "none":
+        # a residual model already starts from the previous frame: its SDEdit would start the residual at 0
+        raise SystemExit(f"--from-prev: for models without an x0 base (this one diffuses against {x0_base!r})")
     out = dict(model=a.model, data=a.data, camera=a.camera, frames=n, prediction_type=meta.get("prediction_type", "epsilon"),
                x0_base=x0_base)
     # the diffused variable: x_0, or its residual against the previous frame's clean latent (b2dr.json x0_base)

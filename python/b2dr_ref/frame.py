@@ -125,7 +125,9 @@ def upsample_for_planner(img: torch.Tensor, height: int, width: int) -> torch.Te
 @dataclass
 class FrameResult:
     image: torch.Tensor                      # (N, 3, H, W) in [0, 1]
-    latent: torch.Tensor                     # x_0 (N, 4, h, w)
+    # the decoded x_0 (N, C, h, w); with x0_base "prev" the sampled residual + z_prev (the engine's
+    # FrameRenderer::latent() is the sampler's own variable, the residual, and base_latent() the base)
+    latent: torch.Tensor
     timesteps: List[int]
     latents: List[torch.Tensor] = field(default_factory=list)     # after each step
     eps_noref: List[torch.Tensor] = field(default_factory=list)   # per step (empty when not run)
