@@ -1,5 +1,6 @@
 //! `b2dr eval-render` (world.md 4) on a small seeded package: reruns write the same bytes; the copy-nearest
-//! baseline is the ground truth on the logged path and not when displaced; the inference-time noise-level and
+//! baseline is the ground truth on the logged path and not when displaced; the copy-prev baseline is the frame
+//! 0.5 s earlier (not the truth, and the same image whatever the model); the inference-time noise-level and
 //! blur overrides change the rendered frames; bad configurations are errors.
 #[path = "golden/b2dr_package.rs"]
 mod b2dr_package;
@@ -91,6 +92,13 @@ fn eval_render_scores_reruns_identically_and_baselines_behave() {
     assert_eq!(get("copy-nearest", 0.0).ssim, 1.0);
     let displaced = get("copy-nearest", 2.0);
     assert!(displaced.psnr.unwrap() < 30.0, "{:?}", displaced.psnr);
+    // the previous frame shown unchanged: scored, not the truth, displaced as well
+    let prev0 = get("copy-prev", 0.0);
+    assert!(
+        prev0.psnr.unwrap().is_finite() && prev0.ssim < 1.0,
+        "{prev0:?}"
+    );
+    assert!(get("copy-prev", 2.0).psnr.unwrap().is_finite());
     // every setting of the logged path was rendered and scored
     for s in ["b2dr", "no-refs", "no-prev", "masks-only"] {
         let x = get(s, 0.0);

@@ -6,8 +6,10 @@
 //!   objects of the log at that step, the previous frame = the ground truth 0.5 s earlier at the same
 //!   displacement (teacher forcing), references retrieved from the log at the displaced pose; settings: the
 //!   model as packaged ("b2dr"), reference guidance `--guidance`, no references, no previous frame, masks only,
-//!   and the copy-nearest-frame baseline (the recorded image nearest by position: on the logged path it IS the
-//!   ground truth, the ceiling). Displaced cases run b2dr, no-refs, no-prev, masks-only and copy-nearest;
+//!   and two baselines without a model: copy-nearest (the recorded image nearest by position: on the logged path
+//!   it IS the ground truth, the ceiling) and copy-prev (the previous frame the model is given, shown unchanged:
+//!   what a renderer must beat to have drawn anything new). Displaced cases run b2dr, no-refs, no-prev,
+//!   masks-only, copy-prev and copy-nearest;
 //!   the report pairs each with its logged-path score to show how fast PSNR falls off with and without
 //!   references (with the previous frame: b2dr vs no-refs; without it: no-prev vs masks-only).
 //! - autoregressive drift: `--drift-frames` consecutive frames of the logged path (2 Hz), frame 1 from the
@@ -98,8 +100,17 @@ pub struct Setting {
     pub blur_sigma: Option<f64>,
     /// Runs on the other precision's engine.
     pub other_dtype: bool,
-    /// The copy-nearest-frame baseline (no model).
-    pub copy: bool,
+    /// A baseline without a model: the image is a copy, not a render.
+    pub copy: Option<CopyOf>,
+}
+
+/// What a no-model baseline copies.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub enum CopyOf {
+    /// The recorded image nearest by ego position (log replay by position).
+    Nearest,
+    /// The previous frame as the model receives it (ground truth 0.5 s earlier, same displacement).
+    Prev,
 }
 
 impl Setting {
@@ -112,7 +123,7 @@ impl Setting {
             noise_level: None,
             blur_sigma: None,
             other_dtype: false,
-            copy: false,
+            copy: None,
         }
     }
 
@@ -336,11 +347,18 @@ fn drift_settings(default_w: f64, blur: f64, other: &str) -> Vec<Setting> {
     v
 }
 
-fn copy_setting() -> Setting {
-    Setting {
-        copy: true,
-        ..Setting::model("copy-nearest", false, false, 1.0)
-    }
+/// The no-model baselines of every single-frame case, in report order.
+fn copy_settings() -> [Setting; 2] {
+    [
+        Setting {
+            copy: Some(CopyOf::Prev),
+            ..Setting::model("copy-prev", false, false, 1.0)
+        },
+        Setting {
+            copy: Some(CopyOf::Nearest),
+            ..Setting::model("copy-nearest", false, false, 1.0)
+        },
+    ]
 }
 
 fn check(cfg: &EvalConfig) -> Result<()> {
@@ -519,13 +537,15 @@ pub fn eval_render(ctx: &Context, cfg: &EvalConfig, out: &Path) -> Result<Result
                 }
                 let copy = scene::copy_nearest(&store, &cams, &e2g, size)?;
                 let mut row: Vec<(String, Vec<Vec<u8>>)> = vec![];
-                for s in settings.iter().chain(std::iter::once(&copy_setting())) {
-                    let imgs = if s.copy {
-                        copy.clone()
-                    } else {
-                        let v = render(&mut rs, s, &x, false, cfg.seed, size, n)?;
-                        bar.inc(1);
-                        v
+                for s in settings.iter().chain(copy_settings().iter()) {
+                    let imgs = match s.copy {
+                        Some(CopyOf::Nearest) => copy.clone(),
+                        Some(CopyOf::Prev) => pgt.rgb.clone(),
+                        None => {
+                            let v = render(&mut rs, s, &x, false, cfg.seed, size, n)?;
+                            bar.inc(1);
+                            v
+                        }
                     };
                     let id = (sc.name.as_str(), fi, step, *d, s.name.as_str());
                     keep(&mut kept, id, &cams, &imgs, &gt.rgb, t0, size)?;

@@ -292,7 +292,14 @@ pub fn write(
         }
         v
     };
-    let dev_settings = ["b2dr", "no-refs", "no-prev", "masks-only", "copy-nearest"];
+    let dev_settings = [
+        "b2dr",
+        "no-refs",
+        "no-prev",
+        "masks-only",
+        "copy-prev",
+        "copy-nearest",
+    ];
     writeln!(
         md,
         "\n## Deviation sweep (references retrieved from the log at the displaced pose)\n\n\
