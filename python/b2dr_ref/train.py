@@ -328,15 +328,24 @@ def init_context(init: str, pkg, cameras: Sequence[str], extra: Optional[str]) -
 
 
 PREV_NOISE_KEYS = ("prev_noise_max", "prev_noise_level")
+PREV_KEYS = PREV_NOISE_KEYS + ("prev_blur_sigma",)
+MAX_PREV_BLUR = 4.0
 
 
-def prev_noise_overrides(cfg: Dict, args) -> Dict:
+def prev_overrides(cfg: Dict, args) -> Dict:
     """The config with --prev-noise-max / --prev-noise-level (the previous frame's noise levels: training draws n ~
-    U{0..max}, the package's sampler uses level) in place of the design's, checked to lie in 0..998."""
+    U{0..max}, the package's sampler uses level; checked to lie in 0..998) and --prev-blur-sigma (the Gaussian blur,
+    in pixels, of the previous frame before it is encoded, in training and in the package's sampler; in
+    (0, 4]) in place of the design's."""
     over = {k: int(getattr(args, k)) for k in PREV_NOISE_KEYS if getattr(args, k, None) is not None}
     for k, v in over.items():
         if not 0 <= v <= NO_PREV_NOISE_LEVEL - 1:
             raise SystemExit(f"--{k.replace('_', '-')} {v}: a noise level in 0..{NO_PREV_NOISE_LEVEL - 1}")
+    blur = getattr(args, "prev_blur_sigma", None)
+    if blur is not None:
+        if not 0 < float(blur) <= MAX_PREV_BLUR:
+            raise SystemExit(f"--prev-blur-sigma {blur}: pixels in (0, {MAX_PREV_BLUR:g}]")
+        over["prev_blur_sigma"] = float(blur)
     return dict(cfg, controlnet=dict(cfg["controlnet"], **over)) if over else cfg
 
 
@@ -347,11 +356,11 @@ def train(args):
     ck_path = os.path.join(args.out, CKPT)
     resume = args.resume and os.path.exists(ck_path)
     ck = torch.load(ck_path, map_location="cpu", weights_only=False) if resume else None
-    cfg = ck["cfg"] if ck else prev_noise_overrides(run_config(args), args)
+    cfg = ck["cfg"] if ck else prev_overrides(run_config(args), args)
     if ck:
-        for k in PREV_NOISE_KEYS:
+        for k in PREV_KEYS:
             v = getattr(args, k, None)
-            if v is not None and int(v) != int(cfg["controlnet"][k]):
+            if v is not None and float(v) != float(cfg["controlnet"][k]):
                 raise SystemExit(f"--resume: the run's {k} is {cfg['controlnet'][k]}, not --{k.replace('_', '-')} {v}")
     source = open_source(args.data, cfg["render_size"])
     if list(source.render_size) != list(cfg["render_size"]):
@@ -563,6 +572,8 @@ def keep_path(run: str, step: int) -> str:
 def export(args):
     from .package import make_meta, save_package
 
+    if not args.sampler_steps >= 1:
+        raise SystemExit(f"export: --sampler-steps {args.sampler_steps}: at least 1")
     path = os.path.join(args.run, CKPT) if args.step is None else keep_path(args.run, args.step)
     if not os.path.exists(path):
         kdir = os.path.join(args.run, "keep")
@@ -573,7 +584,8 @@ def export(args):
     cfg = ck["cfg"]
     unet, controlnet, use_ema = checkpoint_models(ck, ema=not args.no_ema)
     vae = load_vae(args.vae or ck["vae_path"])
-    meta = make_meta(cfg["render_size"], ck["cameras"], sampler="unipc", steps=20, ref_guidance=2.0, dtype=args.dtype,
+    meta = make_meta(cfg["render_size"], ck["cameras"], sampler="unipc", steps=args.sampler_steps, ref_guidance=2.0,
+                     dtype=args.dtype,
                      prediction_type=ck.get("prediction", "epsilon"), x0_base=ck.get("x0_base", "none"))
     save_package(args.out, unet.eval(), controlnet.eval(), vae, ck["context"], meta)
     size = sum(os.path.getsize(os.path.join(r, f)) for r, _, fs in os.walk(args.out) for f in fs)
@@ -602,6 +614,8 @@ def main(argv=None):
         p.add_argument("--no-ema", action="store_true", help="export the raw weights even when the run kept an EMA")
         p.add_argument("--step", type=int, default=None,
                        help="export the weights kept at this step (a run trained with --keep-every), not the last")
+        p.add_argument("--sampler-steps", type=int, default=20,
+                       help="the package's UniPC steps per frame (b2dr.json `steps`; eval-render --steps overrides)")
         return export(p.parse_args(argv[1:]))
     if argv and argv[0] == "bench":
         p = argparse.ArgumentParser(prog="python -m b2dr_ref.train bench")
@@ -664,6 +678,9 @@ def main(argv=None):
     p.add_argument("--prev-noise-level", type=int, default=None,
                    help="the noise level of the previous frame at inference, exported in the ControlNet config "
                         "(default: the config's, 200)")
+    p.add_argument("--prev-blur-sigma", type=float, default=None,
+                   help="Gaussian blur (pixels) of the previous frame before it is encoded, in training and in the "
+                        "exported ControlNet config (default: the config's, 1)")
     p.add_argument("--x0-base", default="none", choices=X0_BASES,
                    help="prev: diffuse the residual against the previous frame's clean latent (exported as "
                         "b2dr.json x0_base; the sampler adds the base back)")

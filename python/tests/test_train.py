@@ -350,6 +350,13 @@ def test_export_round_trip(vae_run, tmp_path):
     for k, v in ck["controlnet"].items():
         torch.testing.assert_close(pkg.controlnet.state_dict()[k], v.half().float())
     torch.testing.assert_close(pkg.context, ck["context"].half().float())
+    # the package's sampler steps are an export choice; below 1 is refused
+    one = str(tmp_path / "one")
+    T.main(["export", "--run", run, "--out", one, "--sampler-steps", "1"])
+    assert load_package(one).meta["steps"] == 1
+    with pytest.raises(SystemExit, match="--sampler-steps 0"):
+        T.main(["export", "--run", run, "--out", str(tmp_path / "zero"), "--sampler-steps", "0"])
+    assert not os.path.exists(str(tmp_path / "zero"))
 
 
 def test_pe_vectorised_matches_pe_py():
@@ -722,3 +729,28 @@ def test_prev_noise_overrides_reach_the_loss_and_the_package(vae_run, tmp_path, 
     assert drawn[-1] == 30
     with pytest.raises(SystemExit, match="--prev-noise-level 999"):
         diffusion(os.path.join(vae_run[0], "vae"), str(tmp_path / "r2"), "--steps", "1", "--prev-noise-level", "999")
+
+
+def test_prev_blur_override_reaches_the_data_and_the_package(vae_run, tmp_path, monkeypatch):
+    """--prev-blur-sigma replaces the design's blur of the previous frame: the data blurs with it, the exported
+    ControlNet config holds it, a resume with another value and a blur outside (0, 4] are refused."""
+    sigmas = []
+    real = T.gaussian_blur
+
+    def spy(x, sigma):
+        sigmas.append(float(sigma))
+        return real(x, sigma)
+
+    monkeypatch.setattr(T, "gaussian_blur", spy)
+    run = str(tmp_path / "run")
+    diffusion(os.path.join(vae_run[0], "vae"), run, "--steps", "2", "--prev-blur-sigma", "0.5")
+    assert sigmas and set(sigmas) == {0.5}
+    T.main(["export", "--run", run, "--out", str(tmp_path / "model")])
+    with open(tmp_path / "model" / "controlnet" / "config.json") as f:
+        assert json.load(f)["prev_blur_sigma"] == 0.5
+    with pytest.raises(SystemExit, match="prev_blur_sigma is 0.5"):
+        diffusion(os.path.join(vae_run[0], "vae"), run, "--steps", "3", "--resume", "--prev-blur-sigma", "1")
+    for bad in ("0", "5", "nan"):
+        with pytest.raises(SystemExit, match=f"--prev-blur-sigma {bad}"):
+            diffusion(os.path.join(vae_run[0], "vae"), str(tmp_path / f"bad{bad}"), "--steps", "1",
+                      "--prev-blur-sigma", bad)
