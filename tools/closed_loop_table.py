@@ -4,7 +4,8 @@ image-reading planner (models/e2e-planner, python/b2dr_ref/e2e_planner.py) under
 synthetic scenarios, R-CLS (IDM agents) and CLS-NR (replayed agents), plus the box-reading planners for
 reference. Every number comes from `b2dr run`; this script only runs it and joins the tables.
 
-    ~/.cache/b2dr-venv/bin/python tools/closed_loop_table.py --out out/closed_loop [--scenario LIST] [--resume]
+    ~/.cache/b2dr-venv/bin/python tools/closed_loop_table.py --out out/closed_loop [--scenario LIST]
+        [--model PACKAGE] [--resume]
 
 Writes OUT/table.md and OUT/table.json; each run's own folders (comparison.md, per-scenario metrics, mosaics,
 diverged/ dumps) stay under OUT/<planner>-<agents>/. Run it with the Python that has torch (the planner's).
@@ -54,6 +55,7 @@ def main():
     p.add_argument("--scenario", default=DEFAULT_SCENARIOS)
     p.add_argument("--planner-model", default=os.path.join(REPO, "models", "e2e-planner"))
     p.add_argument("--renderers", default=",".join(RENDERERS))
+    p.add_argument("--model", help="model package of the b2dr renderers (b2dr run --model; default: its built-in)")
     p.add_argument("--resume", action="store_true", help="skip scenarios already done (b2dr run --resume)")
     a = p.parse_args()
     os.makedirs(a.out, exist_ok=True)
@@ -61,11 +63,14 @@ def main():
     e2e = (f"cmd:cd {shlex.quote(os.path.join(REPO, 'python'))} && exec {shlex.quote(sys.executable)} "
            f"-m b2dr_ref.e2e_planner serve --weights {shlex.quote(os.path.abspath(a.planner_model))}")
     common = ["--scenario", a.scenario, "--no-gif"] + (["--resume"] if a.resume else [])
+    model = []
+    if a.model:
+        model = ["--model", a.model if a.model.startswith("builtin:") else os.path.abspath(a.model)]
     rows = []
     for agents, kind in [("idm", "R-CLS"), ("replay", "CLS-NR")]:
         out = os.path.join(a.out, f"e2e-{agents}")
-        b2dr(common + ["--renderer", a.renderers, "--planner", e2e, "--cameras", "CAM_FRONT", "--agents", agents,
-                       "--out", out], log)
+        b2dr(common + model + ["--renderer", a.renderers, "--planner", e2e, "--cameras", "CAM_FRONT",
+                               "--agents", agents, "--out", out], log)
         if "," in a.renderers:
             comp = json.load(open(os.path.join(out, "comparison.json")))
             for r in comp["rows"]:
@@ -92,6 +97,7 @@ def main():
         if (r["planner"], r["renderer"]) not in keys:
             keys.append((r["planner"], r["renderer"]))
     md = [f"# Closed-loop table ({n} held-out scenarios: `{a.scenario}`)", "",
+          f"Renderer model: `{a.model or 'builtin:b2dr-nano'}`.", "",
           "| planner | renderer | R-CLS | CLS-NR | " + " | ".join(METRICS) + " (R-CLS runs) |",
           "|---|---|---|---|" + "---|" * len(METRICS)]
     for pl, rd in keys:

@@ -1,8 +1,9 @@
 """The ceiling a VAE (or any image source) puts on eval-render's layout score (vehicle and lane-marking IoU), and
 how that score reacts to small degradations of the ground truth.
 
-    ~/.cache/b2dr-venv/bin/python tools/layout_ceiling.py --scenario builtin:town:0 --steps 50,150 \
-        [--vae VAE_DIR ...] [--degrade noise:4 shift:6 blur:1 ...] [--strip EVAL/strips/single_lateral_0_m.png:1] \
+    ~/.cache/b2dr-venv/bin/python tools/layout_ceiling.py --scenario builtin:town:0[,builtin:cross:0] --steps 50,150 \
+        [--vae VAE_DIR ...] [--degrade noise:4 shift:6 blur:1 ...] [--vae-degraded] \
+        [--strip EVAL/strips/single_lateral_0_m.png:1] \
         [--seg models/layout-seg/seg.safetensors] [--b2dr target/release/b2dr] [--camera CAM_FRONT] \
         [--size 112x200] [--json out.json] [--png DIR]
 
@@ -14,7 +15,9 @@ bin centres; ties: the lower bin); fitted on the ground truth of this run, as ev
 `--seg` scores with a layout segmenter as well (python/b2dr_ref/layout_seg.py). IoU = summed intersections /
 summed unions over the images. The "ground truth" row is the colour classifier's own ceiling (eval-render prints
 the same number on the same frames); a VAE row is decode(encode(truth)) with the posterior mean, as the engine
-encodes the previous frame and references; a strip row is one column of an eval-render strip (its first case).
+encodes the previous frame and references (`--vae-degraded`: also decode(encode(degraded truth)) per --degrade,
+e.g. blur:1, what a model whose previous frame is blurred before encoding starts from); a strip row is one column
+of an eval-render strip (its first case). Several scenarios: every step of each, one classifier fitted on all.
 """
 
 from __future__ import annotations
@@ -112,12 +115,14 @@ def degraded(rgb: np.ndarray, kind: str, amount: float, seed: int) -> np.ndarray
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--scenario", required=True)
+    ap.add_argument("--scenario", required=True, help="comma-separated scenarios")
     ap.add_argument("--steps", required=True, help="comma-separated log steps (10 Hz)")
     ap.add_argument("--vae", nargs="*", default=[])
     ap.add_argument("--degrade", nargs="*", default=[],
                     help="KIND:AMOUNT rows of the degraded ground truth: noise:4 (sigma, levels), shift:6 (levels), "
                          "blur:1 (sigma, pixels)")
+    ap.add_argument("--vae-degraded", action="store_true",
+                    help="a row per VAE and --degrade: decode(encode(the degraded ground truth))")
     ap.add_argument("--strip", nargs="*", default=[],
                     help="PNG:COLUMN rows: column COLUMN (0 = the ground truth) of an eval-render strip "
                          "(strips/single_lateral_0_m.png, 4-px gaps), scored against the FIRST step only; its "
@@ -131,8 +136,10 @@ def main(argv=None):
     a = ap.parse_args(argv)
     steps = [int(s) for s in a.steps.split(",") if s]
     torch.set_num_threads(1)
+    scenarios = [s for s in a.scenario.split(",") if s]
+    cases = [(sc, s) for sc in scenarios for s in steps]
     with tempfile.TemporaryDirectory() as tmp:
-        gts = [truth(a.b2dr, a.scenario, s, a.camera, a.size, tmp) for s in steps]
+        gts = [truth(a.b2dr, sc, s, a.camera, a.size, tmp) for sc, s in cases]
     scorers = {"colour": PaletteClassifier(gts).classify}
     if a.seg:
         net = layout_seg.load(a.seg)
@@ -144,6 +151,10 @@ def main(argv=None):
     for v in a.vae:
         vae = load_vae(v)
         rows[f"VAE {v}"] = [roundtrip(vae, g[0]) for g in gts]
+        for d in a.degrade if a.vae_degraded else []:
+            kind, amount = d.split(":")
+            rows[f"VAE {v} of {kind} {amount}"] = [roundtrip(vae, degraded(g[0], kind, float(amount), k))
+                                                    for k, g in enumerate(gts)]
     for st in a.strip:
         path, col = st.rsplit(":", 1)
         im = np.array(Image.open(path).convert("RGB"))
@@ -153,7 +164,7 @@ def main(argv=None):
             raise SystemExit(f"--strip {st}: {im.shape[1]} x {im.shape[0]} px has no column {col} of {w} x {h}")
         rows[f"strip {st}"] = [im[:h, c0:c0 + w]]
     res = {}
-    print(f"{a.scenario} steps {steps} {a.camera} {a.size}")
+    print(f"{a.scenario} steps {steps} {a.camera} {a.size} ({len(gts)} images)")
     head = "".join(f" {n[:5] + ' veh':>10} {n[:5] + ' mark':>10}" for n in scorers)
     print(f"{'images':<56} {'PSNR dB':>8}{head}")
     f = lambda v: "-" if v is None else f"{v:.3f}"  # noqa: E731
@@ -172,9 +183,10 @@ def main(argv=None):
             json.dump(res, fh, indent=1)
     if a.png:
         os.makedirs(a.png, exist_ok=True)
-        full = [v for v in rows.values() if len(v) == len(steps)]
-        for k, s in enumerate(steps):
-            Image.fromarray(np.concatenate([imgs[k] for imgs in full], 1)).save(os.path.join(a.png, f"step_{s}.png"))
+        full = [v for v in rows.values() if len(v) == len(cases)]
+        for k, (sc, s) in enumerate(cases):
+            name = f"step_{s}.png" if len(scenarios) == 1 else f"{sc.replace(':', '_')}_step_{s}.png"
+            Image.fromarray(np.concatenate([imgs[k] for imgs in full], 1)).save(os.path.join(a.png, name))
 
 
 if __name__ == "__main__":
