@@ -581,6 +581,9 @@ def export(args):
         raise SystemExit(f"export: {path} does not exist" + (f" (kept: {', '.join(kept) or 'none'})"
                                                                if args.step is not None else ""))
     ck = torch.load(path, map_location="cpu", weights_only=False)
+    if args.prev_noise_level is not None:
+        # the inference-time level only (training's n ~ U{0..max} is history): what the package's sampler uses
+        ck["cfg"] = prev_overrides(ck["cfg"], args)
     cfg = ck["cfg"]
     unet, controlnet, use_ema = checkpoint_models(ck, ema=not args.no_ema)
     vae = load_vae(args.vae or ck["vae_path"])
@@ -616,6 +619,9 @@ def main(argv=None):
                        help="export the weights kept at this step (a run trained with --keep-every), not the last")
         p.add_argument("--sampler-steps", type=int, default=20,
                        help="the package's UniPC steps per frame (b2dr.json `steps`; eval-render --steps overrides)")
+        p.add_argument("--prev-noise-level", type=int, default=None,
+                       help="the previous frame's noise level at inference in the package's ControlNet config "
+                            "(default: the run's)")
         return export(p.parse_args(argv[1:]))
     if argv and argv[0] == "bench":
         p = argparse.ArgumentParser(prog="python -m b2dr_ref.train bench")

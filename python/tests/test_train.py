@@ -723,6 +723,12 @@ def test_prev_noise_overrides_reach_the_loss_and_the_package(vae_run, tmp_path, 
     with open(tmp_path / "model" / "controlnet" / "config.json") as f:
         c = json.load(f)
     assert (c["prev_noise_max"], c["prev_noise_level"]) == (30, 20)
+    T.main(["export", "--run", run, "--out", str(tmp_path / "m0"), "--prev-noise-level", "0"])   # inference only
+    with open(tmp_path / "m0" / "controlnet" / "config.json") as f:
+        c = json.load(f)
+    assert (c["prev_noise_max"], c["prev_noise_level"]) == (30, 0)
+    with pytest.raises(SystemExit, match="--prev-noise-level 999"):
+        T.main(["export", "--run", run, "--out", str(tmp_path / "m9"), "--prev-noise-level", "999"])
     with pytest.raises(SystemExit, match="prev_noise_max is 30"):
         diffusion(os.path.join(vae_run[0], "vae"), run, "--steps", "3", "--resume", "--prev-noise-max", "40")
     diffusion(os.path.join(vae_run[0], "vae"), run, "--steps", "3", "--resume")      # the run's own values
