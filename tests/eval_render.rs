@@ -1,6 +1,6 @@
 //! `b2dr eval-render` (world.md 4) on a small seeded package: reruns write the same bytes; the copy-nearest
-//! baseline is the ground truth on the logged path and not when displaced; the copy-prev baseline is the frame
-//! 0.5 s earlier (not the truth, and the same image whatever the model); the inference-time noise-level and
+//! baseline is the ground truth on the logged path and not when displaced; the copy-prev baseline (the frame
+//! 0.5 s earlier) is scored on and off the log and is not the truth; the inference-time noise-level and
 //! blur overrides change the rendered frames; bad configurations are errors.
 #[path = "golden/b2dr_package.rs"]
 mod b2dr_package;
