@@ -43,6 +43,7 @@ from .training.data import (DatasetSource, Sample, SampleSource, SyntheticSource
                             open_source, position_encoding_np, sample_pe)
 from .training.single import (CKPT, add_common, end_at_anneal, load_vae, lr_lambda,  # noqa: E402,F401
                               save_checkpoint, set_threads)
+from .training.selfprev import draw_self, own_previous  # noqa: E402
 from .training.loss import (LOSS_WEIGHTS, NO_PREV_NOISE_LEVEL, OBJECT_CHANNELS, PREDICTIONS,  # noqa: E402,F401
                             denoise, draw_noise, layout_loss_weight, loss_weight, noised_inputs, object_loss_weight,
                             prediction_loss)
@@ -251,7 +252,7 @@ class Batcher:
 def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: torch.Tensor, p_noprev: float = 0.1,
                    ref_dropout: Optional[float] = None, weighting: str = "eps", max_weight: float = 0.0,
                    prediction: str = "epsilon", object_weight: float = 0.0, fast: FastPath = PLAIN,
-                   marking_weight: float = 0.0, x0_base: str = "none"):
+                   marking_weight: float = 0.0, x0_base: str = "none", self_prev: float = 0.0, vae=None):
     """One batch's (weighted) MSE of the model's prediction (all random draws from ``gen``, on the CPU, then moved to
     the device). ``prediction``: the model predicts epsilon, or v = sqrt(abar) eps - sqrt(1 - abar) x_0
     (diffusers' v_prediction; the sampler then reads x_0 = sqrt(abar) x_t - sqrt(1 - abar) v).
@@ -262,18 +263,26 @@ def diffusion_loss(unet, controlnet, context, b, gen: torch.Generator, abar: tor
     compiled wrappers of ``FastPath.prepare``. The random draws and the loss are the same in every mode.
     ``x0_base`` "prev": the diffusion runs on the residual x_0 - z_prev (the clean blurred previous latent; 0 for
     the rows drawn as "no previous frame"), and the sampler adds z_prev back (b2dr.json x0_base).
+    ``self_prev`` P > 0 (with ``vae``): after the draws above, a row with a previous frame takes, with probability
+    P, the model's own one-step render of its frame as the previous frame (training/selfprev.py).
     The pieces (draw_noise, noised_inputs, denoise, prediction_loss) are shared with b2dr_ref.training."""
     cfg = controlnet.config
     dev = b["x0"].device
     rd = float(cfg.ref_dropout) if ref_dropout is None else ref_dropout
     d = draw_noise(b, gen, int(cfg.prev_noise_max), p_noprev, rd)
+    ctx = context.to(dev)[b["cams"].to(dev)]
+    if self_prev > 0:
+        if vae is None:
+            raise ValueError("self_prev needs the VAE (the previous-frame path decodes and encodes)")
+        s = draw_self(b, gen, self_prev)
+        b = dict(b, z_prev=own_previous(unet, controlnet, vae, ctx, b, s, s["rows"] & ~d["noprev"], abar,
+                                        prediction, x0_base, fast))
     if x0_base == "prev":
         keep = (~d["noprev"]).to(dev).float().reshape(-1, 1, 1, 1)
         b = dict(b, x0=b["x0"] - keep * b["z_prev"])
     elif x0_base != "none":
         raise ValueError(f"x0_base {x0_base!r} (none or prev)")
     x_t, z, n, at = noised_inputs(b, d, abar)
-    ctx = context.to(dev)[b["cams"].to(dev)]
     # (a batch may leave the references out when every row drops them: ref_mask all False)
     pred = denoise(unet, controlnet, x_t, d["t"].to(dev), ctx, b["masks"], z, n, b.get("ref_latents"),
                    b.get("pe_cur"), b.get("pe_ref"), d["ref_mask"], fast=fast)
@@ -352,6 +361,8 @@ def prev_overrides(cfg: Dict, args) -> Dict:
 def train(args):
     device = torch.device(args.device)
     set_threads(args.device, args.threads)
+    if not 0 <= args.self_prev <= 1:
+        raise SystemExit(f"--self-prev {args.self_prev}: a probability in [0, 1]")
     os.makedirs(args.out, exist_ok=True)
     ck_path = os.path.join(args.out, CKPT)
     resume = args.resume and os.path.exists(ck_path)
@@ -488,7 +499,8 @@ def train(args):
             loss = diffusion_loss(unet_f, controlnet_f, context, b, gen, abar, p_noprev=args.p_noprev,
                                   weighting=args.loss_weight, max_weight=args.max_weight, prediction=prediction,
                                   object_weight=args.object_weight, fast=fast,
-                                  marking_weight=args.marking_weight, x0_base=x0_base)
+                                  marking_weight=args.marking_weight, x0_base=x0_base,
+                                  self_prev=args.self_prev, vae=vae)
             pending["gen_state"] = None
             if prefetch is not None and step + 1 < steps:
                 # the next step's indices are drawn now, after this step's noise: the generator's sequence is
@@ -655,6 +667,10 @@ def main(argv=None):
                    help="also keep the weights of every N-th step in RUN/keep/ (export --step N packages one): the "
                         "points of a learning curve scored after the run")
     p.add_argument("--ema", type=float, default=0.0, help="EMA decay (0 = off); export uses the EMA when kept")
+    p.add_argument("--self-prev", type=float, default=0.0,
+                   help="probability that a row's previous frame is the model's own one-step render of its frame "
+                        "(decoded, blurred, encoded again) instead of the true one: it learns to correct its own "
+                        "output, as the closed loop needs (training/selfprev.py; 0 = off)")
     p.add_argument("--p-noprev", type=float, default=0.1, help="probability of 'no previous frame' (z = 0, n = 999)")
     p.add_argument("--cache", type=int, default=100000, help="samples whose latents + PE are kept in memory")
     p.add_argument("--precache", action="store_true",

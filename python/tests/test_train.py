@@ -760,3 +760,92 @@ def test_prev_blur_override_reaches_the_data_and_the_package(vae_run, tmp_path, 
         with pytest.raises(SystemExit, match=f"--prev-blur-sigma {bad}"):
             diffusion(os.path.join(vae_run[0], "vae"), str(tmp_path / f"bad{bad}"), "--steps", "1",
                       "--prev-blur-sigma", bad)
+
+
+class _ZeroUnet(torch.nn.Module):      # predicts 0 (epsilon or v)
+    def forward(self, x, *a, **k):
+        return type("O", (), {"sample": torch.zeros_like(x)})()
+
+
+class _NoControlNet:
+    config = type("C", (), {"prev_noise_max": 400, "ref_dropout": 0.0, "prev_noise_level": 200,
+                            "prev_blur_sigma": 1.0})()
+
+    def __call__(self, *a, **k):
+        return None, None
+
+
+def test_one_step_x0_is_the_one_step_unipc_sample():
+    """selfprev.one_step_x0's sampler is diffusers' UniPC at one step on the SD1.5 schedule (what the engine's
+    one-step package runs): timesteps [999] and the step returns the x_0 of the prediction."""
+    from b2dr_ref.frame import make_scheduler
+    from b2dr_ref.training import selfprev as S
+
+    abar = T.make_noise_scheduler().alphas_cumprod.to(torch.float32)
+    g = torch.Generator().manual_seed(3)
+    x_T, v = torch.randn(2, 4, 7, 13, generator=g), torch.randn(2, 4, 7, 13, generator=g)
+    sch = make_scheduler("unipc", "v_prediction")
+    sch.set_timesteps(1)
+    assert sch.timesteps.tolist() == [S.ONE_STEP_T]
+    ref = sch.step(v, sch.timesteps[0], x_T).prev_sample
+
+    class V(torch.nn.Module):
+        def forward(self, x, *a, **k):
+            return type("O", (), {"sample": v})()
+
+    zp = torch.randn(2, 4, 7, 13, generator=g)
+    x0 = S.one_step_x0(V(), _NoControlNet(), torch.zeros(2, 77, 8), None, zp, x_T, torch.zeros_like(zp), abar, 200,
+                       "v_prediction", "prev")
+    torch.testing.assert_close(x0 - zp, ref, atol=1e-5, rtol=1e-5)
+
+
+def test_self_prev_gives_rows_the_models_own_previous_frame(vae_run, tmp_path):
+    """--self-prev P: after the usual draws, rows with a previous frame take (probability P) the previous-frame
+    latent (decode, 8-bit, blur, encode) of the model's own one-step render of their frame; the loss is then that
+    of the residual against this latent. Checked with a model that predicts 0, whose one-step render is
+    sqrt(abar_999) x_T + z_prev. The CLI trains with it and refuses a P outside [0, 1]."""
+    from b2dr_ref.training import selfprev as S
+
+    vae = T.load_vae(os.path.join(vae_run[0], "vae"))
+    lc = vae.config.latent_channels
+    B = 4
+    g0 = torch.Generator().manual_seed(11)
+    b = dict(x0=torch.randn(B, lc, 7, 13, generator=g0), z_prev=torch.randn(B, lc, 7, 13, generator=g0),
+             masks=torch.zeros(B, 15, 56, 104), cams=torch.zeros(B, dtype=torch.int64))
+    abar = T.make_noise_scheduler().alphas_cumprod.to(torch.float32)
+    gen_state = torch.Generator().manual_seed(7).get_state()
+    g = torch.Generator()
+    g.set_state(gen_state)
+    d = T.draw_noise(b, g, 400, 0.5, 1.0)
+    s = S.draw_self(b, g, 1.0)
+    rows = ~d["noprev"]
+    assert 0 < int(rows.sum()) < B
+    from b2dr_ref.frame import gaussian_blur
+
+    sf = vae.config.scaling_factor
+    with torch.no_grad():      # the engine's path: decode, clamp, 8-bit, blur sigma 1 (the config's), encode mean
+        img = vae.decode((abar[999].sqrt() * s["x_T"] + b["z_prev"]) / sf).sample
+        u8 = ((img.clamp(-1, 1) + 1) * 127.5).round()
+        own = vae.encode(2.0 * gaussian_blur(u8 / 255.0, 1.0) - 1.0).latent_dist.mean * sf
+    assert not torch.allclose(own[rows], b["z_prev"][rows], atol=0.1)
+    zp = torch.where(rows.reshape(B, 1, 1, 1), own, b["z_prev"])
+    a = abar[d["t"]].reshape(B, 1, 1, 1)
+    v = a.sqrt() * d["eps"] - (1 - a).sqrt() * (b["x0"] - rows.float().reshape(B, 1, 1, 1) * zp)
+    ctx = torch.zeros(1, 77, 8)
+    g.set_state(gen_state)
+    loss = T.diffusion_loss(_ZeroUnet(), _NoControlNet(), ctx, b, g, abar, p_noprev=0.5, ref_dropout=1.0,
+                            prediction="v_prediction", x0_base="prev", self_prev=1.0, vae=vae)
+    torch.testing.assert_close(loss, (v ** 2).mean(), atol=1e-5, rtol=1e-5)
+    g.set_state(gen_state)
+    plain = T.diffusion_loss(_ZeroUnet(), _NoControlNet(), ctx, b, g, abar, p_noprev=0.5, ref_dropout=1.0,
+                             prediction="v_prediction", x0_base="prev")
+    assert not torch.allclose(plain, loss)
+    with pytest.raises(ValueError, match="needs the VAE"):
+        T.diffusion_loss(_ZeroUnet(), _NoControlNet(), ctx, b, g, abar, self_prev=0.5)
+
+    run = str(tmp_path / "run")
+    losses = diffusion(os.path.join(vae_run[0], "vae"), run, "--steps", "2", "--prediction", "v_prediction",
+                       "--x0-base", "prev", "--self-prev", "0.5")
+    assert len(losses) == 2 and all(np.isfinite(losses))
+    with pytest.raises(SystemExit, match="--self-prev 1.5"):
+        diffusion(os.path.join(vae_run[0], "vae"), str(tmp_path / "bad"), "--steps", "1", "--self-prev", "1.5")
