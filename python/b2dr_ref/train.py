@@ -43,7 +43,7 @@ from .training.data import (DatasetSource, Sample, SampleSource, SyntheticSource
                             open_source, position_encoding_np, sample_pe)
 from .training.single import (CKPT, add_common, end_at_anneal, load_vae, lr_lambda,  # noqa: E402,F401
                               save_checkpoint, set_threads)
-from .training.selfprev import draw_self, own_previous  # noqa: E402
+from .training.selfprev import draw_self, own_previous, pose_partners  # noqa: E402
 from .training.loss import (LOSS_WEIGHTS, NO_PREV_NOISE_LEVEL, OBJECT_CHANNELS, PREDICTIONS,  # noqa: E402,F401
                             denoise, draw_noise, layout_loss_weight, loss_weight, noised_inputs, object_loss_weight,
                             prediction_loss)
@@ -237,11 +237,16 @@ class Batcher:
                     self.cache[i] = local[i]
         return [self.cache[i] if i in self.cache else local[i] for i in idx]
 
-    def batch(self, idx: Sequence[int]):
+    def batch(self, idx: Sequence[int], other: Optional[Sequence[int]] = None):
+        """The model inputs of samples ``idx``; with ``other`` (one index per sample), ``masks_other``: the masks of
+        those samples (train --self-prev-pose other)."""
         items = self._prepare(idx)
         nl = len(self.sizes)
         dev = self.device
-        return dict(x0=torch.stack([it[0] for it in items]).to(dev), z_prev=torch.stack([it[1] for it in items]).to(dev),
+        extra = {}
+        if other is not None:
+            extra["masks_other"] = torch.stack([unpack_masks(it[3]) for it in self._prepare(other)]).float().to(dev)
+        return dict(extra, x0=torch.stack([it[0] for it in items]).to(dev), z_prev=torch.stack([it[1] for it in items]).to(dev),
                     ref_latents=torch.stack([it[2] for it in items]).to(dev),
                     masks=torch.stack([unpack_masks(it[3]) for it in items]).float().to(dev),
                     cams=torch.tensor([it[4] for it in items], dtype=torch.int64),
@@ -456,7 +461,15 @@ def train(args):
     scaler = torch.amp.GradScaler(device.type) if fast.autocast == "fp16" else None
     if scaler is not None and ck is not None and ck.get("grad_scaler"):
         scaler.load_state_dict(ck["grad_scaler"])
-    prefetch = Prefetcher(batcher.batch) if args.prefetch else None
+    partners = None
+    if args.self_prev_pose == "other":
+        if args.self_prev <= 0:
+            raise SystemExit("--self-prev-pose other: give --self-prev P > 0")
+        partners = pose_partners(source)
+        if partners is None:
+            raise SystemExit(f"--self-prev-pose other: {args.data} is not an exported dataset with several ego "
+                             "offsets per frame (b2dr export-training --offset)")
+    prefetch = Prefetcher(lambda a: batcher.batch(*a)) if args.prefetch else None
     pending = dict(gen_state=None, batch=None)   # the prefetched step: gen state before its index draw, its batch
 
     def checkpoint():
@@ -479,8 +492,12 @@ def train(args):
             ema=ema.shadow if ema is not None else None, context=context))
 
     def draw_idx():
-        return list(range(args.batch)) if args.fixed_batch else \
+        """The batch's sample indices and, with --self-prev-pose other, each one's partner (drawn after them)."""
+        idx = list(range(args.batch)) if args.fixed_batch else \
             torch.randint(0, len(source), (args.batch,), generator=gen).tolist()
+        if partners is None:
+            return idx, None
+        return idx, [partners[i][int(torch.randint(0, len(partners[i]), (1,), generator=gen))] for i in idx]
 
     if args.precache:
         batcher.precache()
@@ -495,7 +512,7 @@ def train(args):
             elif pending["batch"] is not None:
                 b, pending["batch"] = pending["batch"], None
             else:
-                b = batcher.batch(draw_idx())
+                b = batcher.batch(*draw_idx())
             loss = diffusion_loss(unet_f, controlnet_f, context, b, gen, abar, p_noprev=args.p_noprev,
                                   weighting=args.loss_weight, max_weight=args.max_weight, prediction=prediction,
                                   object_weight=args.object_weight, fast=fast,
@@ -671,6 +688,10 @@ def main(argv=None):
                    help="probability that a row's previous frame is the model's own one-step render of its frame "
                         "(decoded, blurred, encoded again) instead of the true one: it learns to correct its own "
                         "output, as the closed loop needs (training/selfprev.py; 0 = off)")
+    p.add_argument("--self-prev-pose", default="same", choices=("same", "other"),
+                   help="the pose of --self-prev's own render: the row's own (same), or another ego offset of the "
+                        "same frame (other: the render is displaced against the target, as a previous frame is; "
+                        "needs exported data with --offset)")
     p.add_argument("--p-noprev", type=float, default=0.1, help="probability of 'no previous frame' (z = 0, n = 999)")
     p.add_argument("--cache", type=int, default=100000, help="samples whose latents + PE are kept in memory")
     p.add_argument("--precache", action="store_true",

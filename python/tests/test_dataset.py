@@ -96,3 +96,26 @@ def test_torch_optional(export_dir):
     t = to_torch(TrainingSet(export_dir)[0])
     assert isinstance(t["target"], torch.Tensor) and t["target"].dtype == torch.float32
     assert float(t["target"].max()) <= 1.0
+
+
+def test_self_prev_pose_partners_on_an_export(export_dir):
+    """train --self-prev-pose other renders a sample's frame at another ego offset: on a real export every sample
+    index (frame row x cameras + camera) has partners at the same scenario, step and camera and another offset, and
+    they share the previous frame (the image itself)."""
+    from b2dr_ref.training.data import DatasetSource
+    from b2dr_ref.training.selfprev import pose_partners
+
+    src = DatasetSource(export_dir)
+    parts = pose_partners(src)
+    assert parts is not None and len(parts) == len(src) == 16
+    rows = src.ds.samples
+    for i, ps in enumerate(parts):
+        f, c = divmod(i, 2)
+        assert len(ps) == 1                      # two offsets per frame in this export
+        for j in ps:
+            g, d = divmod(j, 2)
+            assert d == c and g != f
+            assert (rows[g]["scenario"], rows[g]["step"]) == (rows[f]["scenario"], rows[f]["step"])
+            assert rows[g]["offset"] != rows[f]["offset"]
+            np.testing.assert_array_equal(src[i].prev, src[j].prev)
+            assert not np.array_equal(src[i].masks, src[j].masks)

@@ -849,3 +849,60 @@ def test_self_prev_gives_rows_the_models_own_previous_frame(vae_run, tmp_path):
     assert len(losses) == 2 and all(np.isfinite(losses))
     with pytest.raises(SystemExit, match="--self-prev 1.5"):
         diffusion(os.path.join(vae_run[0], "vae"), str(tmp_path / "bad"), "--steps", "1", "--self-prev", "1.5")
+
+
+def test_self_prev_pose_other_renders_the_partners_layout(vae_run, tmp_path):
+    """--self-prev-pose other: the own render takes the batch's masks_other (the partner offset's layout), not the
+    row's masks; pose_partners groups an index's samples by scenario and step (None when one stands alone,
+    refused when partners have other previous frames); the CLI refuses 'other' on data without offsets and
+    without --self-prev."""
+    from b2dr_ref.training import selfprev as S
+
+    class MaskCn:       # the layout decides the output: residual = mean of the first mask channel per row
+        config = _NoControlNet.config
+
+        def __call__(self, x, t, ctx, masks, z, n, refs=None, ref_mask=None):
+            return [masks[:, :1].mean((2, 3), keepdim=True).expand_as(x)], None
+
+    class Echo(torch.nn.Module):
+        def forward(self, x, t, ctx, down_block_additional_residuals=None, mid_block_additional_residual=None):
+            return type("O", (), {"sample": down_block_additional_residuals[0]})()
+
+    vae = T.load_vae(os.path.join(vae_run[0], "vae"))
+    lc = vae.config.latent_channels
+    B = 2
+    g = torch.Generator().manual_seed(5)
+    b = dict(z_prev=torch.randn(B, lc, 7, 13, generator=g), x0=torch.zeros(B, lc, 7, 13),
+             masks=torch.zeros(B, 15, 56, 104), masks_other=torch.ones(B, 15, 56, 104))
+    s = S.draw_self(b, g, 1.0)
+    rows = torch.ones(B, dtype=torch.bool)
+    abar = T.make_noise_scheduler().alphas_cumprod.to(torch.float32)
+    ctx = torch.zeros(B, 77, 8)
+    got = S.own_previous(Echo(), MaskCn(), vae, ctx, b, s, rows, abar, "v_prediction", "prev")
+    with torch.no_grad():
+        x0 = abar[999].sqrt() * s["x_T"] - (1 - abar[999]).sqrt() * torch.ones_like(s["x_T"]) + b["z_prev"]
+        want = S.previous_frame_latent(vae, x0, 1.0)
+    torch.testing.assert_close(got, want)
+    same = S.own_previous(Echo(), MaskCn(), vae, ctx, {k: v for k, v in b.items() if k != "masks_other"}, s, rows,
+                          abar, "v_prediction", "prev")
+    assert not torch.allclose(same, got)
+
+    class Src:
+        cameras = ["A", "B"]
+
+        def __init__(self, rows):
+            self.ds = type("D", (), {"samples": rows})()
+
+    r = [dict(scenario="x", step=3, prev_step=1), dict(scenario="x", step=3, prev_step=1),
+         dict(scenario="y", step=3, prev_step=1)]
+    assert S.pose_partners(Src(r)) is None                     # y step 3 stands alone
+    assert S.pose_partners(Src(r[:2])) == [[2], [3], [0], [1]]
+    with pytest.raises(ValueError, match="other previous frames"):
+        S.pose_partners(Src([r[0], dict(r[1], prev_step=2)]))
+    assert S.pose_partners(type("Syn", (), {"cameras": ["A"]})()) is None
+
+    vae_dir = os.path.join(vae_run[0], "vae")
+    with pytest.raises(SystemExit, match="not an exported dataset"):
+        diffusion(vae_dir, str(tmp_path / "a"), "--steps", "1", "--self-prev", "0.5", "--self-prev-pose", "other")
+    with pytest.raises(SystemExit, match="give --self-prev"):
+        diffusion(vae_dir, str(tmp_path / "b"), "--steps", "1", "--self-prev-pose", "other")

@@ -3,13 +3,18 @@ own earlier output, not a blurred true frame, and errors it learned never to mee
 smeared into the road) are carried forward and grow. With probability P a row's previous latent is replaced by
 the model's own one-step render of the row's frame (the current weights, no gradient) taken through the
 engine's previous-frame path: decode, clamp, 8-bit, blur, encode. The row then teaches the model to correct its
-own output against the layout rather than to copy it. The own render is of the target's pose (the data holds no
-layout of the frame before the previous one); the rows with the true previous frame keep teaching the motion.
+own output against the layout rather than to copy it. ``--self-prev-pose same`` renders the target's own pose
+(aligned with the target: only the correction is taught); ``other`` renders the same frame at another of the
+data's ego offsets (1.5 m / 3 m sideways, 8 deg), so that the own frame is displaced against the target as a
+previous frame is in the loop. Both renders start from the row's true previous frame: every offset of a frame
+shares it (the previous frame is recorded at the logged pose). The data holds no layout of the frame before the
+previous one, so the own frame cannot be the previous frame itself.
 """
 
 from __future__ import annotations
 
-from typing import Dict
+from collections import defaultdict
+from typing import Dict, List, Optional
 
 import torch
 
@@ -71,14 +76,40 @@ def previous_frame_latent(vae, x0: torch.Tensor, sigma: float) -> torch.Tensor:
 def own_previous(unet, controlnet, vae, ctx, b, s: Dict, rows: torch.Tensor, abar, prediction: str, x0_base: str,
                  fast: FastPath = PLAIN) -> torch.Tensor:
     """``b["z_prev"]`` with the ``rows`` (bool, (B,)) replaced by the previous-frame latent of the model's own
-    one-step render of their frame (``s``: draw_self's draws; ``ctx``: the batch's context rows)."""
+    one-step render of their frame (``s``: draw_self's draws; ``ctx``: the batch's context rows), at the pose of
+    ``b["masks_other"]`` when the batch has it (--self-prev-pose other)."""
     if not bool(rows.any()):
         return b["z_prev"]
     cfg = controlnet.config
     dev = b["z_prev"].device
     r = rows.to(dev)
-    x0 = one_step_x0(unet, controlnet, ctx[r], b["masks"][r], b["z_prev"][r], s["x_T"].to(dev)[r],
+    masks = b["masks_other"] if "masks_other" in b else b["masks"]
+    x0 = one_step_x0(unet, controlnet, ctx[r], masks[r], b["z_prev"][r], s["x_T"].to(dev)[r],
                      s["eps_in"].to(dev)[r], abar, int(cfg.prev_noise_level), prediction, x0_base, fast)
     z = b["z_prev"].clone()
     z[r] = previous_frame_latent(vae, x0, float(cfg.prev_blur_sigma)).to(z.dtype)
     return z
+
+
+def pose_partners(source) -> Optional[List[List[int]]]:
+    """Per sample index of an exported dataset (training.data.DatasetSource: index = frame row x cameras + camera),
+    the indices of the same scenario, step and camera at the other ego offsets; None for a source without that
+    index (synthetic, shards) or when a sample has no partner. Partners share the previous frame (checked)."""
+    ds = getattr(source, "ds", None)
+    rows = getattr(ds, "samples", None)
+    if rows is None:
+        return None
+    nc = len(source.cameras)
+    groups: Dict[tuple, List[int]] = defaultdict(list)
+    for f, s in enumerate(rows):
+        groups[(s["scenario"], int(s["step"]))].append(f)
+    out: List[List[int]] = []
+    for f, s in enumerate(rows):
+        g = [o for o in groups[(s["scenario"], int(s["step"]))] if o != f]
+        if not g:
+            return None
+        if any(int(rows[o]["prev_step"]) != int(s["prev_step"]) for o in g):
+            raise ValueError(f"sample {f}: the offsets of {s['scenario']} step {s['step']} have other previous frames")
+        for c in range(nc):
+            out.append([o * nc + c for o in g])
+    return out
