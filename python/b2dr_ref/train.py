@@ -468,7 +468,7 @@ def train(args):
         partners = pose_partners(source)
         if partners is None:
             raise SystemExit(f"--self-prev-pose other: {args.data} is not an exported dataset with several ego "
-                             "offsets per frame (b2dr export-training --offset)")
+                             "offsets per frame (b2dr export-training --offsets)")
     prefetch = Prefetcher(lambda a: batcher.batch(*a)) if args.prefetch else None
     pending = dict(gen_state=None, batch=None)   # the prefetched step: gen state before its index draw, its batch
 
@@ -691,7 +691,7 @@ def main(argv=None):
     p.add_argument("--self-prev-pose", default="same", choices=("same", "other"),
                    help="the pose of --self-prev's own render: the row's own (same), or another ego offset of the "
                         "same frame (other: the render is displaced against the target, as a previous frame is; "
-                        "needs exported data with --offset)")
+                        "needs data exported with several --offsets)")
     p.add_argument("--p-noprev", type=float, default=0.1, help="probability of 'no previous frame' (z = 0, n = 999)")
     p.add_argument("--cache", type=int, default=100000, help="samples whose latents + PE are kept in memory")
     p.add_argument("--precache", action="store_true",
