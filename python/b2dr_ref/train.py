@@ -11,6 +11,8 @@ Per step (batch of B camera samples):
 - x_0 = VAE mean x scaling of the target; t ~ U{0..999}; eps ~ N(0, 1); x_t = DDPM add_noise (SD1.5 schedule);
 - previous frame: blur sigma 1 -> VAE mean x scaling -> z = sqrt(abar_n) z_prev + sqrt(1 - abar_n) eps_p with
   n ~ U{0..N_max}; with probability p_noprev (0.1) z = 0 and n = 999 (the engine's "no previous frame");
+- with --self-prev P: a row's previous latent is, with probability P, that of the model's own one-step render
+  of its frame (training/selfprev.py);
 - references: VAE latents of both references, PETR encodings (pe.py formulas, vectorised here) of the Ref-Attn
   locations from the sample's matrices; with probability ref_dropout (0.2) a row skips Ref-Attn (ref_mask, 2e);
 - loss = MSE(UNet(x_t, t, ctx, ControlNet residuals), eps); AdamW, linear warm-up then cosine, clip 1.0.

@@ -646,6 +646,19 @@ def test_scale_equivariance_term():
     assert float(on.detach()) > float(base.detach())
 
 
+class _ZeroUnet(torch.nn.Module):      # predicts 0 (epsilon or v)
+    def forward(self, x, *a, **k):
+        return type("O", (), {"sample": torch.zeros_like(x)})()
+
+
+class _NoControlNet:
+    config = type("C", (), {"prev_noise_max": 400, "ref_dropout": 0.0, "prev_noise_level": 200,
+                            "prev_blur_sigma": 1.0})()
+
+    def __call__(self, *a, **k):
+        return None, None
+
+
 def test_x0_base_prev_diffuses_the_residual_against_the_previous_latent(vae_run, tmp_path):
     """--x0-base prev: the v target is that of x_0 - z_prev for the rows with a previous frame and of x_0 for the
     rows drawn as 'no previous frame'; the run trains, the export says x0_base prev, a resume with another base
@@ -656,15 +669,7 @@ def test_x0_base_prev_diffuses_the_residual_against_the_previous_latent(vae_run,
              cams=torch.zeros(B, dtype=torch.int64))
     abar = T.make_noise_scheduler().alphas_cumprod.to(torch.float32)
 
-    class Zero(torch.nn.Module):      # predicts 0: the loss is the target's mean square
-        def forward(self, x, *a, **k):
-            return type("O", (), {"sample": torch.zeros_like(x)})()
-
-    class NoCn:
-        config = type("C", (), {"prev_noise_max": 400, "ref_dropout": 0.0})()
-
-        def __call__(self, *a, **k):
-            return None, None
+    Zero, NoCn = _ZeroUnet, _NoControlNet      # predicts 0: the loss is the target's mean square
 
     g = torch.Generator()
     g.set_state(gen_state)
@@ -760,19 +765,6 @@ def test_prev_blur_override_reaches_the_data_and_the_package(vae_run, tmp_path, 
         with pytest.raises(SystemExit, match=f"--prev-blur-sigma {bad}"):
             diffusion(os.path.join(vae_run[0], "vae"), str(tmp_path / f"bad{bad}"), "--steps", "1",
                       "--prev-blur-sigma", bad)
-
-
-class _ZeroUnet(torch.nn.Module):      # predicts 0 (epsilon or v)
-    def forward(self, x, *a, **k):
-        return type("O", (), {"sample": torch.zeros_like(x)})()
-
-
-class _NoControlNet:
-    config = type("C", (), {"prev_noise_max": 400, "ref_dropout": 0.0, "prev_noise_level": 200,
-                            "prev_blur_sigma": 1.0})()
-
-    def __call__(self, *a, **k):
-        return None, None
 
 
 def test_one_step_x0_is_the_one_step_unipc_sample():

@@ -5,7 +5,7 @@ the model's own one-step render of the row's frame (the current weights, no grad
 engine's previous-frame path: decode, clamp, 8-bit, blur, encode. The row then teaches the model to correct its
 own output against the layout rather than to copy it. ``--self-prev-pose same`` renders the target's own pose
 (aligned with the target: only the correction is taught); ``other`` renders the same frame at another of the
-data's ego offsets (1.5 m / 3 m sideways, 8 deg), so that the own frame is displaced against the target as a
+data's ego offsets (1.5 m or 3 m sideways, 8 deg of yaw, or both), so that the own frame is displaced against the target as a
 previous frame is in the loop. Both renders start from the row's true previous frame: every offset of a frame
 shares it (the previous frame is recorded at the logged pose). The data holds no layout of the frame before the
 previous one, so the own frame cannot be the previous frame itself.
