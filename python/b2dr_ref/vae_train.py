@@ -115,15 +115,22 @@ def scale_equivariance(vae, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 
 
 def vae_loss(vae, x, gen: torch.Generator, kl_weight: float, weight: torch.Tensor = None, grad_weight: float = 0.0,
-             recon: str = "l1", se_weight: float = 0.0):
+             recon: str = "l1", se_weight: float = 0.0, decoder_only: bool = False):
     """(loss, plain per-pixel L1, KL). ``weight`` (B, 1, H, W) >= 1 scales the L1 per pixel (--object-weight);
     ``grad_weight`` adds that multiple of grad_l1 (--grad-weight); the loss is still divided by 3 H W, the logged
     L1 is the unweighted one. ``recon`` "l2": squared error per pixel instead of the absolute one (--recon-loss;
     the logged L1 stays the absolute error). ``se_weight`` adds that multiple of the half-size decode's squared
-    error per pixel value of the half-size image (scale_equivariance; --se-weight)."""
-    post = vae.encode(x).latent_dist
-    eps = torch.randn(post.mean.shape, generator=gen).to(x.device)
-    z = post.mean + post.std * eps
+    error per pixel value of the half-size image (scale_equivariance; --se-weight). ``decoder_only``: the encoder is
+    fixed (no gradient reaches it) and the decoder is given the posterior mean, the latent the diffusion stage is
+    trained on and samples towards (--decoder-only); the KL term is then a constant, reported, not added."""
+    if decoder_only:
+        with torch.no_grad():
+            post = vae.encode(x).latent_dist
+        z = post.mean
+    else:
+        post = vae.encode(x).latent_dist
+        eps = torch.randn(post.mean.shape, generator=gen).to(x.device)
+        z = post.mean + post.std * eps
     rec = vae.decode(z).sample
     per_pixel = float(np.prod(x.shape[1:]))
     err = (rec - x).abs()
@@ -136,7 +143,7 @@ def vae_loss(vae, x, gen: torch.Generator, kl_weight: float, weight: torch.Tenso
     if grad_weight:
         wl1 = wl1 + grad_weight * grad_l1(rec, x, weight).mean()
     kl = post.kl().mean()
-    loss = (wl1 + kl_weight * kl) / per_pixel
+    loss = (wl1 + (0.0 if decoder_only else kl_weight) * kl) / per_pixel
     if se_weight:
         loss = loss + se_weight * scale_equivariance(vae, z, x).mean()
     return loss, (l1 / per_pixel).detach(), kl.detach()
@@ -200,16 +207,19 @@ def centre_latents(vae, source, device, n: int = 256):
     return mu, sigma
 
 
-def save_vae(vae, source, out: str, device, centre: bool = True):
+def save_vae(vae, source, out: str, device, centre: bool = True, scaling_factor: float = None):
+    """Write OUT/vae. centre: a centred copy (centre_latents) with its scaling factor measured on the data;
+    scaling_factor given (a --decoder-only run): no centring and that factor, so the latent space is exactly the
+    initial VAE's and a denoiser trained on its latents decodes through this VAE unchanged."""
     was = vae.training
     vae.eval()
-    if centre:
+    if centre and scaling_factor is None:
         # a copy is centred and saved; the training weights stay as they are (resume is unaffected)
         import copy
 
         vae = copy.deepcopy(vae)
         centre_latents(vae, source, device)
-    sf = measure_scaling(vae, source, device)
+    sf = measure_scaling(vae, source, device) if scaling_factor is None else scaling_factor
     vae.register_to_config(scaling_factor=float(sf))
     vae.save_pretrained(os.path.join(out, "vae"), safe_serialization=True)
     vae.train(was)
@@ -235,9 +245,10 @@ def centre_command(argv):
 
 
 # the flags that define the objective: kept in the checkpoint, a resume must repeat them
-LOSS_SETTINGS = ("recon_loss", "object_weight", "marking_weight", "grad_weight", "kl_weight", "crop", "se_weight")
+LOSS_SETTINGS = ("recon_loss", "object_weight", "marking_weight", "grad_weight", "kl_weight", "crop", "se_weight",
+                 "decoder_only")
 # settings added later, with the value a run that predates them trained with
-LOSS_DEFAULTS = {"se_weight": 0.0}
+LOSS_DEFAULTS = {"se_weight": 0.0, "decoder_only": False}
 
 
 def train_vae(args):
@@ -257,8 +268,15 @@ def train_vae(args):
         diff = ", ".join(f"--{k.replace('_', '-')} {loss_settings[k]} (the run: {ck['loss'][k]})"
                          for k in LOSS_SETTINGS if ck["loss"][k] != loss_settings[k])
         raise SystemExit(f"--resume {args.out}: the loss settings differ from the run's: {diff}; pass the run's")
+    if args.decoder_only and not (args.init_from or ck):
+        raise SystemExit("--decoder-only trains the decoder of an existing VAE: give it with --init-from")
+    if args.decoder_only and args.se_weight:
+        raise SystemExit("--decoder-only with --se-weight: the scale-equivariance term shapes the encoder's latent, "
+                         "which --decoder-only keeps fixed")
     source = open_source(args.data, cfg["render_size"])
     vae = build_vae(cfg, args.seed).to(device).train()
+    # a --decoder-only run keeps the initial VAE's latent space: its scaling factor, no re-centring
+    keep_sf = ck.get("scaling_factor") if ck else None
     if args.init_from and not ck:
         # continue from an existing VAE folder (e.g. a committed package's vae/, centred or not: it is re-centred
         # whenever it is saved); the architecture must be the config's
@@ -267,7 +285,11 @@ def train_vae(args):
             raise SystemExit(f"--init-from {args.init_from}: its blocks differ from config {cfg['name']!r}")
         if init.config.latent_channels == cfg["vae"]["latent_channels"]:
             vae.load_state_dict(init.state_dict())
+            keep_sf = float(init.config.scaling_factor) if args.decoder_only else None
             print(f"vae: initialised from {args.init_from}", flush=True)
+        elif args.decoder_only:
+            raise SystemExit(f"--decoder-only --init-from {args.init_from}: its {init.config.latent_channels} latent "
+                             f"channels differ from config {cfg['name']!r}'s {cfg['vae']['latent_channels']}")
         else:
             # another latent width (a design with more latent channels): the body is taken, the tensors that touch
             # the latent (encoder.conv_out, quant_conv, post_quant_conv, decoder.conv_in) start fresh
@@ -276,7 +298,12 @@ def train_vae(args):
             vae.load_state_dict({k: v for k, v in init.state_dict().items() if k not in fresh}, strict=False)
             print(f"vae: body initialised from {args.init_from} ({init.config.latent_channels} -> "
                   f"{cfg['vae']['latent_channels']} latent channels; fresh: {', '.join(fresh)})", flush=True)
-    opt = torch.optim.AdamW(vae.parameters(), lr=args.lr, weight_decay=args.weight_decay)
+    if args.decoder_only:
+        # the encoder side (encoder, quant_conv) is frozen: only the decoder side has parameters to train
+        for mod in (vae.encoder, vae.quant_conv):
+            mod.requires_grad_(False)
+    params = [p for p in vae.parameters() if p.requires_grad]
+    opt = torch.optim.AdamW(params, lr=args.lr, weight_decay=args.weight_decay)
     total = ck["total_steps"] if ck else args.steps
     sched = torch.optim.lr_scheduler.LambdaLR(opt, lr_lambda(args.warmup, total))
     gen = torch.Generator().manual_seed(args.seed)
@@ -303,10 +330,10 @@ def train_vae(args):
             if args.crop:
                 x, w = random_crop(x, args.crop, gen, w) if w is not None else (random_crop(x, args.crop, gen), None)
             loss, l1, kl = vae_loss(vae, x, gen, args.kl_weight, w, args.grad_weight, args.recon_loss,
-                                    args.se_weight)
+                                    args.se_weight, args.decoder_only)
             opt.zero_grad(set_to_none=True)
             loss.backward()
-            torch.nn.utils.clip_grad_norm_(vae.parameters(), args.clip)
+            torch.nn.utils.clip_grad_norm_(params, args.clip)
             opt.step()
             sched.step()
             step += 1
@@ -317,10 +344,10 @@ def train_vae(args):
                 print(f"vae step {step} loss {losses[-1]:.4f} kl {float(kl):.1f}", flush=True)
             if step % args.ckpt_every == 0 or step == steps:
                 save_checkpoint(ck_path, dict(cfg=cfg, total_steps=total, step=step, vae=vae.state_dict(),
-                                              loss=loss_settings,
+                                              loss=loss_settings, scaling_factor=keep_sf,
                                               optimizer=opt.state_dict(), lr_scheduler=sched.state_dict(),
                                               generator=gen.get_state(), torch_rng=torch.get_rng_state()))
-                sf = save_vae(vae, source, args.out, device)
+                sf = save_vae(vae, source, args.out, device, scaling_factor=keep_sf)
                 print(f"vae step {step}: wrote {os.path.join(args.out, 'vae')} (scaling_factor {sf:.5f})", flush=True)
     finally:
         log.close()
@@ -353,6 +380,10 @@ def main(argv=None):
     p.add_argument("--se-weight", type=float, default=0.0,
                    help="weight of the scale-equivariance term: the half-size latent must decode to the half-size "
                         "image (smoother, easier-to-denoise latents; docs/training.md); 0 = off")
+    p.add_argument("--decoder-only", action="store_true",
+                   help="train the decoder of the --init-from VAE only, the encoder frozen: its latent space (and "
+                        "scaling factor) stay exactly the initial VAE's, so a denoiser trained on it keeps working "
+                        "with the new decoder")
     return train_vae(p.parse_args(argv))
 
 

@@ -539,6 +539,47 @@ def test_vae_object_weight_and_init_from(vae_run, tmp_path):
                 "--config", "nano", "--threads", "1", "--init-from", os.path.join(out, "vae")])
 
 
+def test_vae_decoder_only_keeps_the_latent_space(vae_run, tmp_path):
+    """--decoder-only: the encoder side (encoder, quant_conv) and the scaling factor come out exactly as the
+    --init-from VAE's (no gradient, no re-centring), so a denoiser trained on its latents stays valid; the decoder
+    trains (its loss falls on a fixed batch); a resume continues exactly and keeps the factor; no init, --se-weight
+    and a mismatched latent width are refused."""
+    from safetensors.torch import load_file
+
+    from b2dr_ref.train import load_vae
+
+    init = os.path.join(vae_run[0], "vae")
+    args = ["--data", "synthetic:4", "--batch", "2", "--lr", "2e-3", "--warmup", "1", "--fixed-batch",
+            "--ckpt-every", "1000", "--decoder-only", "--init-from", init] + COMMON
+    losses = V.main(args + ["--out", str(tmp_path / "a"), "--steps", "8"])
+    assert np.mean(losses[-2:]) < 0.9 * np.mean(losses[:2]), losses
+    before = load_file(os.path.join(init, "diffusion_pytorch_model.safetensors"))
+    after = load_file(str(tmp_path / "a" / "vae" / "diffusion_pytorch_model.safetensors"))
+    enc = [k for k in before if k.startswith(("encoder.", "quant_conv."))]
+    dec = [k for k in before if k.startswith(("decoder.", "post_quant_conv."))]
+    assert enc and dec and len(enc) + len(dec) == len(before)
+    for k in enc:
+        torch.testing.assert_close(after[k], before[k], rtol=0, atol=0)
+    assert any(not torch.equal(after[k], before[k]) for k in dec)
+    assert load_vae(str(tmp_path / "a" / "vae")).config.scaling_factor == load_vae(init).config.scaling_factor
+    # resume: the same losses as one run, the factor kept through the checkpoint
+    first = V.main(args + ["--out", str(tmp_path / "b"), "--steps", "8", "--stop-after", "3"])
+    rest = V.main(args + ["--out", str(tmp_path / "b"), "--steps", "8", "--resume"])
+    assert first + rest == pytest.approx(losses, rel=1e-6, abs=1e-7)
+    assert load_vae(str(tmp_path / "b" / "vae")).config.scaling_factor == load_vae(init).config.scaling_factor
+    with pytest.raises(SystemExit, match=r"--decoder-only False \(the run: True\)"):
+        V.main([a for a in args if a != "--decoder-only"] + ["--out", str(tmp_path / "b"), "--steps", "9",
+                                                           "--resume"])
+    base = ["--data", "synthetic:4", "--steps", "1", "--batch", "2", "--decoder-only"] + COMMON
+    with pytest.raises(SystemExit, match="give it with --init-from"):
+        V.main(base + ["--out", str(tmp_path / "c")])
+    with pytest.raises(SystemExit, match="--se-weight"):
+        V.main(base + ["--out", str(tmp_path / "d"), "--init-from", init, "--se-weight", "1"])
+    with pytest.raises(SystemExit, match="latent channels differ"):
+        V.main(base[:-len(COMMON)] + ["--config", "test-z8", "--threads", "1", "--out", str(tmp_path / "e"),
+                                      "--init-from", init])
+
+
 def test_more_latent_channels_train_export_and_init(vae_run, tmp_path):
     """The design variant with 8 latent channels (nano.TEST_Z8): the VAE body starts from a 4-channel VAE (the
     latent-facing tensors fresh), the diffusion stage trains on its latents, the package exports and loads with
