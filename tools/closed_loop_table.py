@@ -4,11 +4,17 @@ image-reading planner (models/e2e-planner, python/b2dr_ref/e2e_planner.py) under
 synthetic scenarios, R-CLS (IDM agents) and CLS-NR (replayed agents), plus the box-reading planners for
 reference. Every number comes from `b2dr run`; this script only runs it and joins the tables.
 
-    ~/.cache/b2dr-venv/bin/python tools/closed_loop_table.py --out out/closed_loop [--scenario LIST]
+    ~/.cache/b2dr-venv/bin/python tools/closed_loop_table.py --out out/closed_loop [--scenario LIST | --seeds 100-102]
         [--model PACKAGE] [--resume]
 
 Writes OUT/table.md and OUT/table.json; each run's own folders (comparison.md, per-scenario metrics, mosaics,
 diverged/ dumps) stay under OUT/<planner>-<agents>/. Run it with the Python that has torch (the planner's).
+
+One collision moves a six-scenario mean by ~0.17, so a table alone cannot say whether one renderer drives better
+than another. With several renderers the table adds, per agents setting, the paired difference of b2dr's score
+against each other renderer over the same scenarios: its mean, a bootstrap 95 % interval (resampling scenarios)
+and the wins / losses / ties; `--seeds` widens the set (the six layouts at each seed) until the interval can
+exclude 0.
 """
 import argparse
 import json
@@ -17,6 +23,8 @@ import shlex
 import subprocess
 import sys
 import time
+
+import numpy as np
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 LAYOUTS = ["town", "cross", "tjunction", "straight", "curve", "multilane"]
@@ -44,6 +52,52 @@ def b2dr(args, log):
     print(f"  {time.time() - t0:.0f} s", file=sys.stderr, flush=True)
 
 
+def seed_scenarios(spec):
+    """`--seeds` "A-B" or "A,B,...": the six layouts at each seed, dense traffic, in seed-major order."""
+    try:
+        if "-" in spec:
+            a, b = (int(x) for x in spec.split("-"))
+            seeds = list(range(a, b + 1))
+        else:
+            seeds = [int(x) for x in spec.split(",")]
+    except ValueError:
+        raise SystemExit(f"--seeds {spec!r}: expected A-B or a comma-separated list of integers")
+    if not seeds:
+        raise SystemExit(f"--seeds {spec!r}: no seed (A-B needs A <= B)")
+    return ",".join(f"builtin:{lay}:{s}:60" for s in seeds for lay in LAYOUTS)
+
+
+def paired_difference(a, b, resamples=10000, seed=0):
+    """Paired comparison of two renderers' per-scenario scores (same scenarios, same order): the mean of a - b,
+    its percentile-bootstrap 95 % interval over scenarios (resampled with replacement; fixed seed, so a table
+    is reproducible), and the wins / losses / ties of a (|d| <= 1e-9 a tie)."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if a.ndim != 1 or a.shape != b.shape or len(a) == 0:
+        raise ValueError("paired_difference: two equal-length, non-empty score lists")
+    d = a - b
+    rng = np.random.default_rng(seed)
+    means = d[rng.integers(0, len(d), size=(resamples, len(d)))].mean(axis=1)
+    lo, hi = np.percentile(means, [2.5, 97.5])
+    return {"n": len(d), "mean": float(d.mean()), "lo": float(lo), "hi": float(hi),
+            "wins": int((d > 1e-9).sum()), "losses": int((d < -1e-9).sum()), "ties": int((abs(d) <= 1e-9).sum())}
+
+
+def verdict(p):
+    """What a paired interval says about "a above b"."""
+    if p["lo"] > 0:
+        return "above (interval excludes 0)"
+    if p["hi"] < 0:
+        return "below (interval excludes 0)"
+    return "not separable (interval contains 0)"
+
+
+def paired_rows(scores, first="b2dr"):
+    """scores: renderer -> per-scenario scores. The paired comparison of `first` against every other renderer."""
+    if first not in scores:
+        return []
+    return [dict(renderer=r, **paired_difference(scores[first], s)) for r, s in scores.items() if r != first]
+
+
 def mean_metrics(metrics_json):
     sc = metrics_json["scenarios"]
     return {k: sum(s["metrics"][k] for s in sc) / max(1, len(sc)) for k in METRICS}
@@ -52,12 +106,17 @@ def mean_metrics(metrics_json):
 def main():
     p = argparse.ArgumentParser()
     p.add_argument("--out", required=True)
-    p.add_argument("--scenario", default=DEFAULT_SCENARIOS)
+    p.add_argument("--scenario", default=None, help=f"scenario list (default: {DEFAULT_SCENARIOS})")
+    p.add_argument("--seeds", default=None,
+                   help="instead of --scenario: the six layouts, dense, at each seed of A-B or A,B,... (held-out: >= 100)")
     p.add_argument("--planner-model", default=os.path.join(REPO, "models", "e2e-planner"))
     p.add_argument("--renderers", default=",".join(RENDERERS))
     p.add_argument("--model", help="model package of the b2dr renderers (b2dr run --model; default: its built-in)")
     p.add_argument("--resume", action="store_true", help="skip scenarios already done (b2dr run --resume)")
     a = p.parse_args()
+    if a.scenario and a.seeds:
+        sys.exit("--scenario and --seeds: give one of them")
+    a.scenario = seed_scenarios(a.seeds) if a.seeds else (a.scenario or DEFAULT_SCENARIOS)
     os.makedirs(a.out, exist_ok=True)
     log = os.path.join(a.out, "runs.log")
     e2e = (f"cmd:cd {shlex.quote(os.path.join(REPO, 'python'))} && exec {shlex.quote(sys.executable)} "
@@ -66,7 +125,7 @@ def main():
     model = []
     if a.model:
         model = ["--model", a.model if a.model.startswith("builtin:") else os.path.abspath(a.model)]
-    rows = []
+    rows, paired = [], {}
     for agents, kind in [("idm", "R-CLS"), ("replay", "CLS-NR")]:
         out = os.path.join(a.out, f"e2e-{agents}")
         b2dr(common + model + ["--renderer", a.renderers, "--planner", e2e, "--cameras", "CAM_FRONT",
@@ -78,6 +137,13 @@ def main():
                 rows.append({"planner": "e2e (images)", "renderer": r["renderer"], "kind": kind, "cls": r["cls"],
                              "metrics": mean_metrics(m), "failures": r["failures"],
                              "scenarios": len(m["scenarios"]), "diverged": comp.get("diverged", [])})
+            per = {}
+            for r in comp["rows"]:
+                sc = json.load(open(os.path.join(out, r["renderer"], "metrics.json")))["scenarios"]
+                per[r["renderer"]] = [s["score"] for s in sc]
+                if [s["scenario"] for s in sc] != [s["scenario"] for s in m["scenarios"]]:
+                    sys.exit(f"{out}: the renderers' scenario lists differ; cannot pair them")
+            paired[kind] = paired_rows(per)
         else:
             m = json.load(open(os.path.join(out, "metrics.json")))
             rows.append({"planner": "e2e (images)", "renderer": a.renderers, "kind": kind, "cls": m["cls"],
@@ -90,7 +156,7 @@ def main():
             rows.append({"planner": f"{pl} (boxes)", "renderer": "none", "kind": kind, "cls": m["cls"],
                          "metrics": mean_metrics(m), "failures": sum(s["failure"] is not None for s in m["scenarios"]),
                          "scenarios": len(m["scenarios"]), "diverged": []})
-    json.dump({"scenario": a.scenario, "rows": rows}, open(os.path.join(a.out, "table.json"), "w"), indent=1)
+    json.dump({"scenario": a.scenario, "rows": rows, "paired": paired}, open(os.path.join(a.out, "table.json"), "w"), indent=1)
     n = rows[0]["scenarios"]
     keys = []
     for r in rows:
@@ -111,6 +177,13 @@ def main():
             md += ["", f"Scenarios where the renderer changed the e2e planner's score ({kind}; "
                    f"{', '.join(a.renderers.split(','))}):", ""]
             md += [f"- {d['scenario']}: " + ", ".join(f"{s:.3f}" for s in d["scores"]) for d in div]
+    for kind, prs in paired.items():
+        if prs:
+            md += ["", f"Paired per-scenario difference, b2dr minus each renderer ({kind}, {prs[0]['n']} scenarios; "
+                   "bootstrap 95 % interval over scenarios):", "",
+                   "| against | mean difference | 95 % interval | b2dr wins / losses / ties | b2dr is |", "|---|---|---|---|---|"]
+            md += [f"| {q['renderer']} | {q['mean']:+.4f} | [{q['lo']:+.4f}, {q['hi']:+.4f}] | "
+                   f"{q['wins']} / {q['losses']} / {q['ties']} | {verdict(q)} |" for q in prs]
     open(os.path.join(a.out, "table.md"), "w").write("\n".join(md) + "\n")
     print("\n".join(md))
 
