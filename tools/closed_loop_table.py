@@ -180,7 +180,8 @@ def main():
     for kind, prs in paired.items():
         if prs:
             md += ["", f"Paired per-scenario difference, b2dr minus each renderer ({kind}, {prs[0]['n']} scenarios; "
-                   "bootstrap 95 % interval over scenarios):", "",
+                   "bootstrap 95 % interval over scenarios; with few scenarios a percentile bootstrap's interval is too "
+                   "narrow: widen the set with --seeds before reading a verdict):", "",
                    "| against | mean difference | 95 % interval | b2dr wins / losses / ties | b2dr is |", "|---|---|---|---|---|"]
             md += [f"| {q['renderer']} | {q['mean']:+.4f} | [{q['lo']:+.4f}, {q['hi']:+.4f}] | "
                    f"{q['wins']} / {q['losses']} / {q['ties']} | {verdict(q)} |" for q in prs]
