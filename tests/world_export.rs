@@ -26,7 +26,15 @@ fn reference_distances_follow_the_hierarchical_bins() {
     ] {
         let sc = load_all(spec).unwrap().remove(0);
         let frames = candidate_frames(&sc);
-        let plans = plan_samples(&sc, &frames, &sc.rig.cameras, 1000, &[Pose2::default()], 7);
+        let plans = plan_samples(
+            &sc,
+            &frames,
+            &sc.rig.cameras,
+            1000,
+            &[Pose2::default()],
+            7,
+            false,
+        );
         assert!(plans.len() > 100, "{spec}: {} samples", plans.len());
         for p in &plans {
             assert_eq!(
@@ -116,6 +124,7 @@ fn export_round_trips_through_safetensors() {
         cameras: vec!["CAM_FRONT".into(), "CAM_BACK_LEFT".into()],
         shard_samples: 4,
         progress: false,
+        prev_chain: false,
     })
     .unwrap();
     assert_eq!((s.samples, s.shards), (6, 2));
@@ -167,5 +176,114 @@ fn export_round_trips_through_safetensors() {
     assert!((lateral - 1.5).abs() < 1e-9, "{lateral}");
     let prev = f64s(tensor(&st, "prev_ego2global").2);
     assert_eq!(&prev[0..16], &prev[32..48]);
+    // Without --prev-chain the chain tensors are absent.
+    assert!(st.tensor("prev2").is_err() && st.tensor("prev_masks_packed").is_err());
+    assert_eq!(index["prev_chain"], false);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `--prev-chain`: every sample carries its previous frame's own previous image (the log's, 0.5 s before it) and
+/// the previous frame's layout at its logged pose and step, for displaced samples too.
+#[test]
+fn prev_chain_exports_the_previous_frames_inputs() {
+    let dir = std::env::temp_dir().join(format!("b2dr_world_export_chain_{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let (h, w) = (24usize, 40usize);
+    let s = export_training(&ExportOptions {
+        scenarios: vec!["builtin:tjunction:5".into()],
+        out: dir.clone(),
+        height: h,
+        width: w,
+        samples_per_scenario: 2,
+        offsets: vec![Pose2::default(), Pose2::new(0.0, -1.5, 0.0)],
+        seed: 1,
+        cameras: vec!["CAM_FRONT_LEFT".into(), "CAM_FRONT".into()],
+        shard_samples: 64,
+        progress: false,
+        prev_chain: true,
+    })
+    .unwrap();
+    assert_eq!((s.samples, s.shards), (4, 1));
+    let index: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(dir.join("index.json")).unwrap()).unwrap();
+    assert_eq!(index["prev_chain"], true);
+    let bytes = std::fs::read(dir.join("shard_00000.safetensors")).unwrap();
+    let st = SafeTensors::deserialize(&bytes).unwrap();
+    assert_eq!(tensor(&st, "prev2").0, vec![4, 2, 3, h, w]);
+    let (mshape, mdt, pmasks) = tensor(&st, "prev_masks_packed");
+    assert_eq!((mshape, mdt), (vec![4, 2, h, w], safetensors::Dtype::U16));
+    let p2 = tensor(&st, "prev2").2;
+    let prev_e2g = f64s(tensor(&st, "prev_ego2global").2);
+    let sc = load_all("builtin:tjunction:5").unwrap().remove(0);
+    let frames = candidate_frames(&sc);
+    let store = ImageStore::new(&sc, None);
+    let layer = b2dr::projection::scene::map_layer(&sc.map);
+    let n = w * h;
+    for (row, sample) in index["samples"].as_array().unwrap().iter().enumerate() {
+        let (step, prev_step) = (
+            sample["step"].as_u64().unwrap(),
+            sample["prev_step"].as_u64().unwrap(),
+        );
+        let prev2_step = sample["prev2_step"].as_u64().unwrap() as usize;
+        assert_eq!(
+            (step - prev_step, prev_step as usize - prev2_step),
+            (5, 5),
+            "row {row}"
+        );
+        for (ci, cam_name) in ["CAM_FRONT_LEFT", "CAM_FRONT"].iter().enumerate() {
+            let off = (row * 2 + ci) * 3 * n;
+            let img = frames[prev2_step].image(cam_name).unwrap();
+            let px = store.image(img, w, h).unwrap();
+            for c in 0..3 {
+                for p in 0..n {
+                    assert_eq!(
+                        p2[off + c * n + p],
+                        px.data[3 * p + c],
+                        "row {row} {cam_name}"
+                    );
+                }
+            }
+            // the previous frame's layout at the pose the file holds for it (the log's)
+            let pimg = frames[prev_step as usize].image(cam_name).unwrap();
+            let pe = &prev_e2g[(row * 2 + ci) * 16..(row * 2 + ci + 1) * 16];
+            let want = pimg.ego2global.transpose().to_cols_array();
+            assert_eq!(pe, &want[..], "row {row} {cam_name}: prev pose");
+            let cam = sc.rig.camera(cam_name).unwrap().clone();
+            let m = layout_masks(
+                &sc,
+                &layer,
+                &[cam],
+                &pimg.ego2global,
+                prev_step as usize,
+                w,
+                h,
+            )
+            .unwrap();
+            let moff = (row * 2 + ci) * n * 2;
+            let mut drivable = 0;
+            for p in 0..n {
+                let b = moff + 2 * p;
+                let packed = u16::from_le_bytes([pmasks[b], pmasks[b + 1]]);
+                for ch in 0..15 {
+                    assert_eq!(
+                        (packed >> ch) & 1,
+                        m[0].channel(ch)[p] as u16,
+                        "row {row} {cam_name} ch {ch}"
+                    );
+                }
+                drivable += (packed >> 10) & 1;
+            }
+            if ci == 1 {
+                assert!(
+                    drivable > 0,
+                    "row {row}: the front camera's previous layout shows no road"
+                );
+            }
+        }
+    }
+    // the displaced row shares its previous frame's inputs with the logged row of the same target
+    let m = tensor(&st, "prev_masks_packed").2;
+    let one = 2 * n * 2;
+    assert_eq!(&m[0..one], &m[one..2 * one]);
     std::fs::remove_dir_all(&dir).ok();
 }

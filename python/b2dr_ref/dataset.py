@@ -17,6 +17,11 @@ numpy + safetensors only; torch is optional (``to_torch``). One sample is a dict
     ref_distance        float32 (C, 2)            signed distance along the logged heading (m)
     ref_step            int32   (C, 2)
     step, prev_step     int
+    prev2               uint8   (C, 3, H, W)      only in a --prev-chain export: the log's image 0.5 s before
+                                                  ``prev`` (the previous frame's own previous frame)
+    prev_masks          uint8   (C, 15, H, W)     only in a --prev-chain export: the previous frame's layout at
+                                                  its logged pose and step
+    prev2_step          int                       only in a --prev-chain export
     offset              float64 (3,)              (dx m, dy m, dyaw degrees) in the ego frame
     perturbed           bool
     scenario            str
@@ -33,6 +38,7 @@ from safetensors import safe_open
 
 FORMAT = "b2dr-training"
 VERSION = 1
+_CHAIN = ["prev2", "prev_masks_packed", "prev2_step"]     # --prev-chain exports only
 _PER_ROW = [
     "target",
     "prev",
@@ -75,6 +81,7 @@ class TrainingSet:
         self.height: int = int(self.index["height"])
         self.width: int = int(self.index["width"])
         self.samples: List[Dict[str, Any]] = self.index["samples"]
+        self.prev_chain: bool = bool(self.index.get("prev_chain", False))
         self._open: Dict[int, Any] = {}
 
     def __len__(self) -> int:
@@ -91,7 +98,8 @@ class TrainingSet:
         s = self.samples[i]
         f = self._shard(int(s["shard"]))
         r = int(s["row"])
-        return {k: f.get_slice(k)[r : r + 1][0] for k in _PER_ROW}
+        keys = _PER_ROW + (_CHAIN if self.prev_chain else [])
+        return {k: f.get_slice(k)[r : r + 1][0] for k in keys}
 
     def __getitem__(self, i: int) -> Dict[str, Any]:
         if not 0 <= i < len(self):
@@ -100,7 +108,12 @@ class TrainingSet:
         s = self.samples[i]
         e2g_inv = np.linalg.inv(t["ego2global"])  # (C, 4, 4)
         cam2cur_ref = e2g_inv[:, None] @ t["ref_ego2global"] @ t["cam2ego"][:, None]
+        chain = {}
+        if self.prev_chain:
+            chain = {"prev2": t["prev2"], "prev_masks": unpack_masks(t["prev_masks_packed"], len(self.mask_channels)),
+                     "prev2_step": int(t["prev2_step"])}
         return {
+            **chain,
             "target": t["target"],
             "prev": t["prev"],
             "ref": t["ref"],
@@ -135,7 +148,7 @@ def to_torch(sample: Dict[str, Any]):
     for k, v in sample.items():
         if isinstance(v, np.ndarray):
             t = torch.from_numpy(np.ascontiguousarray(v))
-            if k in ("target", "prev", "ref"):
+            if k in ("target", "prev", "ref", "prev2"):
                 t = t.float() / 255.0
             out[k] = t
         else:

@@ -12,7 +12,8 @@ Per step (batch of B camera samples):
 - previous frame: blur sigma 1 -> VAE mean x scaling -> z = sqrt(abar_n) z_prev + sqrt(1 - abar_n) eps_p with
   n ~ U{0..N_max}; with probability p_noprev (0.1) z = 0 and n = 999 (the engine's "no previous frame");
 - with --self-prev P: a row's previous latent is, with probability P, that of the model's own one-step render
-  of its frame (training/selfprev.py);
+  of its frame (training/selfprev.py); with --self-prev-pose chain, of its previous frame rendered from the frame
+  before it (data exported with --prev-chain);
 - references: VAE latents of both references, PETR encodings (pe.py formulas, vectorised here) of the Ref-Attn
   locations from the sample's matrices; with probability ref_dropout (0.2) a row skips Ref-Attn (ref_mask, 2e);
 - loss = MSE(UNet(x_t, t, ctx, ControlNet residuals), eps); AdamW, linear warm-up then cosine, clip 1.0.
@@ -150,11 +151,16 @@ class Batcher:
     """Turns sample indices into model inputs; caches the frozen-VAE latents and the PE per sample index (they are
     deterministic), up to ``cache`` samples. With ``latents`` = (path, key) the VAE latents (the costly part: four
     encodes per sample) also live in that file between runs: loaded here when its key matches, written by
-    ``save_latents`` (at each checkpoint), so a resumed run does not encode the data again."""
+    ``save_latents`` (at each checkpoint), so a resumed run does not encode the data again. ``chain`` (a
+    --prev-chain export; train --self-prev-pose chain): also the blurred latent of each sample's ``prev2`` and its
+    ``prev_masks``; the batch then holds ``z_prev2`` and ``masks_prev``."""
 
     def __init__(self, source, vae, controlnet: B2DRControlNetModel, device, cache: int = 100000,
-                 latents: Optional[Tuple[str, str]] = None):
+                 latents: Optional[Tuple[str, str]] = None, chain: bool = False):
         self.source, self.vae, self.device = source, vae, device
+        self.chain = chain
+        if chain and not getattr(source, "prev_chain", False):
+            raise ValueError("chain: the data is not a --prev-chain export (b2dr export-training --prev-chain)")
         cfg = controlnet.config
         self.pe_cfg = PeConfig.from_controlnet_config(cfg)
         self.render_hw = tuple(source.render_size)
@@ -165,15 +171,17 @@ class Batcher:
         self.cache_max = cache
         self.cache: Dict[int, Tuple] = {}
         self.latents = latents
-        self.disk: Dict[int, Tuple] = {}        # index -> (x0, z_prev, z_refs) from / for the latents file
+        # index -> (x0, z_prev, z_refs[, z_prev2]) from / for the latents file
+        self.disk: Dict[int, Tuple] = {}
         self.disk_saved = 0
         if latents and os.path.exists(latents[0]):
             d = torch.load(latents[0], weights_only=True)
-            if d.get("key") != latents[1]:
+            if d.get("key") != latents[1] or (chain and "z_prev2" not in d):
                 print(f"{latents[0]}: made from other data or another VAE; encoding again", flush=True)
             else:
                 for n, i in enumerate(d["index"].tolist()):
-                    self.disk[i] = (d["x0"][n], d["z_prev"][n], d["z_refs"][n])
+                    self.disk[i] = (d["x0"][n], d["z_prev"][n], d["z_refs"][n]) + \
+                        ((d["z_prev2"][n],) if chain else ())
                 self.disk_saved = len(self.disk)
                 print(f"{latents[0]}: the latents of {len(self.disk)} samples", flush=True)
 
@@ -199,6 +207,8 @@ class Batcher:
         d = dict(key=self.latents[1], index=torch.tensor(idx, dtype=torch.int64),
                  x0=torch.stack([self.disk[i][0] for i in idx]), z_prev=torch.stack([self.disk[i][1] for i in idx]),
                  z_refs=torch.stack([self.disk[i][2] for i in idx]))
+        if self.chain:
+            d["z_prev2"] = torch.stack([self.disk[i][3] for i in idx])
         save_checkpoint(self.latents[0], d)
         self.disk_saved = len(idx)
 
@@ -226,15 +236,17 @@ class Batcher:
                 x0 = self._encode(np.stack([s.target for s in es]), False)
                 zp = self._encode(np.stack([s.prev for s in es]), True)
                 zr = self._encode(np.concatenate([s.refs for s in es]), False).reshape(len(es), 2, *x0.shape[-3:])
+                zp2 = self._encode(np.stack([s.prev2 for s in es]), True) if self.chain else None
                 for m, (i, _) in enumerate(new):
-                    lat[i] = (x0[m], zp[m], zr[m])
+                    lat[i] = (x0[m], zp[m], zr[m]) + ((zp2[m],) if self.chain else ())
                     if self.latents:
                         self.disk[i] = lat[i]
             for i, s in zip(todo, ss):
                 pc, pr = sample_pe(s, self.pe_cfg, self.sizes, self.render_hw)
-                local[i] = (*lat[i], pack_masks(s.masks),
+                chain = (lat[i][3], pack_masks(s.prev_masks)) if self.chain else None
+                local[i] = (*lat[i][:3], pack_masks(s.masks),
                             self.cam_index[s.camera], [torch.from_numpy(a) for a in pc],
-                            [torch.from_numpy(a) for a in pr])
+                            [torch.from_numpy(a) for a in pr], chain)
                 if len(self.cache) < self.cache_max:
                     self.cache[i] = local[i]
         return [self.cache[i] if i in self.cache else local[i] for i in idx]
@@ -248,6 +260,9 @@ class Batcher:
         extra = {}
         if other is not None:
             extra["masks_other"] = torch.stack([unpack_masks(it[3]) for it in self._prepare(other)]).float().to(dev)
+        if self.chain:
+            extra["z_prev2"] = torch.stack([it[7][0] for it in items]).to(dev)
+            extra["masks_prev"] = torch.stack([unpack_masks(it[7][1]) for it in items]).float().to(dev)
         return dict(extra, x0=torch.stack([it[0] for it in items]).to(dev), z_prev=torch.stack([it[1] for it in items]).to(dev),
                     ref_latents=torch.stack([it[2] for it in items]).to(dev),
                     masks=torch.stack([unpack_masks(it[3]) for it in items]).float().to(dev),
@@ -439,7 +454,14 @@ def train(args):
     if not args.no_latents_file:
         latents = (os.path.join(args.out, LATENTS_FILE),
                    latent_cache_key(args.data, vae_path, float(controlnet.config.prev_blur_sigma)))
-    batcher = Batcher(source, vae, controlnet, device, cache=args.cache, latents=latents)
+    if args.self_prev_pose == "chain":
+        if args.self_prev <= 0:
+            raise SystemExit("--self-prev-pose chain: give --self-prev P > 0")
+        if not getattr(source, "prev_chain", False):
+            raise SystemExit(f"--self-prev-pose chain: {args.data} is not an export with the previous frame's "
+                             "inputs (b2dr export-training --prev-chain)")
+    batcher = Batcher(source, vae, controlnet, device, cache=args.cache, latents=latents,
+                      chain=args.self_prev_pose == "chain")
     prediction = ck.get("prediction", "epsilon") if ck else args.prediction
     if ck and prediction != args.prediction:
         raise SystemExit(f"--resume: the run predicts {prediction}, not --prediction {args.prediction}")
@@ -690,10 +712,12 @@ def main(argv=None):
                    help="probability that a row's previous frame is the model's own one-step render of its frame "
                         "(decoded, blurred, encoded again) instead of the true one: it learns to correct its own "
                         "output, as the closed loop needs (training/selfprev.py; 0 = off)")
-    p.add_argument("--self-prev-pose", default="same", choices=("same", "other"),
+    p.add_argument("--self-prev-pose", default="same", choices=("same", "other", "chain"),
                    help="the pose of --self-prev's own render: the row's own (same), or another ego offset of the "
                         "same frame (other: the render is displaced against the target, as a previous frame is; "
-                        "needs data exported with several --offsets)")
+                        "needs data exported with several --offsets), or the previous frame itself rendered from "
+                        "the frame before it (chain: the closed loop's input one step earlier; needs data "
+                        "exported with --prev-chain)")
     p.add_argument("--p-noprev", type=float, default=0.1, help="probability of 'no previous frame' (z = 0, n = 999)")
     p.add_argument("--cache", type=int, default=100000, help="samples whose latents + PE are kept in memory")
     p.add_argument("--precache", action="store_true",

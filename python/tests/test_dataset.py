@@ -119,3 +119,37 @@ def test_self_prev_pose_partners_on_an_export(export_dir):
             assert rows[g]["offset"] != rows[f]["offset"]
             np.testing.assert_array_equal(src[i].prev, src[j].prev)
             assert not np.array_equal(src[i].masks, src[j].masks)
+
+
+def test_prev_chain_export_holds_the_previous_frames_inputs(export_dir, tmp_path):
+    """``--prev-chain``: each sample also holds ``prev2`` (the log's image 0.5 s before its previous frame) and
+    ``prev_masks`` (the previous frame's layout). Where the export drew the previous frame itself as a target (same
+    scenario, target step = this prev_step, logged pose), those equal that sample's own ``prev`` and ``masks``,
+    which the export computes through the target path. A plain export has neither."""
+    exe = _binary()
+    assert exe is not None       # export_dir skipped otherwise
+    out = str(tmp_path / "chain")
+    subprocess.run([exe, "export-training", "--scenario", "builtin:straight:1", "--out", out, "--size", "24x40",
+                    "--samples-per-scenario", "40", "--cameras", "CAM_FRONT", "--seed", "3", "--prev-chain",
+                    "--quiet"], check=True)
+    ds = TrainingSet(out)
+    assert ds.prev_chain and not TrainingSet(export_dir).prev_chain
+    assert "prev2" not in TrainingSet(export_dir)[0]
+    by_step = {}
+    samples = [ds[i] for i in range(len(ds))]
+    for s in samples:
+        assert s["prev2"].shape == (1, 3, 24, 40) and s["prev2"].dtype == np.uint8
+        assert s["prev_masks"].shape == (1, 15, 24, 40) and set(np.unique(s["prev_masks"])) <= {0, 1}
+        assert s["prev2_step"] == s["prev_step"] - 5 and s["prev_step"] == s["step"] - 5
+        assert not np.array_equal(s["prev2"], s["prev"])
+        by_step[s["step"]] = s
+    pairs = 0
+    for s in samples:
+        p = by_step.get(s["prev_step"])
+        if p is None:
+            continue
+        pairs += 1
+        np.testing.assert_array_equal(s["prev_masks"], p["masks"])
+        np.testing.assert_array_equal(s["prev2"], p["prev"])
+        np.testing.assert_array_equal(s["prev_ego2global"], p["ego2global"])
+    assert pairs >= 3, f"only {pairs} samples whose previous frame is a target too"

@@ -939,3 +939,89 @@ def test_self_prev_pose_other_renders_the_partners_layout(vae_run, tmp_path):
         diffusion(vae_dir, str(tmp_path / "a"), "--steps", "1", "--self-prev", "0.5", "--self-prev-pose", "other")
     with pytest.raises(SystemExit, match="give --self-prev"):
         diffusion(vae_dir, str(tmp_path / "b"), "--steps", "1", "--self-prev-pose", "other")
+
+
+def _chain_export(tmp_path):
+    """A tiny --prev-chain export (b2dr binary of this checkout) at the test config's size; None without a binary."""
+    import subprocess
+
+    repo = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    exe = next((p for p in (os.path.join(repo, "target", k, "b2dr") for k in ("release", "debug"))
+                if os.path.isfile(p) and os.access(p, os.X_OK)), None)
+    if exe is None:
+        return None
+    out = str(tmp_path / "chain")
+    h, w = nano.TEST["render_size"]
+    subprocess.run([exe, "export-training", "--scenario", "builtin:straight:1", "--out", out, "--size", f"{h}x{w}",
+                    "--samples-per-scenario", "2", "--cameras", "CAM_FRONT", "--seed", "2", "--prev-chain",
+                    "--quiet"], check=True)
+    return out
+
+
+def test_self_prev_pose_chain_renders_the_previous_frame(vae_run, tmp_path):
+    """--self-prev-pose chain: the own render takes the previous frame's layout (masks_prev) and starts from the frame
+    before it (z_prev2), not the row's masks and previous latent; the Batcher of a --prev-chain export gives those
+    (z_prev2 = the blurred encode of prev2, as z_prev is of prev); the CLI refuses chain on data without them and
+    without --self-prev, and trains with it on a --prev-chain export."""
+    from b2dr_ref.training import selfprev as S
+
+    class MaskCn:       # the layout decides the output: residual = mean of the first mask channel per row
+        config = _NoControlNet.config
+
+        def __call__(self, x, t, ctx, masks, z, n, refs=None, ref_mask=None):
+            return [masks[:, :1].mean((2, 3), keepdim=True).expand_as(x)], None
+
+    class Echo(torch.nn.Module):
+        def forward(self, x, t, ctx, down_block_additional_residuals=None, mid_block_additional_residual=None):
+            return type("O", (), {"sample": down_block_additional_residuals[0]})()
+
+    vae = T.load_vae(os.path.join(vae_run[0], "vae"))
+    lc = vae.config.latent_channels
+    B = 2
+    g = torch.Generator().manual_seed(6)
+    b = dict(z_prev=torch.randn(B, lc, 7, 13, generator=g), z_prev2=torch.randn(B, lc, 7, 13, generator=g),
+             x0=torch.zeros(B, lc, 7, 13), masks=torch.zeros(B, 15, 56, 104), masks_prev=torch.ones(B, 15, 56, 104))
+    s = S.draw_self(b, g, 1.0)
+    rows = torch.tensor([True, False])
+    abar = T.make_noise_scheduler().alphas_cumprod.to(torch.float32)
+    ctx = torch.zeros(B, 77, 8)
+    got = S.own_previous(Echo(), MaskCn(), vae, ctx, b, s, rows, abar, "v_prediction", "prev")
+    with torch.no_grad():
+        x0 = abar[999].sqrt() * s["x_T"][:1] - (1 - abar[999]).sqrt() + b["z_prev2"][:1]
+        want = S.previous_frame_latent(vae, x0, 1.0)
+    torch.testing.assert_close(got[:1], want)
+    assert torch.equal(got[1], b["z_prev"][1])            # a row not drawn keeps its true previous frame
+    plain = {k: v for k, v in b.items() if k not in ("masks_prev", "z_prev2")}
+    assert not torch.allclose(S.own_previous(Echo(), MaskCn(), vae, ctx, plain, s, rows, abar, "v_prediction",
+                                             "prev")[:1], got[:1])
+
+    vae_dir = os.path.join(vae_run[0], "vae")
+    with pytest.raises(SystemExit, match="--prev-chain"):
+        diffusion(vae_dir, str(tmp_path / "a"), "--steps", "1", "--self-prev", "0.5", "--self-prev-pose", "chain")
+    with pytest.raises(SystemExit, match="give --self-prev"):
+        diffusion(vae_dir, str(tmp_path / "b"), "--steps", "1", "--self-prev-pose", "chain")
+    src_syn = T.open_source("synthetic:2", nano.TEST["render_size"])
+    _, cn = T.build_diffusion_models(nano.TEST)
+    with pytest.raises(ValueError, match="not a --prev-chain export"):
+        T.Batcher(src_syn, vae, cn, "cpu", chain=True)
+
+    data = _chain_export(tmp_path)
+    if data is None:
+        print("SKIP (rest): no b2dr binary under target/(release|debug); run cargo build --release")
+        return
+    src = T.open_source(data, nano.TEST["render_size"])
+    assert src.prev_chain and len(src) == 2
+    bt = T.Batcher(src, vae, cn, "cpu", chain=True)
+    batch = bt.batch([0, 1])
+    want_z2 = bt._encode(np.stack([src[i].prev2 for i in range(2)]), True)
+    torch.testing.assert_close(batch["z_prev2"], want_z2)
+    np.testing.assert_array_equal(batch["masks_prev"].numpy(), np.stack([src[i].prev_masks for i in range(2)]))
+    assert not torch.equal(batch["z_prev2"], batch["z_prev"])
+    assert "z_prev2" not in T.Batcher(src, vae, cn, "cpu").batch([0])
+    run = str(tmp_path / "run")
+    losses = T.main(["--data", data, "--vae", vae_dir, "--out", run, "--batch", "2", "--warmup", "1", "--steps", "2",
+                     "--ckpt-every", "1000", "--prediction", "v_prediction", "--x0-base", "prev", "--self-prev", "1",
+                     "--self-prev-pose", "chain"] + COMMON)
+    assert len(losses) == 2 and all(np.isfinite(losses))
+    d = torch.load(os.path.join(run, T.LATENTS_FILE), weights_only=True)
+    assert d["z_prev2"].shape == d["z_prev"].shape       # the chain latents are kept for a resume

@@ -32,6 +32,10 @@ pub struct ExportArgs {
     /// Samples per shard.
     #[arg(long, default_value_t = 64)]
     pub shard_samples: usize,
+    /// Only targets whose previous frame has a previous frame, with that frame's image (`prev2`) and the previous
+    /// frame's own layout (`prev_masks_packed`): for `train --self-prev-pose chain`.
+    #[arg(long)]
+    pub prev_chain: bool,
     /// No progress bar.
     #[arg(long)]
     pub quiet: bool,
@@ -57,6 +61,7 @@ pub fn run(a: ExportArgs) -> Result<()> {
         cameras: a.cameras,
         shard_samples: a.shard_samples,
         progress: !a.quiet,
+        prev_chain: a.prev_chain,
     })?;
     println!(
         "{} samples in {} shards ({} skipped: off the map) -> {}",

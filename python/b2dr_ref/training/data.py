@@ -27,6 +27,9 @@ class Sample:
     prev_ego2global: np.ndarray   # (4, 4) (not used by the model: the previous frame has no PE)
     ref_ego2global: np.ndarray    # (2, 4, 4) front, rear
     camera: str
+    # a --prev-chain export only: the previous frame's own previous image (3, H, W) and its layout (15, H, W)
+    prev2: Optional[np.ndarray] = None
+    prev_masks: Optional[np.ndarray] = None
 
 
 class SampleSource(Protocol):
@@ -112,6 +115,7 @@ class DatasetSource:
                              f"{MASK_CHANNELS}")
         self.render_size = (int(ds.height), int(ds.width))
         self.cameras = list(ds.cameras)
+        self.prev_chain = bool(getattr(ds, "prev_chain", False))
         self._frame = (None, None)
 
     def __len__(self):
@@ -126,7 +130,9 @@ class DatasetSource:
                       k=np.asarray(s["intrinsics"][c], np.float64), cam2ego=np.asarray(s["cam2ego"][c], np.float64),
                       ego2global=np.asarray(s["ego2global"][c], np.float64),
                       prev_ego2global=np.asarray(s["prev_ego2global"][c], np.float64),
-                      ref_ego2global=np.asarray(s["ref_ego2global"][c], np.float64), camera=self.cameras[c])
+                      ref_ego2global=np.asarray(s["ref_ego2global"][c], np.float64), camera=self.cameras[c],
+                      prev2=s["prev2"][c] if "prev2" in s else None,
+                      prev_masks=s["prev_masks"][c] if "prev_masks" in s else None)
 
 
 def open_source(data: str, render_size=None, seed: int = 0, reference_bins=None) -> SampleSource:

@@ -7,8 +7,11 @@ own output against the layout rather than to copy it. ``--self-prev-pose same`` 
 (aligned with the target: only the correction is taught); ``other`` renders the same frame at another of the
 data's ego offsets (1.5 m or 3 m sideways, 8 deg of yaw, or both), so that the own frame is displaced against the target as a
 previous frame is in the loop. Both renders start from the row's true previous frame: every offset of a frame
-shares it (the previous frame is recorded at the logged pose). The data holds no layout of the frame before the
-previous one, so the own frame cannot be the previous frame itself.
+shares it (the previous frame is recorded at the logged pose). ``chain`` (data exported with ``--prev-chain``)
+renders the previous frame ITSELF, as the closed loop does one step earlier: the previous frame's own layout
+(``masks_prev``, at its logged pose and step) from the frame before it (``z_prev2``, the log's image 0.5 s before
+the previous frame, blurred and encoded); the target's previous frame is then the model's own, displaced by the
+ego's 0.5 s of motion and showing the agents where they were, the input the loop gives it.
 """
 
 from __future__ import annotations
@@ -77,14 +80,18 @@ def own_previous(unet, controlnet, vae, ctx, b, s: Dict, rows: torch.Tensor, aba
                  fast: FastPath = PLAIN) -> torch.Tensor:
     """``b["z_prev"]`` with the ``rows`` (bool, (B,)) replaced by the previous-frame latent of the model's own
     one-step render of their frame (``s``: draw_self's draws; ``ctx``: the batch's context rows), at the pose of
-    ``b["masks_other"]`` when the batch has it (--self-prev-pose other)."""
+    ``b["masks_other"]`` when the batch has it (--self-prev-pose other); with ``b["masks_prev"]`` and
+    ``b["z_prev2"]`` (--self-prev-pose chain) the render of the previous frame from its own previous frame."""
     if not bool(rows.any()):
         return b["z_prev"]
     cfg = controlnet.config
     dev = b["z_prev"].device
     r = rows.to(dev)
-    masks = b["masks_other"] if "masks_other" in b else b["masks"]
-    x0 = one_step_x0(unet, controlnet, ctx[r], masks[r], b["z_prev"][r], s["x_T"].to(dev)[r],
+    if "masks_prev" in b:
+        masks, z_in = b["masks_prev"], b["z_prev2"]
+    else:
+        masks, z_in = (b["masks_other"] if "masks_other" in b else b["masks"]), b["z_prev"]
+    x0 = one_step_x0(unet, controlnet, ctx[r], masks[r], z_in[r], s["x_T"].to(dev)[r],
                      s["eps_in"].to(dev)[r], abar, int(cfg.prev_noise_level), prediction, x0_base, fast)
     z = b["z_prev"].clone()
     z[r] = previous_frame_latent(vae, x0, float(cfg.prev_blur_sigma)).to(z.dtype)

@@ -12,6 +12,7 @@ use super::images::ImageStore;
 use super::render::{render_cameras, RenderOptions};
 use super::view::{layout_masks, MAX_OFF_ROAD_M};
 use super::{load, objects_at};
+use crate::projection::layout::LayoutMasks;
 use crate::projection::scene::map_layer;
 use crate::projection::{channel_name, MapLayer, NUM_MASK_CHANNELS};
 use crate::scene::camera::{Camera, RecordedFrame};
@@ -48,6 +49,10 @@ pub struct ExportOptions {
     /// Samples per shard.
     pub shard_samples: usize,
     pub progress: bool,
+    /// Only targets with a two-frame chain (previous frame and ITS previous frame), and per sample the
+    /// previous frame's own inputs: `prev_masks_packed` (its layout at its logged pose) and `prev2` (the log's
+    /// image 0.5 s before it). For training on the model's own rollout (train --self-prev-pose chain).
+    pub prev_chain: bool,
 }
 
 /// What was written.
@@ -73,6 +78,10 @@ struct SampleData {
     ref_distance: Vec<f32>,
     ref_step: Vec<i32>,
     prev_step: usize,
+    /// With `prev_chain` (else empty / None): the previous frame's previous image and its own layout masks.
+    prev2: Vec<u8>,
+    prev_masks: Vec<u16>,
+    prev2_step: Option<usize>,
 }
 
 fn rows3(m: &DMat3) -> [f64; 9] {
@@ -89,6 +98,17 @@ fn push_planar(rgb: &[u8], out: &mut Vec<u8>) {
     for c in 0..3 {
         out.extend((0..n).map(|p| rgb[3 * p + c]));
     }
+}
+
+/// One camera's masks, bit k = channel k.
+fn pack_masks(m: &LayoutMasks, out: &mut Vec<u16>) {
+    let mut packed = vec![0u16; m.width * m.height];
+    for c in 0..NUM_MASK_CHANNELS {
+        for (p, &v) in m.channel(c).iter().enumerate() {
+            packed[p] |= (v as u16 & 1) << c;
+        }
+    }
+    out.extend_from_slice(&packed);
 }
 
 /// Rear-axle pose of an ego -> global matrix (yaw from its x axis).
@@ -130,6 +150,9 @@ impl Job<'_> {
             ref_distance: Vec::new(),
             ref_step: Vec::new(),
             prev_step: frame_step(sc, pf),
+            prev2: Vec::new(),
+            prev_masks: Vec::new(),
+            prev2_step: s.prev2.map(|i| frame_step(sc, &self.frames[i])),
         };
         let objects = objects_at(sc, s.step);
         for (ci, cam) in self.cams.iter().enumerate() {
@@ -175,14 +198,24 @@ impl Job<'_> {
                 w,
                 h,
             )?;
-            let n = w * h;
-            let mut packed = vec![0u16; n];
-            for c in 0..NUM_MASK_CHANNELS {
-                for (p, &v) in m[0].channel(c).iter().enumerate() {
-                    packed[p] |= (v as u16 & 1) << c;
-                }
+            pack_masks(&m[0], &mut d.masks);
+            if let Some(p2) = s.prev2 {
+                let p2img = self.frames[p2]
+                    .image(&cam.name)
+                    .context("the previous frame's previous frame lacks a camera")?;
+                push_planar(&self.store.image(p2img, w, h)?.data, &mut d.prev2);
+                // the previous frame's layout where the log drew it: its logged pose and step
+                let pm = layout_masks(
+                    sc,
+                    &self.layer,
+                    std::slice::from_ref(cam),
+                    &pimg.ego2global,
+                    d.prev_step,
+                    w,
+                    h,
+                )?;
+                pack_masks(&pm[0], &mut d.prev_masks);
             }
-            d.masks.extend_from_slice(&packed);
             d.intrinsics
                 .extend(rows3(&cam.intrinsic_scaled(w as u32, h as u32)));
             d.cam2ego.extend(rows4(&cam.cam2ego));
@@ -224,6 +257,11 @@ fn append(
     shard.push("step", &[], &[s.step as i32])?;
     shard.push("prev_step", &[], &[d.prev_step as i32])?;
     shard.push("scenario_index", &[], &[scenario as i32])?;
+    if let Some(p2) = d.prev2_step {
+        shard.push("prev2", &[nc, 3, h, w], &d.prev2)?;
+        shard.push("prev_masks_packed", &[nc, h, w], &d.prev_masks)?;
+        shard.push("prev2_step", &[], &[p2 as i32])?;
+    }
     shard.push(
         "offset",
         &[3],
@@ -305,6 +343,7 @@ pub fn export_training(opt: &ExportOptions) -> Result<ExportSummary> {
             opt.samples_per_scenario,
             &opt.offsets,
             seed,
+            opt.prev_chain,
         );
         let generated = matches!(src, Source::Builtin(_));
         if !generated && opt.offsets.iter().any(|o| *o != Pose2::default()) {
@@ -374,6 +413,7 @@ pub fn export_training(opt: &ExportOptions) -> Result<ExportSummary> {
                     "scenario_index": si,
                     "step": s.step,
                     "prev_step": d.prev_step,
+                    "prev2_step": d.prev2_step,
                     "offset": [s.offset.x, s.offset.y, s.offset.heading.to_degrees()],
                     "perturbed": s.offset != Pose2::default(),
                     "refs": refs,
@@ -396,6 +436,7 @@ pub fn export_training(opt: &ExportOptions) -> Result<ExportSummary> {
         "mask_packing": "masks_packed[s, c, y, x] bit k = mask channel k (order of mask_channels)",
         "matrices": "row-major; cam2cur(ref r of camera c) = inv(ego2global[c]) @ ref_ego2global[c, r] @ cam2ego[c]; current camera: cam2cur = cam2ego[c]",
         "prev_gap_s": PREV_GAP_S,
+        "prev_chain": opt.prev_chain,
         "reference_intervals": crate::projection::retrieval::TRAINING_INTERVALS
             .iter()
             .map(|&(lo, hi, p)| json!([lo, hi, p]))

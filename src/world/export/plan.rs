@@ -34,6 +34,8 @@ pub struct SamplePlan {
     /// Index into the candidate frames of the target and of its previous frame.
     pub frame: usize,
     pub prev: usize,
+    /// With `prev_chain`: the previous frame's own previous frame (0.5 s before `prev`).
+    pub prev2: Option<usize>,
     /// Log step of the target (its objects).
     pub step: usize,
     pub offset: Pose2,
@@ -57,7 +59,8 @@ fn prev_of(frames: &[RecordedFrame], i: usize) -> Option<usize> {
 }
 
 /// Plans up to `n` samples of `sc` (fewer when the log has fewer usable targets), each once per offset of
-/// `offsets`. Deterministic in `seed`.
+/// `offsets`. Deterministic in `seed`. `prev_chain`: only targets whose previous frame has a previous frame
+/// too (`SamplePlan::prev2`; a two-frame chain for training on the model's own rollout).
 pub fn plan_samples(
     sc: &Scenario,
     frames: &[RecordedFrame],
@@ -65,18 +68,23 @@ pub fn plan_samples(
     n: usize,
     offsets: &[Pose2],
     seed: u64,
+    prev_chain: bool,
 ) -> Vec<SamplePlan> {
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
-    let mut targets: Vec<(usize, usize)> = (0..frames.len())
+    let mut targets: Vec<(usize, usize, Option<usize>)> = (0..frames.len())
         .filter_map(|i| {
             let has_all = cams.iter().all(|c| frames[i].image(&c.name).is_some());
-            prev_of(frames, i).filter(|_| has_all).map(|p| (i, p))
+            let p = prev_of(frames, i).filter(|_| has_all)?;
+            if !prev_chain {
+                return Some((i, p, None));
+            }
+            prev_of(frames, p).map(|p2| (i, p, Some(p2)))
         })
         .collect();
     targets.shuffle(&mut rng);
     let mut out = Vec::new();
     let mut taken = 0;
-    for (i, p) in targets {
+    for (i, p, p2) in targets {
         if taken == n {
             break;
         }
@@ -90,6 +98,7 @@ pub fn plan_samples(
             out.push(SamplePlan {
                 frame: i,
                 prev: p,
+                prev2: p2,
                 step: frame_step(sc, &frames[i]),
                 offset: *o,
                 refs: refs.clone(),
