@@ -176,8 +176,11 @@ class Batcher:
         self.disk_saved = 0
         if latents and os.path.exists(latents[0]):
             d = torch.load(latents[0], weights_only=True)
-            if d.get("key") != latents[1] or (chain and "z_prev2" not in d):
+            if d.get("key") != latents[1]:
                 print(f"{latents[0]}: made from other data or another VAE; encoding again", flush=True)
+            elif chain and "z_prev2" not in d:
+                print(f"{latents[0]}: holds no prev2 latents (made without --self-prev-pose chain); encoding again",
+                      flush=True)
             else:
                 for n, i in enumerate(d["index"].tolist()):
                     self.disk[i] = (d["x0"][n], d["z_prev"][n], d["z_refs"][n]) + \

@@ -884,22 +884,24 @@ def test_self_prev_gives_rows_the_models_own_previous_frame(vae_run, tmp_path):
         diffusion(os.path.join(vae_run[0], "vae"), str(tmp_path / "bad"), "--steps", "1", "--self-prev", "1.5")
 
 
+class _MaskCn:       # the layout decides the output: residual = mean of the first mask channel per row
+    config = _NoControlNet.config
+
+    def __call__(self, x, t, ctx, masks, z, n, refs=None, ref_mask=None):
+        return [masks[:, :1].mean((2, 3), keepdim=True).expand_as(x)], None
+
+
+class _Echo(torch.nn.Module):     # the UNet's output is the ControlNet's first residual
+    def forward(self, x, t, ctx, down_block_additional_residuals=None, mid_block_additional_residual=None):
+        return type("O", (), {"sample": down_block_additional_residuals[0]})()
+
+
 def test_self_prev_pose_other_renders_the_partners_layout(vae_run, tmp_path):
     """--self-prev-pose other: the own render takes the batch's masks_other (the partner offset's layout), not the
     row's masks; pose_partners groups an index's samples by scenario and step (None when one stands alone,
     refused when partners have other previous frames); the CLI refuses 'other' on data without offsets and
     without --self-prev."""
     from b2dr_ref.training import selfprev as S
-
-    class MaskCn:       # the layout decides the output: residual = mean of the first mask channel per row
-        config = _NoControlNet.config
-
-        def __call__(self, x, t, ctx, masks, z, n, refs=None, ref_mask=None):
-            return [masks[:, :1].mean((2, 3), keepdim=True).expand_as(x)], None
-
-    class Echo(torch.nn.Module):
-        def forward(self, x, t, ctx, down_block_additional_residuals=None, mid_block_additional_residual=None):
-            return type("O", (), {"sample": down_block_additional_residuals[0]})()
 
     vae = T.load_vae(os.path.join(vae_run[0], "vae"))
     lc = vae.config.latent_channels
@@ -911,12 +913,12 @@ def test_self_prev_pose_other_renders_the_partners_layout(vae_run, tmp_path):
     rows = torch.ones(B, dtype=torch.bool)
     abar = T.make_noise_scheduler().alphas_cumprod.to(torch.float32)
     ctx = torch.zeros(B, 77, 8)
-    got = S.own_previous(Echo(), MaskCn(), vae, ctx, b, s, rows, abar, "v_prediction", "prev")
+    got = S.own_previous(_Echo(), _MaskCn(), vae, ctx, b, s, rows, abar, "v_prediction", "prev")
     with torch.no_grad():
         x0 = abar[999].sqrt() * s["x_T"] - (1 - abar[999]).sqrt() * torch.ones_like(s["x_T"]) + b["z_prev"]
         want = S.previous_frame_latent(vae, x0, 1.0)
     torch.testing.assert_close(got, want)
-    same = S.own_previous(Echo(), MaskCn(), vae, ctx, {k: v for k, v in b.items() if k != "masks_other"}, s, rows,
+    same = S.own_previous(_Echo(), _MaskCn(), vae, ctx, {k: v for k, v in b.items() if k != "masks_other"}, s, rows,
                           abar, "v_prediction", "prev")
     assert not torch.allclose(same, got)
 
@@ -958,22 +960,12 @@ def _chain_export(tmp_path):
     return out
 
 
-def test_self_prev_pose_chain_renders_the_previous_frame(vae_run, tmp_path):
+def test_self_prev_pose_chain_renders_the_previous_frame(vae_run, tmp_path, capsys):
     """--self-prev-pose chain: the own render takes the previous frame's layout (masks_prev) and starts from the frame
     before it (z_prev2), not the row's masks and previous latent; the Batcher of a --prev-chain export gives those
     (z_prev2 = the blurred encode of prev2, as z_prev is of prev); the CLI refuses chain on data without them and
     without --self-prev, and trains with it on a --prev-chain export."""
     from b2dr_ref.training import selfprev as S
-
-    class MaskCn:       # the layout decides the output: residual = mean of the first mask channel per row
-        config = _NoControlNet.config
-
-        def __call__(self, x, t, ctx, masks, z, n, refs=None, ref_mask=None):
-            return [masks[:, :1].mean((2, 3), keepdim=True).expand_as(x)], None
-
-    class Echo(torch.nn.Module):
-        def forward(self, x, t, ctx, down_block_additional_residuals=None, mid_block_additional_residual=None):
-            return type("O", (), {"sample": down_block_additional_residuals[0]})()
 
     vae = T.load_vae(os.path.join(vae_run[0], "vae"))
     lc = vae.config.latent_channels
@@ -985,14 +977,14 @@ def test_self_prev_pose_chain_renders_the_previous_frame(vae_run, tmp_path):
     rows = torch.tensor([True, False])
     abar = T.make_noise_scheduler().alphas_cumprod.to(torch.float32)
     ctx = torch.zeros(B, 77, 8)
-    got = S.own_previous(Echo(), MaskCn(), vae, ctx, b, s, rows, abar, "v_prediction", "prev")
+    got = S.own_previous(_Echo(), _MaskCn(), vae, ctx, b, s, rows, abar, "v_prediction", "prev")
     with torch.no_grad():
         x0 = abar[999].sqrt() * s["x_T"][:1] - (1 - abar[999]).sqrt() + b["z_prev2"][:1]
         want = S.previous_frame_latent(vae, x0, 1.0)
     torch.testing.assert_close(got[:1], want)
     assert torch.equal(got[1], b["z_prev"][1])            # a row not drawn keeps its true previous frame
     plain = {k: v for k, v in b.items() if k not in ("masks_prev", "z_prev2")}
-    assert not torch.allclose(S.own_previous(Echo(), MaskCn(), vae, ctx, plain, s, rows, abar, "v_prediction",
+    assert not torch.allclose(S.own_previous(_Echo(), _MaskCn(), vae, ctx, plain, s, rows, abar, "v_prediction",
                                              "prev")[:1], got[:1])
 
     vae_dir = os.path.join(vae_run[0], "vae")
@@ -1025,3 +1017,10 @@ def test_self_prev_pose_chain_renders_the_previous_frame(vae_run, tmp_path):
     assert len(losses) == 2 and all(np.isfinite(losses))
     d = torch.load(os.path.join(run, T.LATENTS_FILE), weights_only=True)
     assert d["z_prev2"].shape == d["z_prev"].shape       # the chain latents are kept for a resume
+    # a latents file without them (a run of another pose on the same data) serves a plain Batcher, not a chain one
+    plain_file = str(tmp_path / "plain_latents.pt")
+    torch.save({k: v for k, v in d.items() if k != "z_prev2"}, plain_file)
+    assert len(T.Batcher(src, vae, cn, "cpu", latents=(plain_file, d["key"])).disk) == len(d["index"])
+    capsys.readouterr()
+    assert not T.Batcher(src, vae, cn, "cpu", latents=(plain_file, d["key"]), chain=True).disk
+    assert "holds no prev2 latents" in capsys.readouterr().out
