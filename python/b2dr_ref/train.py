@@ -625,6 +625,26 @@ def keep_path(run: str, step: int) -> str:
     return os.path.join(run, "keep", f"step_{step:07d}.pt")
 
 
+def check_same_latent_space(vae, run_vae_path: str, given: str, what: str = "export --vae"):
+    """export --vae, replace-vae: the denoiser samples in the latent space of the VAE it trained with, so another
+    VAE must share its encoder side (encoder, quant_conv) and scaling factor: a decoder trained alone (vae_train
+    --decoder-only) does, a VAE trained again does not and would decode the samples into garbage. Refused when
+    they differ; a note when the run's VAE folder is not here to compare."""
+    if not os.path.isdir(run_vae_path):
+        print(f"{what} {given}: the run's VAE {run_vae_path} is not here; its latent space is not checked",
+              flush=True)
+        return
+    own = load_vae(run_vae_path)
+    a, b = own.state_dict(), vae.state_dict()
+    enc = [k for k in a if k.startswith(("encoder.", "quant_conv."))]
+    differ = [k for k in enc if k not in b or b[k].shape != a[k].shape or
+              not torch.equal(b[k].float(), a[k].float())]
+    if differ or float(vae.config.scaling_factor) != float(own.config.scaling_factor):
+        raise SystemExit(f"{what} {given}: not the latent space the denoiser trained in ({run_vae_path}): "
+                         + (f"{len(differ)} encoder-side tensors differ" if differ else "another scaling factor")
+                         + "; only a decoder trained alone (vae_train --decoder-only --init-from that VAE) fits")
+
+
 def export(args):
     from .package import make_meta, save_package
 
@@ -643,6 +663,8 @@ def export(args):
     cfg = ck["cfg"]
     unet, controlnet, use_ema = checkpoint_models(ck, ema=not args.no_ema)
     vae = load_vae(args.vae or ck["vae_path"])
+    if args.vae:
+        check_same_latent_space(vae, ck["vae_path"], args.vae)
     meta = make_meta(cfg["render_size"], ck["cameras"], sampler="unipc", steps=args.sampler_steps, ref_guidance=2.0,
                      dtype=args.dtype,
                      prediction_type=ck.get("prediction", "epsilon"), x0_base=ck.get("x0_base", "none"))
@@ -650,6 +672,23 @@ def export(args):
     size = sum(os.path.getsize(os.path.join(r, f)) for r, _, fs in os.walk(args.out) for f in fs)
     print(f"exported step {ck['step']}{' (EMA)' if use_ema else ''} to {args.out}: {size / 1e6:.1f} MB")
     return size
+
+
+def replace_vae(args):
+    """``train replace-vae``: a copy of a package with another VAE of the same latent space (a decoder trained
+    alone on it), the denoiser, ControlNet, context and b2dr.json unchanged; refused when the encoder side or the
+    scaling factor differ from the package's own VAE."""
+    from .package import load_package, save_package
+
+    if os.path.abspath(args.out) == os.path.abspath(args.package):
+        raise SystemExit(f"replace-vae: --out {args.out} is the package itself; write a copy")
+    if os.path.exists(args.out) and os.listdir(args.out):
+        raise SystemExit(f"replace-vae: --out {args.out} exists and is not empty")
+    vae = load_vae(args.vae)
+    check_same_latent_space(vae, os.path.join(args.package, "vae"), args.vae, what="replace-vae")
+    pkg = load_package(args.package)
+    save_package(args.out, pkg.unet, pkg.controlnet, vae, pkg.context, pkg.meta)
+    print(f"wrote {args.out}: {args.package} with the VAE {args.vae}", flush=True)
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -679,6 +718,12 @@ def main(argv=None):
                        help="the previous frame's noise level at inference in the package's ControlNet config "
                             "(default: the run's)")
         return export(p.parse_args(argv[1:]))
+    if argv and argv[0] == "replace-vae":
+        p = argparse.ArgumentParser(prog="python -m b2dr_ref.train replace-vae")
+        p.add_argument("--package", required=True, help="the model package to copy")
+        p.add_argument("--vae", required=True, help="the VAE folder to put in (vae_train --decoder-only on its VAE)")
+        p.add_argument("--out", required=True, help="the new package folder (absent or empty)")
+        return replace_vae(p.parse_args(argv[1:]))
     if argv and argv[0] == "bench":
         p = argparse.ArgumentParser(prog="python -m b2dr_ref.train bench")
         p.add_argument("--config", default="nano")

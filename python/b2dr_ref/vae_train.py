@@ -115,18 +115,25 @@ def scale_equivariance(vae, z: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
 
 
 def vae_loss(vae, x, gen: torch.Generator, kl_weight: float, weight: torch.Tensor = None, grad_weight: float = 0.0,
-             recon: str = "l1", se_weight: float = 0.0, decoder_only: bool = False):
+             recon: str = "l1", se_weight: float = 0.0, decoder_only: bool = False, z_given: torch.Tensor = None,
+             given: torch.Tensor = None):
     """(loss, plain per-pixel L1, KL). ``weight`` (B, 1, H, W) >= 1 scales the L1 per pixel (--object-weight);
     ``grad_weight`` adds that multiple of grad_l1 (--grad-weight); the loss is still divided by 3 H W, the logged
     L1 is the unweighted one. ``recon`` "l2": squared error per pixel instead of the absolute one (--recon-loss;
     the logged L1 stays the absolute error). ``se_weight`` adds that multiple of the half-size decode's squared
     error per pixel value of the half-size image (scale_equivariance; --se-weight). ``decoder_only``: the encoder is
     fixed (no gradient reaches it) and the decoder is given the posterior mean, the latent the diffusion stage is
-    trained on and samples towards (--decoder-only); the KL term is then a constant, reported, not added."""
+    trained on and samples towards (--decoder-only); the KL term is then a constant, reported, not added.
+    ``z_given`` (B, C, h, w), unscaled, with ``given`` (B,) bool (--decode-latents, decoder-only): the rows of
+    ``given`` decode ``z_given`` (the renderer's own sampled latent of that frame) instead of the posterior mean."""
     if decoder_only:
         with torch.no_grad():
             post = vae.encode(x).latent_dist
         z = post.mean
+        if z_given is not None:
+            z = torch.where(given.to(z.device).reshape(-1, 1, 1, 1), z_given.to(z.device, z.dtype), z)
+    elif z_given is not None:
+        raise ValueError("z_given: only with decoder_only (the encoder's latent space must stay fixed)")
     else:
         post = vae.encode(x).latent_dist
         eps = torch.randn(post.mean.shape, generator=gen).to(x.device)
@@ -246,9 +253,27 @@ def centre_command(argv):
 
 # the flags that define the objective: kept in the checkpoint, a resume must repeat them
 LOSS_SETTINGS = ("recon_loss", "object_weight", "marking_weight", "grad_weight", "kl_weight", "crop", "se_weight",
-                 "decoder_only")
+                 "decoder_only", "decode_latents", "decode_latents_p")
 # settings added later, with the value a run that predates them trained with
-LOSS_DEFAULTS = {"se_weight": 0.0, "decoder_only": False}
+LOSS_DEFAULTS = {"se_weight": 0.0, "decoder_only": False, "decode_latents": None, "decode_latents_p": 1.0}
+
+
+def load_decode_latents(path: str, source, scaling_factor: float):
+    """The --decode-latents file (training/sampled_latents.py): {sample index: unscaled latent}, checked against
+    the data (sample count, render size) and the VAE's scaling factor (the latents were made in its space)."""
+    from .training.sampled_latents import FORMAT
+
+    d = torch.load(path, map_location="cpu", weights_only=False)
+    if not isinstance(d, dict) or d.get("format") != FORMAT:
+        raise SystemExit(f"--decode-latents {path}: not a {FORMAT} file (python -m b2dr_ref.training.sampled_latents)")
+    if int(d["samples"]) != len(source) or list(d["render_size"]) != list(source.render_size):
+        raise SystemExit(f"--decode-latents {path}: made from {d['samples']} samples at {d['render_size']}, the data "
+                         f"has {len(source)} at {list(source.render_size)}")
+    if abs(float(d["scaling_factor"]) - float(scaling_factor)) > 1e-6 * abs(float(scaling_factor)):
+        raise SystemExit(f"--decode-latents {path}: made with scaling factor {d['scaling_factor']}, this VAE's is "
+                         f"{scaling_factor} (another latent space)")
+    lat = d["latents"].float() / float(d["scaling_factor"])
+    return d["index"].long(), lat
 
 
 def train_vae(args):
@@ -273,6 +298,13 @@ def train_vae(args):
     if args.decoder_only and args.se_weight:
         raise SystemExit("--decoder-only with --se-weight: the scale-equivariance term shapes the encoder's latent, "
                          "which --decoder-only keeps fixed")
+    if args.decode_latents and not args.decoder_only:
+        raise SystemExit("--decode-latents trains the decoder on the renderer's own latents: give --decoder-only "
+                         "(the encoder, whose latent space they were sampled in, must stay fixed)")
+    if args.decode_latents and args.crop:
+        raise SystemExit("--decode-latents with --crop: the sampled latents are whole frames")
+    if not 0.0 <= args.decode_latents_p <= 1.0:
+        raise SystemExit(f"--decode-latents-p {args.decode_latents_p}: a probability in [0, 1]")
     source = open_source(args.data, cfg["render_size"])
     vae = build_vae(cfg, args.seed).to(device).train()
     # a --decoder-only run keeps the initial VAE's latent space: its scaling factor, no re-centring
@@ -318,19 +350,33 @@ def train_vae(args):
     steps = max(args.steps, step)
     if args.stop_after:
         steps = min(steps, step + args.stop_after)
+    given_idx = given_lat = None
+    if args.decode_latents:
+        given_idx, given_lat = load_decode_latents(args.decode_latents, source, keep_sf)
+        print(f"--decode-latents: {len(given_idx)} sampled latents, decoded for a row with probability "
+              f"{args.decode_latents_p}", flush=True)
     log = CsvLog(os.path.join(args.out, "log.csv"), ["step", "loss", "l1", "kl", "lr", "sec"], step)
     losses = []
     try:
         while step < steps:
             t0 = time.perf_counter()
-            idx = list(range(args.batch)) if args.fixed_batch else \
-                torch.randint(0, len(source), (args.batch,), generator=gen).tolist()
+            z_given = given = None
+            if given_idx is not None:
+                # rows drawn among the samples the file holds; the draw order is fixed (exact resume)
+                pos = torch.arange(args.batch) if args.fixed_batch else \
+                    torch.randint(0, len(given_idx), (args.batch,), generator=gen)
+                idx = given_idx[pos].tolist()
+                given = torch.rand((args.batch,), generator=gen) < args.decode_latents_p
+                z_given = given_lat[pos]
+            else:
+                idx = list(range(args.batch)) if args.fixed_batch else \
+                    torch.randint(0, len(source), (args.batch,), generator=gen).tolist()
             x = images(source, idx, device)
             w = pixel_weights(source, idx, device, args.object_weight, args.marking_weight)
             if args.crop:
                 x, w = random_crop(x, args.crop, gen, w) if w is not None else (random_crop(x, args.crop, gen), None)
             loss, l1, kl = vae_loss(vae, x, gen, args.kl_weight, w, args.grad_weight, args.recon_loss,
-                                    args.se_weight, args.decoder_only)
+                                    args.se_weight, args.decoder_only, z_given, given)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             torch.nn.utils.clip_grad_norm_(params, args.clip)
@@ -384,6 +430,12 @@ def main(argv=None):
                    help="train the decoder of the --init-from VAE only, the encoder frozen: its latent space (and "
                         "scaling factor) stay exactly the initial VAE's, so a denoiser trained on it keeps working "
                         "with the new decoder")
+    p.add_argument("--decode-latents", default=None,
+                   help="with --decoder-only: a file of the renderer's own one-step latents of the data's frames "
+                        "(python -m b2dr_ref.training.sampled_latents); a row decodes its frame's sampled latent "
+                        "(probability --decode-latents-p) instead of the encoder's, the true frame the target")
+    p.add_argument("--decode-latents-p", type=float, default=1.0,
+                   help="the probability that a row decodes the sampled latent (else the encoder's mean)")
     return train_vae(p.parse_args(argv))
 
 
