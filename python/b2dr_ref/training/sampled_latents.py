@@ -31,17 +31,9 @@ from typing import Dict
 import torch
 
 from .loss import denoise
-from .selfprev import ONE_STEP_T, one_step_x0, previous_frame_latent
+from .selfprev import ONE_STEP_T, one_step_x0, previous_frame_latent, x0_from
 
 FORMAT = "b2dr-sampled-latents"
-
-
-def x0_from(pred: torch.Tensor, x_T: torch.Tensor, at: torch.Tensor, prediction: str) -> torch.Tensor:
-    if prediction == "v_prediction":
-        return at.sqrt() * x_T - (1 - at).sqrt() * pred
-    if prediction == "epsilon":
-        return (x_T - (1 - at).sqrt() * pred) / at.sqrt()
-    raise ValueError(f"prediction {prediction!r}")
 
 
 @torch.no_grad()

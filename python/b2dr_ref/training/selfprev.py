@@ -40,6 +40,15 @@ def draw_self(b, gen: torch.Generator, p: float) -> Dict:
     return dict(rows=rows, x_T=x_T, eps_in=eps_in)
 
 
+def x0_from(pred: torch.Tensor, x_T: torch.Tensor, at: torch.Tensor, prediction: str) -> torch.Tensor:
+    """x_0 from the model's prediction at the noise level whose alpha-bar is ``at`` (v or epsilon)."""
+    if prediction == "v_prediction":
+        return at.sqrt() * x_T - (1 - at).sqrt() * pred
+    if prediction == "epsilon":
+        return (x_T - (1 - at).sqrt() * pred) / at.sqrt()
+    raise ValueError(f"prediction {prediction!r}")
+
+
 def one_step_x0(unet, controlnet, ctx, masks, z_prev, x_T, eps_in, abar, level: int, prediction: str,
                 x0_base: str, fast: FastPath = PLAIN) -> torch.Tensor:
     """The package's one-step sample without references: the previous latent ``z_prev`` (N, C, h, w) noised to
@@ -54,13 +63,7 @@ def one_step_x0(unet, controlnet, ctx, masks, z_prev, x_T, eps_in, abar, level: 
     t = torch.full((N,), ONE_STEP_T, dtype=torch.int64, device=dev)
     pred = denoise(unet, controlnet, x_T, t, ctx, masks, z, n, None, None, None,
                    torch.zeros(N, dtype=torch.bool), fast=fast).float()
-    at = a[ONE_STEP_T]
-    if prediction == "v_prediction":
-        x0 = at.sqrt() * x_T - (1 - at).sqrt() * pred
-    elif prediction == "epsilon":
-        x0 = (x_T - (1 - at).sqrt() * pred) / at.sqrt()
-    else:
-        raise ValueError(f"prediction {prediction!r}")
+    x0 = x0_from(pred, x_T, a[ONE_STEP_T], prediction)
     return x0 + z_prev if x0_base == "prev" else x0
 
 
