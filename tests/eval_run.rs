@@ -264,6 +264,7 @@ fn b2dr_loop_frames_equal_standalone_renders() {
                 }),
                 x_t: &f.x_t,
                 eps_prev: &f.eps_prev,
+                prev_warp: f.prev_warp.as_deref(),
             })
             .unwrap();
         assert_eq!(

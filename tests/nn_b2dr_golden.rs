@@ -12,6 +12,8 @@ use b2dr::nn::device::{DeviceWeights, Fwd, Workspace};
 use b2dr::nn::unet::UNet;
 use b2dr::nn::vae::{VaeDecoder, VaeEncoder};
 use b2dr::nn::weights::{expected_unet, expected_vae, HostTensor, Weights};
+use b2dr::ops::reference::image as ref_image;
+use b2dr::ops::warp;
 use b2dr::render::frame::{B2drModel, FrameInputs, FrameRenderer, FrameShape, Prev, RefInputs};
 use b2dr::sampling::{unipc, NoiseSchedule};
 use b2dr::tensor::{DType, Tensor};
@@ -393,6 +395,7 @@ fn inputs<'a>(c: &'a Case, locs: usize) -> FrameInputs<'a> {
         }),
         x_t: &c.get("in.x_T").data,
         eps_prev: &c.get("in.eps_prev").data,
+        prev_warp: None,
     }
 }
 
@@ -682,4 +685,79 @@ fn position_encodings_match_python_port() {
             );
         }
     }
+}
+
+/// A model that warps its previous frame (b2dr.json prev_warp_max_depth > 0): the frame's previous-frame chain
+/// encodes the previous image sampled at the given grid (against the f64 reference warp of the image fed to the
+/// plain model), and without a grid keeps the image as given (the plain model's chain, bit for bit).
+#[test]
+fn warped_previous_frame_is_the_reference_warp_of_the_image() {
+    let Some(ctx) = common::ctx() else { return };
+    let g = golden();
+    let locs = g.ccfg.ref_attn.len();
+    let (file, n, _) = CASES[0];
+    let c = Case(golden::golden_case(file));
+    let (ih, iw) = {
+        let s = &c.get("in.masks").shape;
+        (s[2], s[3])
+    };
+    let plain = device_model(&ctx, &g, DType::F32);
+    let mut wcfg = g.ccfg.clone();
+    wcfg.prev_warp_max_depth = 30.0;
+    let cw = DeviceWeights::upload(&ctx, &g.control, "", DType::F32).unwrap();
+    let warping = Dev {
+        unet: UNet::load(&plain._w[0], &g.ucfg).unwrap(),
+        cn: B2drControlNet::load(&cw, &wcfg).unwrap(),
+        enc: VaeEncoder::load(&plain._w[2], &g.vcfg).unwrap(),
+        dec: VaeDecoder::load(&plain._w[2], &g.vcfg).unwrap(),
+        _w: vec![cw],
+    };
+    let rp = renderer(&ctx, &g, &plain, &c, n, 2.0, DType::F32, false);
+    let rw = renderer(&ctx, &g, &warping, &c, n, 2.0, DType::F32, false);
+    // no grid: the image as given
+    rp.render(&inputs(&c, locs)).unwrap();
+    rw.render(&inputs(&c, locs)).unwrap();
+    assert_eq!(rw.prev_latent().unwrap(), rp.prev_latent().unwrap());
+    // a grid: sub-pixel shifts, one point on the border, one outside (keeps its pixel)
+    let mut grid = vec![];
+    for y in 0..ih {
+        for x in 0..iw {
+            let (gx, gy) = match (y * iw + x) % 5 {
+                3 => (-0.5, y as f32),
+                4 => (warp::NO_SOURCE, warp::NO_SOURCE),
+                _ => (x as f32 * 0.83 + 0.61, y as f32 * 0.9 + 0.37),
+            };
+            grid.extend([gx, gy]);
+        }
+    }
+    let grid: Vec<f32> = grid.repeat(n);
+    let prev = &c.get("in.prev_image").data;
+    let wanted = ref_image::warp_bilinear(
+        &prev.iter().map(|v| *v as f64).collect::<Vec<_>>(),
+        &grid.iter().map(|v| *v as f64).collect::<Vec<_>>(),
+        n,
+        3,
+        ih,
+        iw,
+    );
+    assert!(
+        golden::nmse(&wanted.iter().map(|v| *v as f32).collect::<Vec<_>>(), prev) > 1e-3,
+        "the grid must move the image for the check to mean anything"
+    );
+    let mut x = inputs(&c, locs);
+    x.prev_warp = Some(&grid);
+    rw.render(&x).unwrap();
+    let moved: Vec<f32> = wanted.iter().map(|v| *v as f32).collect();
+    let mut y = inputs(&c, locs);
+    y.prev = Prev::Image(&moved);
+    rp.render(&y).unwrap();
+    let e = golden::nmse(&rw.prev_latent().unwrap(), &rp.prev_latent().unwrap());
+    assert!(
+        e <= 1e-10,
+        "warped chain vs the reference warp fed as given: nmse {e:e}"
+    );
+    // a grid for a model that does not warp is an error, not ignored
+    let err = rp.render(&x).unwrap_err();
+    assert!(format!("{err:#}").contains("does not warp"), "{err:#}");
+    common::assert_no_validation_errors();
 }

@@ -1,7 +1,7 @@
 //! Nearest upsample, bicubic resize, Gaussian blur, timestep embedding against f64 references.
 mod common;
 use b2dr::ops::reference::image as r;
-use b2dr::ops::{blur, embedding, resample};
+use b2dr::ops::{blur, embedding, resample, warp};
 use b2dr::tensor::DType;
 use common::*;
 
@@ -181,4 +181,61 @@ fn image_op_bad_inputs_are_errors() {
         .to_string();
     assert!(e.contains("timestep_embedding"), "{e}");
     assert_eq!(rec.dispatch_count(), 0);
+}
+
+#[test]
+fn warp_bilinear_matches_reference() {
+    let Some(ctx) = ctx() else { return };
+    // the render size, odd sizes, one row / one column
+    for (n, c, h, w) in [
+        (2usize, 3usize, 112usize, 200usize),
+        (1, 3, 7, 13),
+        (3, 2, 1, 9),
+        (1, 1, 5, 1),
+    ] {
+        let x = uniform(n * c * h * w, 1.0, 5);
+        // sources across the image and beyond: interior, the half-pixel borders, outside, and NO_SOURCE
+        let g = uniform(n * h * w * 2, 1.0, 6);
+        let mut grid = Vec::with_capacity(g.len());
+        for (i, p) in g.chunks(2).enumerate() {
+            let (sx, sy) = match i % 7 {
+                0 => (-0.5, h as f32 - 0.5),
+                1 => (w as f32 - 0.5, -0.5),
+                2 => (-0.6, 0.0),
+                3 => (warp::NO_SOURCE, warp::NO_SOURCE),
+                _ => (
+                    (p[0] + 1.0) / 2.0 * w as f32 - 0.5,
+                    (p[1] + 1.0) / 2.0 * h as f32 - 0.5,
+                ),
+            };
+            grid.extend([sx, sy]);
+        }
+        let (tx, tg, out) = (
+            upload(&ctx, &[n, c, h, w], DType::F32, &x),
+            upload(&ctx, &[n, h, w, 2], DType::F32, &grid),
+            empty(&ctx, &[n, c, h, w], DType::F32),
+        );
+        run(&ctx, |rec| warp::warp_bilinear(rec, &tx, &tg, &out));
+        let want = r::warp_bilinear(
+            &stored(&x, DType::F32),
+            &stored(&grid, DType::F32),
+            n,
+            c,
+            h,
+            w,
+        );
+        let e = nmse(&out.to_f32(&ctx).unwrap(), &want);
+        assert!(e <= 1e-10, "warp {n}x{c}x{h}x{w}: nmse {e:e}");
+    }
+    // a grid of the wrong shape and f16 images are errors
+    let x = upload(&ctx, &[1, 3, 4, 4], DType::F32, &[0.5; 48]);
+    let bad = empty(&ctx, &[1, 4, 3, 2], DType::F32);
+    let out = empty(&ctx, &[1, 3, 4, 4], DType::F32);
+    let mut rec = ctx.recorder().unwrap();
+    assert!(warp::warp_bilinear(&mut rec, &x, &bad, &out).is_err());
+    let x16 = upload(&ctx, &[1, 3, 4, 4], DType::F16, &[0.5; 48]);
+    let g = empty(&ctx, &[1, 4, 4, 2], DType::F32);
+    assert!(warp::warp_bilinear(&mut rec, &x16, &g, &out).is_err());
+    drop(rec);
+    assert_no_validation_errors();
 }

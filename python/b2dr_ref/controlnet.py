@@ -40,6 +40,8 @@ MASK_CHANNELS = [
     "car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian", "motorcycle", "bicycle",
     "traffic_cone", "barrier", "drivable_area", "lane", "crosswalk", "lane_divider", "road_boundary",
 ]
+# the previous-frame warp's depth cap, metres (b2dr_ref/warp.py); 0 turns the warp off
+MAX_WARP_DEPTH = 1000.0
 PE_POSITION_RANGE = [-61.2, -61.2, -10.0, 61.2, 61.2, 10.0]
 
 # The B2D-R keys of controlnet/config.json and their defaults (contract section 5). None = derived (see __init__).
@@ -48,6 +50,7 @@ B2DR_DEFAULTS: Dict[str, Any] = {
     "prev_noise_level": 200,
     "prev_noise_max": 400,
     "prev_blur_sigma": 1.0,
+    "prev_warp_max_depth": 0.0,
     "ref_encoder_channels": None,
     "ref_attn": None,
     "pe_depth_num": 64,
@@ -244,6 +247,7 @@ class B2DRControlNetModel(ControlNetModel):
         prev_noise_level: int = 200,
         prev_noise_max: int = 400,
         prev_blur_sigma: float = 1.0,
+        prev_warp_max_depth: float = 0.0,
         ref_encoder_channels: Optional[Sequence[int]] = None,
         ref_attn: Optional[Sequence[str]] = None,
         pe_depth_num: int = 64,
@@ -296,6 +300,10 @@ class B2DRControlNetModel(ControlNetModel):
             raise ConfigError(f"{CLASS_NAME} config: prev_noise_level / prev_noise_max must lie in 0..999")
         if not float(prev_blur_sigma) > 0:
             raise ConfigError(f"{CLASS_NAME} config: prev_blur_sigma must be > 0")
+        # 0: the previous frame as recorded; D > 0: warped to the current pose over the ground (b2dr_ref/warp.py)
+        if not 0.0 <= float(prev_warp_max_depth) <= MAX_WARP_DEPTH:
+            raise ConfigError(f"{CLASS_NAME} config: prev_warp_max_depth must lie in [0, {MAX_WARP_DEPTH:g}] m "
+                              "(0: no warp)")
         if not 0.0 <= float(ref_dropout) <= 1.0:
             raise ConfigError(f"{CLASS_NAME} config: ref_dropout must lie in [0, 1]")
 

@@ -33,11 +33,12 @@ import numpy as np
 import torch
 
 from . import nano
-from .controlnet import B2DRControlNetModel, MASK_CHANNELS
+from .controlnet import B2DR_DEFAULTS, MAX_WARP_DEPTH, B2DRControlNetModel, MASK_CHANNELS
 from .fastpath import AUTOCASTS, PLAIN, FastPath, Prefetcher
 from .frame import SD15_SCHEDULE, gaussian_blur
 from .package import X0_BASES
 from .pe import PeConfig, location_sizes
+from .warp import ground_warp_grid, warp_image
 
 # The data (Sample, its sources, the PETR geometry), the loss pieces and the CSV log live in b2dr_ref.training,
 # shared with the sd15 recipe; their names stay importable from here.
@@ -124,12 +125,15 @@ LATENTS_FILE = "latents.pt"
 LATENTS_FORMAT = 1
 
 
-def latent_cache_key(data: str, vae_path: str, sigma: float) -> str:
+def latent_cache_key(data: str, vae_path: str, sigma: float, warp: float = 0.0) -> str:
     """What the cached latents depend on: the data (its index and the names and sizes of its files; or the
-    ``synthetic:N`` source), the VAE's files (bytes) and the previous frame's blur. A mismatch discards the file."""
+    ``synthetic:N`` source), the VAE's files (bytes), the previous frame's blur and its warp (depth cap; 0 = no
+    warp, the key of a file written before the warp existed). A mismatch discards the file."""
     import hashlib
 
     h = hashlib.sha256(f"b2dr-latents/{LATENTS_FORMAT}/{sigma!r}/".encode())
+    if warp:
+        h.update(f"warp/{float(warp)!r}/".encode())
     if os.path.isdir(data):
         for name in sorted(os.listdir(data)):
             f = os.path.join(data, name)
@@ -167,6 +171,9 @@ class Batcher:
         H, W = self.render_hw
         self.sizes = location_sizes(cfg.ref_attn, len(cfg.block_out_channels), (H // 8, W // 8))
         self.sigma = float(cfg.prev_blur_sigma)
+        # > 0: the previous frame is warped to the current pose before the blur (b2dr_ref/warp.py); the batch
+        # then holds each row's grid (``prev_grid``) for the self-prev chain's own previous frame
+        self.warp = float(getattr(cfg, "prev_warp_max_depth", 0.0) or 0.0)
         self.cam_index = {c: i for i, c in enumerate(source.cameras)}
         self.cache_max = cache
         self.cache: Dict[int, Tuple] = {}
@@ -216,11 +223,14 @@ class Batcher:
         self.disk_saved = len(idx)
 
     @torch.no_grad()
-    def _encode(self, imgs_u8: np.ndarray, blur: bool) -> torch.Tensor:
-        """One image at a time, so a latent does not depend on which batch it was first seen in (exact resume)."""
+    def _encode(self, imgs_u8: np.ndarray, blur: bool, grids: Optional[Sequence[np.ndarray]] = None) -> torch.Tensor:
+        """One image at a time, so a latent does not depend on which batch it was first seen in (exact resume).
+        ``grids``: per image a warp grid applied before the blur (b2dr_ref/warp.py)."""
         out = []
-        for img in imgs_u8:
+        for n, img in enumerate(imgs_u8):
             x = torch.from_numpy(np.ascontiguousarray(img[None])).float().div(255.0)
+            if grids is not None:
+                x = warp_image(x, torch.from_numpy(grids[n])[None])
             if blur:
                 x = gaussian_blur(x, self.sigma)        # on the CPU (frame.gaussian_blur builds its taps there)
             x = x.to(self.device)
@@ -237,7 +247,8 @@ class Batcher:
             if new:
                 es = [s for _, s in new]
                 x0 = self._encode(np.stack([s.target for s in es]), False)
-                zp = self._encode(np.stack([s.prev for s in es]), True)
+                zp = self._encode(np.stack([s.prev for s in es]), True,
+                                  [self.grid(s) for s in es] if self.warp else None)
                 zr = self._encode(np.concatenate([s.refs for s in es]), False).reshape(len(es), 2, *x0.shape[-3:])
                 zp2 = self._encode(np.stack([s.prev2 for s in es]), True) if self.chain else None
                 for m, (i, _) in enumerate(new):
@@ -249,10 +260,15 @@ class Batcher:
                 chain = (lat[i][3], pack_masks(s.prev_masks)) if self.chain else None
                 local[i] = (*lat[i][:3], pack_masks(s.masks),
                             self.cam_index[s.camera], [torch.from_numpy(a) for a in pc],
-                            [torch.from_numpy(a) for a in pr], chain)
+                            [torch.from_numpy(a) for a in pr], chain,
+                            (s.k, s.cam2ego, s.ego2global, s.prev_ego2global) if self.warp else None)
                 if len(self.cache) < self.cache_max:
                     self.cache[i] = local[i]
         return [self.cache[i] if i in self.cache else local[i] for i in idx]
+
+    def grid(self, s) -> np.ndarray:
+        """(H, W, 2) the warp of sample ``s``'s previous frame to its pose (b2dr_ref/warp.py)."""
+        return ground_warp_grid(s.k, s.cam2ego, s.ego2global, s.prev_ego2global, self.render_hw, self.warp)
 
     def batch(self, idx: Sequence[int], other: Optional[Sequence[int]] = None):
         """The model inputs of samples ``idx``; with ``other`` (one index per sample), ``masks_other``: the masks of
@@ -266,6 +282,9 @@ class Batcher:
         if self.chain:
             extra["z_prev2"] = torch.stack([it[7][0] for it in items]).to(dev)
             extra["masks_prev"] = torch.stack([unpack_masks(it[7][1]) for it in items]).float().to(dev)
+        if self.warp:
+            extra["prev_grid"] = torch.stack([torch.from_numpy(ground_warp_grid(*it[8], self.render_hw, self.warp))
+                                              for it in items])
         return dict(extra, x0=torch.stack([it[0] for it in items]).to(dev), z_prev=torch.stack([it[1] for it in items]).to(dev),
                     ref_latents=torch.stack([it[2] for it in items]).to(dev),
                     masks=torch.stack([unpack_masks(it[3]) for it in items]).float().to(dev),
@@ -362,7 +381,7 @@ def init_context(init: str, pkg, cameras: Sequence[str], extra: Optional[str]) -
 
 
 PREV_NOISE_KEYS = ("prev_noise_max", "prev_noise_level")
-PREV_KEYS = PREV_NOISE_KEYS + ("prev_blur_sigma",)
+PREV_KEYS = PREV_NOISE_KEYS + ("prev_blur_sigma", "prev_warp_max_depth")
 MAX_PREV_BLUR = 4.0
 
 
@@ -380,6 +399,11 @@ def prev_overrides(cfg: Dict, args) -> Dict:
         if not 0 < float(blur) <= MAX_PREV_BLUR:
             raise SystemExit(f"--prev-blur-sigma {blur}: pixels in (0, {MAX_PREV_BLUR:g}]")
         over["prev_blur_sigma"] = float(blur)
+    warp = getattr(args, "prev_warp_max_depth", None)
+    if warp is not None:
+        if not 0 <= float(warp) <= MAX_WARP_DEPTH:
+            raise SystemExit(f"--prev-warp-max-depth {warp}: metres in [0, {MAX_WARP_DEPTH:g}] (0: no warp)")
+        over["prev_warp_max_depth"] = float(warp)
     return dict(cfg, controlnet=dict(cfg["controlnet"], **over)) if over else cfg
 
 
@@ -396,8 +420,9 @@ def train(args):
     if ck:
         for k in PREV_KEYS:
             v = getattr(args, k, None)
-            if v is not None and float(v) != float(cfg["controlnet"][k]):
-                raise SystemExit(f"--resume: the run's {k} is {cfg['controlnet'][k]}, not --{k.replace('_', '-')} {v}")
+            have = cfg["controlnet"].get(k, B2DR_DEFAULTS[k])
+            if v is not None and float(v) != float(have):
+                raise SystemExit(f"--resume: the run's {k} is {have}, not --{k.replace('_', '-')} {v}")
     source = open_source(args.data, cfg["render_size"])
     if list(source.render_size) != list(cfg["render_size"]):
         raise SystemExit(f"data render size {source.render_size} != config {cfg['render_size']}")
@@ -456,13 +481,17 @@ def train(args):
     latents = None
     if not args.no_latents_file:
         latents = (os.path.join(args.out, LATENTS_FILE),
-                   latent_cache_key(args.data, vae_path, float(controlnet.config.prev_blur_sigma)))
+                   latent_cache_key(args.data, vae_path, float(controlnet.config.prev_blur_sigma),
+                                    float(controlnet.config.prev_warp_max_depth)))
     if args.self_prev_pose == "chain":
         if args.self_prev <= 0:
             raise SystemExit("--self-prev-pose chain: give --self-prev P > 0")
         if not getattr(source, "prev_chain", False):
             raise SystemExit(f"--self-prev-pose chain: {args.data} is not an export with the previous frame's "
                              "inputs (b2dr export-training --prev-chain)")
+    if float(controlnet.config.prev_warp_max_depth) > 0 and args.self_prev > 0 and args.self_prev_pose != "chain":
+        raise SystemExit(f"--self-prev-pose {args.self_prev_pose} with a warped previous frame: the own render "
+                         "would be warped from a pose it was not drawn at; use --self-prev-pose chain")
     batcher = Batcher(source, vae, controlnet, device, cache=args.cache, latents=latents,
                       chain=args.self_prev_pose == "chain")
     prediction = ck.get("prediction", "epsilon") if ck else args.prediction
@@ -798,6 +827,10 @@ def main(argv=None):
     p.add_argument("--prev-blur-sigma", type=float, default=None,
                    help="Gaussian blur (pixels) of the previous frame before it is encoded, in training and in the "
                         "exported ControlNet config (default: the config's, 1)")
+    p.add_argument("--prev-warp-max-depth", type=float, default=None,
+                   help="metres: warp the previous frame to the current pose over the flat ground, rays capped at "
+                        "this depth (b2dr_ref/warp.py), in training and in the exported ControlNet config; 0 = no "
+                        "warp (default: the config's, 0)")
     p.add_argument("--x0-base", default="none", choices=X0_BASES,
                    help="prev: diffuse the residual against the previous frame's clean latent (exported as "
                         "b2dr.json x0_base; the sampler adds the base back)")

@@ -170,7 +170,8 @@ def test_config_rejects_unknown_key(tmp_path):
     d = json.loads(p.read_text())
     assert d["_class_name"] == "B2DRControlNetModel"
     assert set(d) - {"_class_name", "_diffusers_version"} == set(PLAIN_KEYS) | {
-        "mask_channels", "prev_noise_level", "prev_noise_max", "prev_blur_sigma", "ref_encoder_channels",
+        "mask_channels", "prev_noise_level", "prev_noise_max", "prev_blur_sigma", "prev_warp_max_depth",
+        "ref_encoder_channels",
         "ref_attn", "pe_depth_num", "pe_depth_start", "pe_position_range", "ref_dropout"}
     d["prev_noise_levl"] = 100
     p.write_text(json.dumps(d))

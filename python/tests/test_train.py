@@ -1024,3 +1024,61 @@ def test_self_prev_pose_chain_renders_the_previous_frame(vae_run, tmp_path, caps
     capsys.readouterr()
     assert not T.Batcher(src, vae, cn, "cpu", latents=(plain_file, d["key"]), chain=True).disk
     assert "holds no prev2 latents" in capsys.readouterr().out
+
+
+def test_prev_warp_reaches_the_data_the_own_previous_frame_and_the_package(vae_run, tmp_path):
+    """--prev-warp-max-depth D: the Batcher encodes the previous frame warped to the sample's pose (b2dr_ref/warp.py)
+    before the blur and hands each row's grid to the self-prev chain, whose own previous frame is warped the same
+    way; the latents file's key and the exported ControlNet config carry D; a bad D, a resume with another D and
+    a self-prev pose whose own render is not at the previous pose are refused."""
+    from b2dr_ref.training import selfprev as S
+    from b2dr_ref.warp import ground_warp_grid, warp_image
+
+    vae_dir = os.path.join(vae_run[0], "vae")
+    vae = T.load_vae(vae_dir)
+    src = T.open_source("synthetic:2", nano.TEST["render_size"])
+    _, cn = T.build_diffusion_models(nano.TEST)
+    _, cw = T.build_diffusion_models(dict(nano.TEST, controlnet=dict(nano.TEST["controlnet"], prev_warp_max_depth=30.0)))
+    plain, warped = T.Batcher(src, vae, cn, "cpu").batch([0, 1]), T.Batcher(src, vae, cw, "cpu").batch([0, 1])
+    assert "prev_grid" not in plain and warped["prev_grid"].shape == (2, *src.render_size, 2)
+    grids = [ground_warp_grid(src[i].k, src[i].cam2ego, src[i].ego2global, src[i].prev_ego2global, src.render_size,
+                              30.0) for i in range(2)]
+    np.testing.assert_array_equal(warped["prev_grid"].numpy(), np.stack(grids))
+    assert np.isfinite(grids[0]).mean() > 0.5              # the synthetic previous pose is 3 m behind: most pixels move
+    want = torch.cat([vae.encode(2 * T.gaussian_blur(warp_image(torch.from_numpy(src[i].prev[None]).float() / 255,
+                                                                 torch.from_numpy(grids[i])[None]), 1.0) - 1)
+                      .latent_dist.mean * vae.config.scaling_factor for i in range(2)])
+    torch.testing.assert_close(warped["z_prev"], want.detach())
+    assert not torch.allclose(warped["z_prev"], plain["z_prev"])
+    torch.testing.assert_close(warped["x0"], plain["x0"])
+    # the self-prev chain: the own render of the previous frame is warped with the row's grid
+    lc = vae.config.latent_channels
+    g = torch.Generator().manual_seed(6)
+    b = dict(z_prev=torch.randn(2, lc, 7, 13, generator=g), z_prev2=torch.randn(2, lc, 7, 13, generator=g),
+             x0=torch.zeros(2, lc, 7, 13), masks=torch.zeros(2, 15, 56, 104), masks_prev=torch.ones(2, 15, 56, 104),
+             prev_grid=warped["prev_grid"])
+    s = S.draw_self(b, g, 1.0)
+    rows = torch.tensor([False, True])
+    abar = T.make_noise_scheduler().alphas_cumprod.to(torch.float32)
+    got = S.own_previous(_Echo(), _MaskCn(), vae, torch.zeros(2, 77, 8), b, s, rows, abar, "v_prediction", "prev")
+    with torch.no_grad():
+        x0 = abar[999].sqrt() * s["x_T"][1:] - (1 - abar[999]).sqrt() + b["z_prev2"][1:]
+        want = S.previous_frame_latent(vae, x0, 1.0, b["prev_grid"][1:])
+        unwarped = S.previous_frame_latent(vae, x0, 1.0)
+    torch.testing.assert_close(got[1:], want)
+    assert not torch.allclose(want, unwarped)
+    assert torch.equal(got[0], b["z_prev"][0])
+    # the key, the package, the refusals
+    assert T.latent_cache_key("synthetic:2", vae_dir, 1.0, 30.0) != T.latent_cache_key("synthetic:2", vae_dir, 1.0)
+    run = str(tmp_path / "run")
+    diffusion(vae_dir, run, "--steps", "2", "--prev-warp-max-depth", "30")
+    T.main(["export", "--run", run, "--out", str(tmp_path / "model")])
+    with open(tmp_path / "model" / "controlnet" / "config.json") as f:
+        assert json.load(f)["prev_warp_max_depth"] == 30.0
+    with pytest.raises(SystemExit, match="prev_warp_max_depth is 30"):
+        diffusion(vae_dir, run, "--steps", "3", "--resume", "--prev-warp-max-depth", "0")
+    for bad in ("-1", "2000", "nan"):
+        with pytest.raises(SystemExit, match=f"--prev-warp-max-depth {bad}"):
+            diffusion(vae_dir, str(tmp_path / f"bad{bad}"), "--steps", "1", "--prev-warp-max-depth", bad)
+    with pytest.raises(SystemExit, match="use --self-prev-pose chain"):
+        diffusion(vae_dir, str(tmp_path / "same"), "--steps", "1", "--prev-warp-max-depth", "30", "--self-prev", "0.5")

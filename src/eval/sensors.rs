@@ -17,6 +17,7 @@ use crate::render::frame::{FrameInputs, FrameRenderer, FrameShape, Prev, RefInpu
 use crate::render::inputs;
 use crate::render::job::sampler_plan;
 use crate::render::package::{DeviceModel, ModelPackage};
+use crate::render::warp::ground_warp_grids;
 use crate::scene::camera::{Camera, CameraImage};
 use crate::scene::Scenario;
 use crate::sim::closed_loop::AgentRecord;
@@ -364,6 +365,8 @@ pub struct FrameRecord {
     pub pe_ref: Vec<Vec<f32>>,
     pub x_t: Vec<f32>,
     pub eps_prev: Vec<f32>,
+    /// The previous frame's warp grid (N, H, W, 2) (a model that warps it).
+    pub prev_warp: Option<Vec<f32>>,
     /// The decoded frame (N, 3, H, W) in [0, 1].
     pub image: Vec<f32>,
 }
@@ -375,6 +378,8 @@ pub struct B2dr<'a> {
     cameras: Vec<Camera>,
     map: MapLayer,
     frame: u64,
+    /// Per camera the ego2global of the previous frame (what a warping model warps from).
+    prev_poses: Vec<DMat4>,
     times: Vec<(&'static str, f64)>,
     /// When set, every frame's inputs and output are kept (tests).
     pub record: Option<Vec<FrameRecord>>,
@@ -390,6 +395,7 @@ impl<'a> B2dr<'a> {
             cameras,
             map: map_layer(&sc.map),
             frame: 0,
+            prev_poses: vec![],
             times: vec![],
             record: None,
         })
@@ -411,6 +417,7 @@ impl Sensors for B2dr<'_> {
             sc.name
         );
         self.frame = 0;
+        self.prev_poses.clear();
         Ok(())
     }
     fn observe(&mut self, s: &SensorState) -> Result<Vec<CameraFrame>> {
@@ -440,13 +447,27 @@ impl Sensors for B2dr<'_> {
                 &e2g,
             )?;
             if self.frame == 0 {
+                self.prev_poses.clear();
                 for c in &self.cameras {
                     let img = nearest_recorded(sc, &c.name, s.time_s)
                         .with_context(|| format!("no recorded image of {}", c.name))?;
                     prev.extend(planar(&recorded_pixels(self.store, img, size)?, size));
+                    self.prev_poses.push(img.ego2global);
                 }
             }
         }
+        let max_depth = self.engine.package.control_cfg.prev_warp_max_depth;
+        let warp = if refs_on && max_depth > 0.0 {
+            Some(ground_warp_grids(
+                &self.cameras,
+                &poses,
+                &self.prev_poses,
+                size,
+                max_depth,
+            )?)
+        } else {
+            None
+        };
         let t2 = std::time::Instant::now();
         let n = self.cameras.len();
         let seed = self.engine.seed;
@@ -470,6 +491,7 @@ impl Sensors for B2dr<'_> {
             }),
             x_t: &x_t,
             eps_prev: &eps,
+            prev_warp: warp.as_deref(),
         })?;
         let img = r.image()?;
         ensure!(
@@ -485,10 +507,12 @@ impl Sensors for B2dr<'_> {
                 pe_ref: geom.pe_ref.clone(),
                 x_t: x_t.clone(),
                 eps_prev: eps.clone(),
+                prev_warp: warp.clone(),
                 image: img.clone(),
             });
         }
         self.frame += 1;
+        self.prev_poses = poses;
         let (h, w) = size;
         let per = 3 * h * w;
         let out = self

@@ -42,6 +42,9 @@ impl RefAttnAt {
     }
 }
 
+/// The largest previous-frame warp depth cap (metres; b2dr_ref/controlnet.py MAX_WARP_DEPTH).
+pub const MAX_WARP_DEPTH: f64 = 1000.0;
+
 /// A B2D-R ControlNet config.
 #[derive(Clone, Debug, PartialEq)]
 pub struct B2drConfig {
@@ -53,6 +56,9 @@ pub struct B2drConfig {
     /// `N_max` of training's `n ~ U[0, N_max]`.
     pub prev_noise_max: usize,
     pub prev_blur_sigma: f64,
+    /// Metres: > 0 warps the previous frame to the current pose over the flat ground, rays capped at this depth
+    /// (`render::warp`); 0: no warp.
+    pub prev_warp_max_depth: f64,
     pub ref_encoder_channels: Vec<usize>,
     pub ref_attn: Vec<RefAttnAt>,
     pub pe_depth_num: usize,
@@ -148,6 +154,12 @@ impl B2drConfig {
         ensure!(
             prev_blur_sigma > 0.0 && prev_blur_sigma <= 10.0,
             "{CLASS_NAME} config: key `prev_blur_sigma` = {prev_blur_sigma} must be in (0, 10]"
+        );
+        let prev_warp_max_depth = take_f64(&mut m, "prev_warp_max_depth", 0.0)?;
+        ensure!(
+            (0.0..=MAX_WARP_DEPTH).contains(&prev_warp_max_depth),
+            "{CLASS_NAME} config: key `prev_warp_max_depth` = {prev_warp_max_depth} must be in [0, \
+             {MAX_WARP_DEPTH}] metres (0: no warp)"
         );
         let ref_enc = take(&mut m, "ref_encoder_channels");
         let ref_attn_v = take(&mut m, "ref_attn");
@@ -256,6 +268,7 @@ impl B2drConfig {
             prev_noise_level,
             prev_noise_max,
             prev_blur_sigma,
+            prev_warp_max_depth,
             ref_encoder_channels,
             ref_attn,
             pe_depth_num,
@@ -293,6 +306,7 @@ impl B2drConfig {
             prev_noise_level: 200,
             prev_noise_max: 400,
             prev_blur_sigma: 1.0,
+            prev_warp_max_depth: 0.0,
             ref_attn: (0..blocks)
                 .map(RefAttnAt::Down)
                 .chain([RefAttnAt::Mid])
@@ -346,6 +360,7 @@ impl B2drConfig {
         v["prev_noise_level"] = json!(self.prev_noise_level);
         v["prev_noise_max"] = json!(self.prev_noise_max);
         v["prev_blur_sigma"] = json!(self.prev_blur_sigma);
+        v["prev_warp_max_depth"] = json!(self.prev_warp_max_depth);
         v["ref_encoder_channels"] = json!(self.ref_encoder_channels);
         v["ref_attn"] = json!(self.ref_attn.iter().map(|a| a.name()).collect::<Vec<_>>());
         v["pe_depth_num"] = json!(self.pe_depth_num);

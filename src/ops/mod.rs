@@ -15,6 +15,7 @@ pub mod norm;
 pub mod reference;
 pub mod resample;
 pub mod softmax;
+pub mod warp;
 /// Winograd F(4x4, 3x3) / F(6x6, 3x3), one of the conv algorithms (`conv2d/winograd.rs`).
 pub use conv2d::winograd;
 

@@ -100,6 +100,7 @@ pub fn run(
             }),
             x_t: &x_t,
             eps_prev: &eps,
+            prev_warp: None,
         })?);
     }
     let mut profile = vec![];

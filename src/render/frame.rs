@@ -1,6 +1,6 @@
 //! One Bench2Drive-R frame on the device (`docs/b2dr_controlnet.md` sections 3 and 4), planned once per
 //! shape and replayed every frame:
-//! - `prev`: previous frame (N, 3, H, W) -> Gaussian blur -> 2x - 1 -> VAE encode -> posterior mean x scaling
+//! - `prev`: previous frame (N, 3, H, W) -> [warp to the current pose (`prev_warp_max_depth` > 0)] -> Gaussian blur -> 2x - 1 -> VAE encode -> posterior mean x scaling
 //!   -> `sqrt(abar_n) z + sqrt(1 - abar_n) eps_prev` -> model dtype, repeated for each guidance half;
 //! - `cond`: the masks' conditioning embedding, the noise-level embedding, and with references their VAE
 //!   latents -> reference encoder, the position-encoding MLPs and the Ref-Attn keys/values (once per frame);
@@ -16,6 +16,7 @@ use crate::nn::pipeline::{Denoiser, Sampler};
 use crate::nn::unet::{Residuals, UNet};
 use crate::nn::vae::{VaeDecoder, VaeEncoder};
 use crate::ops::elementwise::{self as ew, lincomb, LinTerm};
+use crate::ops::warp::{self, NO_SOURCE};
 use crate::ops::{blur, cast, resample};
 use crate::sampling::{NoiseSchedule, SamplerPlan};
 use crate::tensor::{DType, Tensor};
@@ -88,6 +89,10 @@ pub struct FrameInputs<'a> {
     pub x_t: &'a [f32],
     /// The noise of the previous-frame latent (N, C, h, w).
     pub eps_prev: &'a [f32],
+    /// The previous frame's warp to this frame's pose (N, H, W, 2) (`render::warp::ground_warp_grids`), for a
+    /// model that warps it (b2dr.json `prev_warp_max_depth` > 0); None: the previous frame is used as given
+    /// (it already is at this pose). An error for a model that does not warp.
+    pub prev_warp: Option<&'a [f32]>,
 }
 
 /// Wall time per stage of one frame (milliseconds; each stage ends with a fence wait).
@@ -141,6 +146,8 @@ pub struct FrameRenderer {
     // host-written inputs
     masks: Tensor,
     prev_img: Tensor,
+    /// (N, H, W, 2) the previous frame's warp grid (a model with `prev_warp_max_depth` > 0).
+    warp_grid: Option<Tensor>,
     eps_prev: Tensor,
     noise_t: Tensor,
     ref_imgs: Option<Tensor>,
@@ -198,6 +205,11 @@ impl FrameRenderer {
         let f32t = |s: &[usize], name: &str| Tensor::zeros(ctx, s, DType::F32, name);
         let masks32 = f32t(&[n, 15, ih, iw], "masks")?;
         let prev_img = f32t(&[n, 3, ih, iw], "prev image")?;
+        let warp_grid = if cfg.prev_warp_max_depth > 0.0 {
+            Some(f32t(&[n, ih, iw, 2], "previous-frame warp grid")?)
+        } else {
+            None
+        };
         let lc = m.vae_decoder.cfg().latent_channels;
         let eps_prev = f32t(&[n, lc, h, w], "eps prev")?;
         let noise_t = f32t(&[1], "noise level")?;
@@ -302,17 +314,29 @@ impl FrameRenderer {
         // prev chain
         let prev_rec = {
             let mut rec = ctx.recorder()?;
+            let warped = match &warp_grid {
+                Some(g) => {
+                    let wp = vws.alloc(&[n, 3, ih, iw])?;
+                    warp::warp_bilinear(&mut rec, &prev_img, g, &wp)?;
+                    Some(wp)
+                }
+                None => None,
+            };
+            let src = warped.as_ref().unwrap_or(&prev_img);
             let z = if blur_sigma > 0.0 {
                 let tmp = vws.alloc(&[n, 3, ih, iw])?;
                 let bl = vws.alloc(&[n, 3, ih, iw])?;
-                blur::gaussian_blur(&mut rec, &prev_img, blur_sigma as f32, &tmp, &bl)?;
+                blur::gaussian_blur(&mut rec, src, blur_sigma as f32, &tmp, &bl)?;
                 vws.release(tmp);
                 let z = encode(&mut rec, &mut vws, &bl)?;
                 vws.release(bl);
                 z
             } else {
-                encode(&mut rec, &mut vws, &prev_img)?
+                encode(&mut rec, &mut vws, src)?
             };
+            if let Some(wp) = warped {
+                vws.release(wp);
+            }
             if let Some(b) = &zbase32 {
                 lincomb(
                     &mut rec,
@@ -476,6 +500,7 @@ impl FrameRenderer {
             abar,
             masks: masks32,
             prev_img,
+            warp_grid,
             eps_prev,
             noise_t,
             ref_imgs,
@@ -539,6 +564,16 @@ impl FrameRenderer {
             _ => self.noise_level,
         };
         self.noise_t.write_f32(&self.ctx, &[level as f32])?;
+        match (x.prev_warp, &self.warp_grid) {
+            (Some(g), Some(t)) => self.write(t, g, "previous-frame warp grid (N, H, W, 2)")?,
+            // a previous frame already at this pose: every pixel keeps its own value
+            (None, Some(t)) => t.write_f32(&self.ctx, &vec![NO_SOURCE; t.numel()])?,
+            (Some(_), None) => bail!(
+                "render: a previous-frame warp was given, but the model does not warp its previous frame \
+                 (b2dr.json prev_warp_max_depth is 0)"
+            ),
+            (None, None) => {}
+        }
         match x.prev {
             Prev::Image(img) => {
                 self.write(&self.prev_img, img, "previous frame (N, 3, H, W)")?;

@@ -216,6 +216,7 @@ pub fn run(ctx: &Context, j: &RenderJob) -> Result<serde_json::Value> {
         }),
         x_t: &x_t,
         eps_prev: &eps,
+        prev_warp: None,
     })?;
     let img = r.image()?;
     std::fs::create_dir_all(&j.out).with_context(|| format!("creating {}", j.out.display()))?;

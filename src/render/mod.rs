@@ -12,3 +12,4 @@ pub mod inputs;
 pub mod job;
 pub mod named;
 pub mod package;
+pub mod warp;

@@ -220,6 +220,7 @@ pub fn render(
         }),
         x_t: x.x_t,
         eps_prev: x.eps_prev,
+        prev_warp: None,
     })?;
     let (lc, h, w) = r.latent_size();
     let host = |shape: Vec<usize>, data: Vec<f32>| HostTensor {

@@ -23,6 +23,7 @@ import torch
 
 from ..fastpath import PLAIN, FastPath
 from ..frame import gaussian_blur
+from ..warp import warp_image
 from .loss import denoise
 
 # diffusers' UniPCMultistepScheduler, linspace spacing, one step: timesteps [999]; its last update goes to sigma 0
@@ -67,12 +68,15 @@ def one_step_x0(unet, controlnet, ctx, masks, z_prev, x_T, eps_in, abar, level: 
     return x0 + z_prev if x0_base == "prev" else x0
 
 
-def previous_frame_latent(vae, x0: torch.Tensor, sigma: float) -> torch.Tensor:
+def previous_frame_latent(vae, x0: torch.Tensor, sigma: float, grid: Optional[torch.Tensor] = None) -> torch.Tensor:
     """(N, C, h, w) sampled latent -> the frame the engine shows (decode, clamp, 8-bit) -> the previous-frame path
-    (Gaussian blur ``sigma`` pixels, 2x - 1, encoder mean x scaling): the latent the next frame is given."""
+    (with ``grid`` (N, H, W, 2) the warp to the next frame's pose (b2dr_ref/warp.py), Gaussian blur ``sigma``
+    pixels, 2x - 1, encoder mean x scaling): the latent the next frame is given."""
     sf = vae.config.scaling_factor
     img = vae.decode(x0 / sf).sample.float()
     img = torch.round((img.clamp(-1, 1) + 1) * 127.5) / 255.0
+    if grid is not None:
+        img = warp_image(img, grid)
     if sigma > 0:
         img = gaussian_blur(img.cpu(), sigma).to(x0.device)     # frame.gaussian_blur builds its taps on the CPU
     return vae.encode(2.0 * img - 1.0).latent_dist.mean * sf
@@ -97,7 +101,11 @@ def own_previous(unet, controlnet, vae, ctx, b, s: Dict, rows: torch.Tensor, aba
     x0 = one_step_x0(unet, controlnet, ctx[r], masks[r], z_in[r], s["x_T"].to(dev)[r],
                      s["eps_in"].to(dev)[r], abar, int(cfg.prev_noise_level), prediction, x0_base, fast)
     z = b["z_prev"].clone()
-    z[r] = previous_frame_latent(vae, x0, float(cfg.prev_blur_sigma)).to(z.dtype)
+    grid = b.get("prev_grid")
+    if float(getattr(cfg, "prev_warp_max_depth", 0.0) or 0.0) > 0 and grid is None:
+        raise ValueError("own_previous: a warped previous frame needs the batch's prev_grid")
+    z[r] = previous_frame_latent(vae, x0, float(cfg.prev_blur_sigma),
+                                 None if grid is None else grid[r.cpu()]).to(z.dtype)
     return z
 
 

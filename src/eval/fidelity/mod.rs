@@ -39,6 +39,7 @@ use crate::eval::sensors::B2drEngine;
 use crate::projection::scene::map_layer;
 use crate::render::frame::{FrameInputs, FrameRenderer, Prev, RefInputs};
 use crate::render::inputs::{self, Geometry};
+use crate::render::warp::ground_warp_grids;
 use crate::scene::camera::Camera;
 use crate::scene::import::{resolve, Source};
 use crate::tensor::DType;
@@ -202,7 +203,25 @@ struct CaseInputs<'a> {
     masks: &'a [f32],
     prev: Option<&'a [f32]>,
     refs: Option<&'a (Vec<f32>, Geometry)>,
+    /// The previous frame's warp grid (a model that warps it).
+    warp: Option<&'a [f32]>,
     noise_id: u64,
+}
+
+/// The previous frame's warp from `prev` to `cur` (every camera at that ego pose) when the model warps it.
+fn warp_grid(
+    engine: &B2drEngine,
+    cams: &[Camera],
+    cur: &glam::DMat4,
+    prev: &glam::DMat4,
+    size: (usize, usize),
+) -> Result<Option<Vec<f32>>> {
+    let d = engine.package.control_cfg.prev_warp_max_depth;
+    if d <= 0.0 {
+        return Ok(None);
+    }
+    let n = cams.len();
+    ground_warp_grids(cams, &vec![*cur; n], &vec![*prev; n], size, d).map(Some)
 }
 
 /// Renders one setting of a case; per camera interleaved RGB8.
@@ -237,6 +256,7 @@ fn render(
         refs,
         x_t: &x_t,
         eps_prev: &eps,
+        prev_warp: x.warp,
     })?;
     let img = fr.image()?;
     let per = 3 * size.0 * size.1;
@@ -525,10 +545,12 @@ pub fn eval_render(ctx: &Context, cfg: &EvalConfig, out: &Path) -> Result<Result
                 let masks = scene::masks(&sc, &map, &cams, &e2g, step, size)?;
                 let refs = scene::refs(&store, &main.package.control_cfg, &cams, &e2g, size)?;
                 let prev = scene::planar_all(&pgt.rgb, size);
+                let warp = warp_grid(&main, &cams, &e2g, &pe2g, size)?;
                 let x = CaseInputs {
                     masks: &masks,
                     prev: Some(&prev),
                     refs: Some(&refs),
+                    warp: warp.as_deref(),
                     noise_id: 1_000_000 + (fi as u64) * 64 + di as u64,
                 };
                 let t0 = truths.len();
@@ -583,10 +605,14 @@ pub fn eval_render(ctx: &Context, cfg: &EvalConfig, out: &Path) -> Result<Result
                     let gt = scene::truth(&store, &cams, &e2g, step, size)?;
                     let masks = scene::masks(&sc, &map, &cams, &e2g, step, size)?;
                     let refs = scene::refs(&store, &main.package.control_cfg, &cams, &e2g, size)?;
+                    // frame 1's previous frame is the recorded frame 0, later ones the last output
+                    let pe2g = sc.rig.frames[fi - 1].ego2global;
+                    let warp = warp_grid(&main, &cams, &e2g, &pe2g, size)?;
                     let x = CaseInputs {
                         masks: &masks,
                         prev: Some(&prev0),
                         refs: Some(&refs),
+                        warp: warp.as_deref(),
                         noise_id: fi as u64,
                     };
                     let fr_bad = {

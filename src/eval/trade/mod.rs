@@ -388,6 +388,7 @@ fn measure(
             }),
             x_t: prefix(&x_t, n_all, p.cameras),
             eps_prev: prefix(&eps, n_all, p.cameras),
+            prev_warp: None,
         })?;
         cond += t.encode_ms;
         den += t.denoise_ms;
@@ -536,6 +537,7 @@ fn rollout(
             }),
             x_t: &x_t,
             eps_prev: &eps,
+            prev_warp: None,
         })?;
         ms += t.encode_ms + t.denoise_ms + t.decode_ms;
         let img = fr.image()?;

@@ -180,3 +180,38 @@ pub fn timestep_embedding(
     }
     out
 }
+
+/// x: (n, c, h, w), grid: (n, h, w, 2) source (x, y) in pixel-index units -> (n, c, h, w): PyTorch grid_sample
+/// (bilinear, padding "border", align_corners false) of x at the normalised grid, i.e. the source clipped to
+/// [0, W - 1] x [0, H - 1] and interpolated; a grid point outside [-0.5, W - 0.5] x [-0.5, H - 0.5] keeps x's pixel.
+pub fn warp_bilinear(x: &[f64], grid: &[f64], n: usize, c: usize, h: usize, w: usize) -> Vec<f64> {
+    let mut y = vec![0.0; x.len()];
+    for b in 0..n {
+        for yy in 0..h {
+            for xx in 0..w {
+                let g = 2 * ((b * h + yy) * w + xx);
+                let (gx, gy) = (grid[g], grid[g + 1]);
+                let inside =
+                    gx >= -0.5 && gx <= w as f64 - 0.5 && gy >= -0.5 && gy <= h as f64 - 0.5;
+                for ch in 0..c {
+                    let plane = &x[(b * c + ch) * h * w..(b * c + ch + 1) * h * w];
+                    let o = (b * c + ch) * h * w + yy * w + xx;
+                    if !inside {
+                        y[o] = plane[yy * w + xx];
+                        continue;
+                    }
+                    // PyTorch's border padding: clip the coordinate, then interpolate
+                    let sx = gx.clamp(0.0, (w - 1) as f64);
+                    let sy = gy.clamp(0.0, (h - 1) as f64);
+                    let (x0, y0) = (sx.floor() as usize, sy.floor() as usize);
+                    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+                    let (ax, ay) = (sx - x0 as f64, sy - y0 as f64);
+                    let at = |yy: usize, xx: usize| plane[yy * w + xx];
+                    y[o] = (1.0 - ay) * ((1.0 - ax) * at(y0, x0) + ax * at(y0, x1))
+                        + ay * ((1.0 - ax) * at(y1, x0) + ax * at(y1, x1));
+                }
+            }
+        }
+    }
+    y
+}
