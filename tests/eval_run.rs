@@ -213,15 +213,57 @@ fn b2dr_renderer_reruns_bit_identically_and_resume_checks_the_config() {
 /// same inputs, bit for bit: the loop adds no state of its own beyond the carried previous frame.
 #[test]
 fn b2dr_loop_frames_equal_standalone_renders() {
+    let Some(ctx) = common::ctx() else { return };
+    let frames = loop_frames_vs_standalone(&ctx, 0.0);
+    assert!(frames.iter().all(|f| f.prev_warp.is_none()));
+    common::assert_no_validation_errors();
+}
+
+/// The same with a model that warps its previous frame (b2dr.json prev_warp_max_depth): every frame gets a
+/// grid, and the ego's motion between frames moves it (the pose the loop warps from is the last frame's).
+#[test]
+fn b2dr_loop_frames_with_a_warping_model_equal_standalone_renders() {
+    use b2dr::ops::warp::NO_SOURCE;
+    let Some(ctx) = common::ctx() else { return };
+    let frames = loop_frames_vs_standalone(&ctx, 30.0);
+    for (k, f) in frames.iter().enumerate() {
+        let g = f.prev_warp.as_ref().expect("a grid for every frame");
+        assert_eq!(g.len(), 2 * 56 * 104 * 2, "two cameras' (H, W, 2)");
+        let moved = g
+            .chunks(2)
+            .enumerate()
+            .filter(|(i, v)| {
+                let (x, y) = ((i % (56 * 104)) % 104, (i % (56 * 104)) / 104);
+                v[0] != NO_SOURCE
+                    && ((v[0] - x as f32).abs() > 0.5 || (v[1] - y as f32).abs() > 0.5)
+            })
+            .count();
+        if k > 0 {
+            assert!(
+                moved > 1000,
+                "frame {k}: the ego drove 0.5 s, yet {moved} pixels moved"
+            );
+        }
+    }
+    common::assert_no_validation_errors();
+}
+
+/// Runs 15 steps of builtin:town:2 with the small package (its prev_warp_max_depth set to `warp`), then replays
+/// every recorded frame's inputs through a standalone renderer and asserts the same image bit for bit.
+fn loop_frames_vs_standalone(
+    ctx: &b2dr::vk::Context,
+    warp: f64,
+) -> Vec<b2dr::eval::sensors::FrameRecord> {
     use b2dr::eval::sensors::{B2dr, B2drEngine};
     use b2dr::render::frame::{FrameInputs, Prev, RefInputs};
     use b2dr::sim::closed_loop::run_with_sensors;
-    let Some(ctx) = common::ctx() else { return };
     let sc = b2dr::world::load_all("builtin:town:2").unwrap().remove(0);
     let store = ImageStore::new(&sc, None);
+    let mut pkg = b2dr_package::small_package();
+    pkg.control_cfg.prev_warp_max_depth = warp;
     let mut engine = B2drEngine::new(
-        &ctx,
-        b2dr_package::small_package(),
+        ctx,
+        pkg,
         b2dr::tensor::DType::F32,
         vec!["CAM_FRONT".into(), "CAM_BACK_LEFT".into()],
         true,
@@ -273,5 +315,5 @@ fn b2dr_loop_frames_equal_standalone_renders() {
             "frame {k} differs from the standalone render"
         );
     }
-    common::assert_no_validation_errors();
+    frames
 }
