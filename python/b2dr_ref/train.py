@@ -247,8 +247,8 @@ class Batcher:
             if new:
                 es = [s for _, s in new]
                 x0 = self._encode(np.stack([s.target for s in es]), False)
-                zp = self._encode(np.stack([s.prev for s in es]), True,
-                                  [self.grid(s) for s in es] if self.warp else None)
+                zp = np.stack([s.prev for s in es])
+                zp = self._encode(zp, True, [self.grid(s) for s in es]) if self.warp else self._encode(zp, True)
                 zr = self._encode(np.concatenate([s.refs for s in es]), False).reshape(len(es), 2, *x0.shape[-3:])
                 zp2 = self._encode(np.stack([s.prev2 for s in es]), True) if self.chain else None
                 for m, (i, _) in enumerate(new):
