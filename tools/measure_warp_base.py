@@ -1,0 +1,78 @@
+"""How close the residual renderer's base is to the frame it must draw: PSNR of the previous frame (as the model
+is given it: optionally warped to the current pose, b2dr_ref/warp.py, then blurred) against the current frame, over
+all pixels, lane-marking pixels (masks crosswalk + lane_divider) and vehicle pixels (car .. construction_vehicle),
+per camera group (CAM_FRONT / the others) and logged vs displaced samples, on a `b2dr export-training` folder.
+
+    PYTHONPATH=python python tools/measure_warp_base.py DATA [--shards 0,7,14] [--depth 30]
+"""
+import argparse
+import glob
+import os
+import sys
+
+import numpy as np
+import torch
+from safetensors import safe_open
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "python"))
+from b2dr_ref.frame import gaussian_blur  # noqa: E402
+from b2dr_ref.warp import ground_warp_grid, warp_image  # noqa: E402
+
+VEHICLE_BITS = 0b11111                      # car, truck, bus, trailer, construction_vehicle
+MARKING_BITS = (1 << 12) | (1 << 13)        # crosswalk, lane_divider
+
+
+def psnr(a, b, m=None):
+    d = ((a - b) ** 2).mean(0)
+    if m is not None:
+        if m.sum() < 1:
+            return None
+        d = d[m]
+    return float(10 * torch.log10(1 / d.mean()))
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("data")
+    p.add_argument("--shards", default="0,7,14", help="shard numbers to read")
+    p.add_argument("--depth", type=float, default=30.0, help="the warp's depth cap, metres")
+    a = p.parse_args()
+    files = sorted(glob.glob(os.path.join(a.data, "shard_*.safetensors")))
+    if not files:
+        raise SystemExit(f"{a.data}: no shard_*.safetensors (a b2dr export-training folder)")
+    stats = {}
+    for k in [int(x) for x in a.shards.split(",")]:
+        if k >= len(files):
+            raise SystemExit(f"--shards: {a.data} has {len(files)} shards")
+        f = safe_open(files[k], "np")
+        t, pv, mk = f.get_tensor("target"), f.get_tensor("prev"), f.get_tensor("masks_packed")
+        kk, c2e = f.get_tensor("intrinsics"), f.get_tensor("cam2ego")
+        e2g, pe2g, off = f.get_tensor("ego2global"), f.get_tensor("prev_ego2global"), f.get_tensor("offset")
+        for i in range(t.shape[0]):
+            for c in range(t.shape[1]):
+                tgt = torch.from_numpy(t[i, c]).float() / 255
+                prv = torch.from_numpy(pv[i, c]).float()[None] / 255
+                m = mk[i, c]
+                masks = {"all": None, "marking": torch.from_numpy((m & MARKING_BITS) > 0),
+                         "vehicle": torch.from_numpy((m & VEHICLE_BITS) > 0)}
+                g = ground_warp_grid(kk[i, c], c2e[i, c], e2g[i, c], pe2g[i, c], tgt.shape[1:], a.depth)
+                w = warp_image(prv, torch.from_numpy(g)[None])
+                group = ("front" if c == 0 else "other") + (" off-log" if np.abs(off[i]).sum() > 0 else " logged")
+                for name, img in [("blur 1", gaussian_blur(prv, 1.0)), ("warp + blur 0.5", gaussian_blur(w, 0.5)),
+                                  ("warp + blur 1", gaussian_blur(w, 1.0))]:
+                    for mn, mm in masks.items():
+                        v = psnr(tgt, img[0], mm)
+                        if v is not None:
+                            stats.setdefault((group, name, mn), []).append(v)
+    print(f"| samples | base | all px | lane-marking px | vehicle px |  (PSNR dB, depth cap {a.depth:g} m)")
+    print("|---|---|---|---|---|")
+    for group in sorted({k[0] for k in stats}):
+        for name in ("blur 1", "warp + blur 0.5", "warp + blur 1"):
+            row = [np.mean(stats[(group, name, mn)]) if (group, name, mn) in stats else float("nan")
+                   for mn in ("all", "marking", "vehicle")]
+            n = len(stats[(group, name, "all")])
+            print(f"| {group} ({n}) | {name} | " + " | ".join(f"{v:.2f}" for v in row) + " |")
+
+
+if __name__ == "__main__":
+    main()
