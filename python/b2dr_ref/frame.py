@@ -155,8 +155,7 @@ def render_frame(unet, controlnet: B2DRControlNetModel, vae, x_T: torch.Tensor, 
                  pe_ref: Optional[Sequence[torch.Tensor]] = None, steps: int = 20, ref_guidance: float = 2.0,
                  sampler: str = "unipc", noise_level: Optional[int] = None,
                  conditioning_scale: float = 1.0, prediction_type: str = "epsilon",
-                 sdedit: Optional[Tuple[int, torch.Tensor]] = None, x0_base: str = "none",
-                 prev_grid: Optional[torch.Tensor] = None) -> FrameResult:
+                 sdedit: Optional[Tuple[int, torch.Tensor]] = None, x0_base: str = "none") -> FrameResult:
     """A full frame of N cameras.
 
     sdedit = (t0, z_start) (a diagnostic, not the engine's path): the sampler starts at its first timestep <= t0
@@ -171,14 +170,8 @@ def render_frame(unet, controlnet: B2DRControlNetModel, vae, x_T: torch.Tensor, 
     location (N, 3D, h_j, w_j) / (N, 2, 3D, h_j, w_j). With references and w != 1 every step runs the batch
     [no-ref; ref] (2N rows) and eps = eps_noref + w (eps_ref - eps_noref); w == 1 runs the N ref rows only; without
     references the N no-ref rows only.
-
-    prev_grid (N, H, W, 2): the previous frame's warp to the current pose (b2dr_ref/warp.py), applied before the
-    blur; None: ``prev`` is used as given (a model with prev_warp_max_depth > 0 expects the caller to warp it).
     """
     cfg = controlnet.config
-    if prev_grid is not None:
-        from .warp import warp_image
-        prev = warp_image(prev, prev_grid)
     n = x_T.shape[0]
     nl = int(cfg.prev_noise_level) if noise_level is None else int(noise_level)
     chain = prev_frame_chain(vae, prev, eps_prev, float(cfg.prev_blur_sigma), nl)

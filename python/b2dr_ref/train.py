@@ -151,6 +151,11 @@ def latent_cache_key(data: str, vae_path: str, sigma: float, warp: float = 0.0) 
     return h.hexdigest()
 
 
+def geometry(s: Sample) -> Tuple:
+    """What a sample's previous-frame warp needs: intrinsics, cam2ego, the current and the previous ego pose."""
+    return (s.k, s.cam2ego, s.ego2global, s.prev_ego2global)
+
+
 class Batcher:
     """Turns sample indices into model inputs; caches the frozen-VAE latents and the PE per sample index (they are
     deterministic), up to ``cache`` samples. With ``latents`` = (path, key) the VAE latents (the costly part: four
@@ -248,7 +253,8 @@ class Batcher:
                 es = [s for _, s in new]
                 x0 = self._encode(np.stack([s.target for s in es]), False)
                 zp = np.stack([s.prev for s in es])
-                zp = self._encode(zp, True, [self.grid(s) for s in es]) if self.warp else self._encode(zp, True)
+                zp = self._encode(zp, True, [self.grid(geometry(s)) for s in es]) if self.warp else \
+                    self._encode(zp, True)
                 zr = self._encode(np.concatenate([s.refs for s in es]), False).reshape(len(es), 2, *x0.shape[-3:])
                 zp2 = self._encode(np.stack([s.prev2 for s in es]), True) if self.chain else None
                 for m, (i, _) in enumerate(new):
@@ -261,14 +267,14 @@ class Batcher:
                 local[i] = (*lat[i][:3], pack_masks(s.masks),
                             self.cam_index[s.camera], [torch.from_numpy(a) for a in pc],
                             [torch.from_numpy(a) for a in pr], chain,
-                            (s.k, s.cam2ego, s.ego2global, s.prev_ego2global) if self.warp else None)
+                            geometry(s) if self.warp else None)
                 if len(self.cache) < self.cache_max:
                     self.cache[i] = local[i]
         return [self.cache[i] if i in self.cache else local[i] for i in idx]
 
-    def grid(self, s) -> np.ndarray:
-        """(H, W, 2) the warp of sample ``s``'s previous frame to its pose (b2dr_ref/warp.py)."""
-        return ground_warp_grid(s.k, s.cam2ego, s.ego2global, s.prev_ego2global, self.render_hw, self.warp)
+    def grid(self, geom: Tuple) -> np.ndarray:
+        """(H, W, 2) the warp of a sample's previous frame to its pose (b2dr_ref/warp.py); ``geom``: geometry(s)."""
+        return ground_warp_grid(*geom, self.render_hw, self.warp)
 
     def batch(self, idx: Sequence[int], other: Optional[Sequence[int]] = None):
         """The model inputs of samples ``idx``; with ``other`` (one index per sample), ``masks_other``: the masks of
@@ -283,8 +289,7 @@ class Batcher:
             extra["z_prev2"] = torch.stack([it[7][0] for it in items]).to(dev)
             extra["masks_prev"] = torch.stack([unpack_masks(it[7][1]) for it in items]).float().to(dev)
         if self.warp:
-            extra["prev_grid"] = torch.stack([torch.from_numpy(ground_warp_grid(*it[8], self.render_hw, self.warp))
-                                              for it in items])
+            extra["prev_grid"] = torch.stack([torch.from_numpy(self.grid(it[8])) for it in items])
         return dict(extra, x0=torch.stack([it[0] for it in items]).to(dev), z_prev=torch.stack([it[1] for it in items]).to(dev),
                     ref_latents=torch.stack([it[2] for it in items]).to(dev),
                     masks=torch.stack([unpack_masks(it[3]) for it in items]).float().to(dev),

@@ -1,7 +1,8 @@
 //! One Bench2Drive-R frame on the device (`docs/b2dr_controlnet.md` sections 3 and 4), planned once per
 //! shape and replayed every frame:
-//! - `prev`: previous frame (N, 3, H, W) -> [warp to the current pose (`prev_warp_max_depth` > 0)] -> Gaussian blur -> 2x - 1 -> VAE encode -> posterior mean x scaling
-//!   -> `sqrt(abar_n) z + sqrt(1 - abar_n) eps_prev` -> model dtype, repeated for each guidance half;
+//! - `prev`: previous frame (N, 3, H, W) -> [warp to the current pose (`prev_warp_max_depth` > 0)] ->
+//!   Gaussian blur -> 2x - 1 -> VAE encode -> posterior mean x scaling -> `sqrt(abar_n) z + sqrt(1 - abar_n)
+//!   eps_prev` -> model dtype, repeated for each guidance half;
 //! - `cond`: the masks' conditioning embedding, the noise-level embedding, and with references their VAE
 //!   latents -> reference encoder, the position-encoding MLPs and the Ref-Attn keys/values (once per frame);
 //! - the sampler half ([`Sampler`]) with the B2D-R denoiser (UNet + B2D-R ControlNet; batch `[no-ref; ref]`
