@@ -178,6 +178,7 @@ fn export_round_trips_through_safetensors() {
     assert_eq!(&prev[0..16], &prev[32..48]);
     // Without --prev-chain the chain tensors are absent.
     assert!(st.tensor("prev2").is_err() && st.tensor("prev_masks_packed").is_err());
+    assert!(st.tensor("prev2_ego2global").is_err());
     assert_eq!(index["prev_chain"], false);
     std::fs::remove_dir_all(&dir).ok();
 }
@@ -214,6 +215,9 @@ fn prev_chain_exports_the_previous_frames_inputs() {
     assert_eq!((mshape, mdt), (vec![4, 2, h, w], safetensors::Dtype::U16));
     let p2 = tensor(&st, "prev2").2;
     let prev_e2g = f64s(tensor(&st, "prev_ego2global").2);
+    let (p2shape, p2dt, p2e2g) = tensor(&st, "prev2_ego2global");
+    assert_eq!((p2shape, p2dt), (vec![4, 2, 4, 4], safetensors::Dtype::F64));
+    let prev2_e2g = f64s(p2e2g);
     let sc = load_all("builtin:tjunction:5").unwrap().remove(0);
     let frames = candidate_frames(&sc);
     let store = ImageStore::new(&sc, None);
@@ -233,6 +237,10 @@ fn prev_chain_exports_the_previous_frames_inputs() {
         for (ci, cam_name) in ["CAM_FRONT_LEFT", "CAM_FRONT"].iter().enumerate() {
             let off = (row * 2 + ci) * 3 * n;
             let img = frames[prev2_step].image(cam_name).unwrap();
+            // its pose: the log's (the chain's first hop warps it to the previous frame's pose)
+            let want = img.ego2global.transpose().to_cols_array();
+            let p2e = &prev2_e2g[(row * 2 + ci) * 16..(row * 2 + ci + 1) * 16];
+            assert_eq!(p2e, &want[..], "row {row} {cam_name}: prev2 pose");
             let px = store.image(img, w, h).unwrap();
             for c in 0..3 {
                 for p in 0..n {

@@ -22,6 +22,8 @@ numpy + safetensors only; torch is optional (``to_torch``). One sample is a dict
     prev_masks          uint8   (C, 15, H, W)     only in a --prev-chain export: the previous frame's layout at
                                                   its logged pose and step
     prev2_step          int                       only in a --prev-chain export
+    prev2_ego2global    float64 (C, 4, 4)         only in a --prev-chain export written since session 41: the
+                                                  pose of ``prev2`` (absent from older chain exports)
     offset              float64 (3,)              (dx m, dy m, dyaw degrees) in the ego frame
     perturbed           bool
     scenario            str
@@ -39,6 +41,7 @@ from safetensors import safe_open
 FORMAT = "b2dr-training"
 VERSION = 1
 _CHAIN = ["prev2", "prev_masks_packed", "prev2_step"]     # --prev-chain exports only
+_CHAIN_POSE = "prev2_ego2global"                          # --prev-chain exports written since session 41
 _PER_ROW = [
     "target",
     "prev",
@@ -99,6 +102,8 @@ class TrainingSet:
         f = self._shard(int(s["shard"]))
         r = int(s["row"])
         keys = _PER_ROW + (_CHAIN if self.prev_chain else [])
+        if self.prev_chain and _CHAIN_POSE in f.keys():
+            keys = keys + [_CHAIN_POSE]
         return {k: f.get_slice(k)[r : r + 1][0] for k in keys}
 
     def __getitem__(self, i: int) -> Dict[str, Any]:
@@ -112,6 +117,8 @@ class TrainingSet:
         if self.prev_chain:
             chain = {"prev2": t["prev2"], "prev_masks": unpack_masks(t["prev_masks_packed"], len(self.mask_channels)),
                      "prev2_step": int(t["prev2_step"])}
+            if _CHAIN_POSE in t:
+                chain[_CHAIN_POSE] = t[_CHAIN_POSE]
         return {
             **chain,
             "target": t["target"],

@@ -180,6 +180,7 @@ class Batcher:
         # then holds each row's grid (``prev_grid``) for the self-prev chain's own previous frame
         self.warp = float(getattr(cfg, "prev_warp_max_depth", 0.0) or 0.0)
         self.cam_index = {c: i for i, c in enumerate(source.cameras)}
+        self.hop1_unwarped_said = False
         self.cache_max = cache
         self.cache: Dict[int, Tuple] = {}
         self.latents = latents
@@ -256,7 +257,8 @@ class Batcher:
                 zp = self._encode(zp, True, [self.grid(geometry(s)) for s in es]) if self.warp else \
                     self._encode(zp, True)
                 zr = self._encode(np.concatenate([s.refs for s in es]), False).reshape(len(es), 2, *x0.shape[-3:])
-                zp2 = self._encode(np.stack([s.prev2 for s in es]), True) if self.chain else None
+                zp2 = self._encode(np.stack([s.prev2 for s in es]), True, self._hop1_grids(es)) if self.chain \
+                    else None
                 for m, (i, _) in enumerate(new):
                     lat[i] = (x0[m], zp[m], zr[m]) + ((zp2[m],) if self.chain else ())
                     if self.latents:
@@ -271,6 +273,20 @@ class Batcher:
                 if len(self.cache) < self.cache_max:
                     self.cache[i] = local[i]
         return [self.cache[i] if i in self.cache else local[i] for i in idx]
+
+    def _hop1_grids(self, es: Sequence[Sample]) -> Optional[List[np.ndarray]]:
+        """The warp of each chain sample's ``prev2`` to its previous frame's pose (the chain's first hop, as the loop
+        warps every frame it carries); None (unwarped) without the warp, or for an export that lacks the pose of
+        ``prev2`` (written before session 41: the first hop then trains unwarped, said once)."""
+        if not self.warp:
+            return None
+        if any(s.prev2_ego2global is None for s in es):
+            if not self.hop1_unwarped_said:
+                print("chain: the export holds no prev2_ego2global (written before session 41): the chain's first "
+                      "hop trains on an UNwarped previous frame; export again for the warped chain", flush=True)
+                self.hop1_unwarped_said = True
+            return None
+        return [self.grid((s.k, s.cam2ego, s.prev_ego2global, s.prev2_ego2global)) for s in es]
 
     def grid(self, geom: Tuple) -> np.ndarray:
         """(H, W, 2) the warp of a sample's previous frame to its pose (b2dr_ref/warp.py); ``geom``: geometry(s)."""

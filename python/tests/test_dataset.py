@@ -141,6 +141,7 @@ def test_prev_chain_export_holds_the_previous_frames_inputs(export_dir, tmp_path
         assert s["prev2"].shape == (1, 3, 24, 40) and s["prev2"].dtype == np.uint8
         assert s["prev_masks"].shape == (1, 15, 24, 40) and set(np.unique(s["prev_masks"])) <= {0, 1}
         assert s["prev2_step"] == s["prev_step"] - 5 and s["prev_step"] == s["step"] - 5
+        assert s["prev2_ego2global"].shape == (1, 4, 4) and s["prev2_ego2global"].dtype == np.float64
         assert not np.array_equal(s["prev2"], s["prev"])
         by_step[s["step"]] = s
     pairs = 0
@@ -152,4 +153,5 @@ def test_prev_chain_export_holds_the_previous_frames_inputs(export_dir, tmp_path
         np.testing.assert_array_equal(s["prev_masks"], p["masks"])
         np.testing.assert_array_equal(s["prev2"], p["prev"])
         np.testing.assert_array_equal(s["prev_ego2global"], p["ego2global"])
+        np.testing.assert_array_equal(s["prev2_ego2global"], p["prev_ego2global"])     # prev2's pose: the log's
     assert pairs >= 3, f"only {pairs} samples whose previous frame is a target too"

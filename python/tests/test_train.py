@@ -1010,6 +1010,23 @@ def test_self_prev_pose_chain_renders_the_previous_frame(vae_run, tmp_path, caps
     np.testing.assert_array_equal(batch["masks_prev"].numpy(), np.stack([src[i].prev_masks for i in range(2)]))
     assert not torch.equal(batch["z_prev2"], batch["z_prev"])
     assert "z_prev2" not in T.Batcher(src, vae, cn, "cpu").batch([0])
+    # with the warp, the chain's first hop warps prev2 to the previous frame's pose (the export holds prev2's pose),
+    # as the loop warps every frame it carries; an export without that pose trains it unwarped and says so
+    from b2dr_ref.warp import ground_warp_grid
+    import dataclasses
+
+    _, cw = T.build_diffusion_models(dict(nano.TEST, controlnet=dict(nano.TEST["controlnet"], prev_warp_max_depth=30.0)))
+    bw = T.Batcher(src, vae, cw, "cpu", chain=True)
+    hop1 = [ground_warp_grid(src[i].k, src[i].cam2ego, src[i].prev_ego2global, src[i].prev2_ego2global,
+                             src.render_size, 30.0) for i in range(2)]
+    assert all(np.isfinite(g).mean() > 0.5 for g in hop1)     # 0.5 s of driving: most pixels move
+    torch.testing.assert_close(bw.batch([0, 1])["z_prev2"], bw._encode(np.stack([src[i].prev2 for i in range(2)]),
+                                                                        True, hop1))
+    assert not torch.allclose(bw.batch([0, 1])["z_prev2"], want_z2)
+    capsys.readouterr()
+    old = [dataclasses.replace(src[i], prev2_ego2global=None) for i in range(2)]
+    assert bw._hop1_grids(old) is None and bw._hop1_grids(old) is None
+    assert capsys.readouterr().out.count("UNwarped previous frame") == 1
     run = str(tmp_path / "run")
     losses = T.main(["--data", data, "--vae", vae_dir, "--out", run, "--batch", "2", "--warmup", "1", "--steps", "2",
                      "--ckpt-every", "1000", "--prediction", "v_prediction", "--x0-base", "prev", "--self-prev", "1",

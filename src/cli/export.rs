@@ -32,8 +32,9 @@ pub struct ExportArgs {
     /// Samples per shard.
     #[arg(long, default_value_t = 64)]
     pub shard_samples: usize,
-    /// Only targets whose previous frame has a previous frame, with that frame's image (`prev2`) and the previous
-    /// frame's own layout (`prev_masks_packed`): for `train --self-prev-pose chain`.
+    /// Only targets whose previous frame has a previous frame, with that frame's image (`prev2`) and pose
+    /// (`prev2_ego2global`) and the previous frame's own layout (`prev_masks_packed`): for
+    /// `train --self-prev-pose chain`.
     #[arg(long)]
     pub prev_chain: bool,
     /// No progress bar.

@@ -27,9 +27,11 @@ class Sample:
     prev_ego2global: np.ndarray   # (4, 4) (not used by the model: the previous frame has no PE)
     ref_ego2global: np.ndarray    # (2, 4, 4) front, rear
     camera: str
-    # a --prev-chain export only: the previous frame's own previous image (3, H, W) and its layout (15, H, W)
+    # a --prev-chain export only: the previous frame's own previous image (3, H, W) and its layout (15, H, W);
+    # the pose of that image (4, 4) where the export holds it (written since session 41)
     prev2: Optional[np.ndarray] = None
     prev_masks: Optional[np.ndarray] = None
+    prev2_ego2global: Optional[np.ndarray] = None
 
 
 class SampleSource(Protocol):
@@ -132,7 +134,9 @@ class DatasetSource:
                       prev_ego2global=np.asarray(s["prev_ego2global"][c], np.float64),
                       ref_ego2global=np.asarray(s["ref_ego2global"][c], np.float64), camera=self.cameras[c],
                       prev2=s["prev2"][c] if "prev2" in s else None,
-                      prev_masks=s["prev_masks"][c] if "prev_masks" in s else None)
+                      prev_masks=s["prev_masks"][c] if "prev_masks" in s else None,
+                      prev2_ego2global=np.asarray(s["prev2_ego2global"][c], np.float64)
+                      if "prev2_ego2global" in s else None)
 
 
 def open_source(data: str, render_size=None, seed: int = 0, reference_bins=None) -> SampleSource:

@@ -78,8 +78,10 @@ struct SampleData {
     ref_distance: Vec<f32>,
     ref_step: Vec<i32>,
     prev_step: usize,
-    /// With `prev_chain` (else empty / None): the previous frame's previous image and its own layout masks.
+    /// With `prev_chain` (else empty / None): the previous frame's previous image, its logged pose (the
+    /// chain's first hop warps it to the previous frame's pose) and the previous frame's own layout masks.
     prev2: Vec<u8>,
+    prev2_e2g: Vec<f64>,
     prev_masks: Vec<u16>,
     prev2_step: Option<usize>,
 }
@@ -151,6 +153,7 @@ impl Job<'_> {
             ref_step: Vec::new(),
             prev_step: frame_step(sc, pf),
             prev2: Vec::new(),
+            prev2_e2g: Vec::new(),
             prev_masks: Vec::new(),
             prev2_step: s.prev2.map(|i| frame_step(sc, &self.frames[i])),
         };
@@ -204,6 +207,7 @@ impl Job<'_> {
                     .image(&cam.name)
                     .context("the previous frame's previous frame lacks a camera")?;
                 push_planar(&self.store.image(p2img, w, h)?.data, &mut d.prev2);
+                d.prev2_e2g.extend(rows4(&p2img.ego2global));
                 // the previous frame's layout where the log drew it: its logged pose and step
                 let pm = layout_masks(
                     sc,
@@ -259,6 +263,7 @@ fn append(
     shard.push("scenario_index", &[], &[scenario as i32])?;
     if let Some(p2) = d.prev2_step {
         shard.push("prev2", &[nc, 3, h, w], &d.prev2)?;
+        shard.push("prev2_ego2global", &[nc, 4, 4], &d.prev2_e2g)?;
         shard.push("prev_masks_packed", &[nc, h, w], &d.prev_masks)?;
         shard.push("prev2_step", &[], &[p2 as i32])?;
     }
