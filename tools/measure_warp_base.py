@@ -7,6 +7,7 @@ per camera group (CAM_FRONT / the others) and logged vs displaced samples, on a 
 """
 import argparse
 import glob
+import json
 import os
 import sys
 
@@ -15,11 +16,18 @@ import torch
 from safetensors import safe_open
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "python"))
+from b2dr_ref.controlnet import MASK_CHANNELS  # noqa: E402
 from b2dr_ref.frame import gaussian_blur  # noqa: E402
 from b2dr_ref.warp import ground_warp_grid, warp_image  # noqa: E402
 
-VEHICLE_BITS = 0b11111                      # car, truck, bus, trailer, construction_vehicle
-MARKING_BITS = (1 << 12) | (1 << 13)        # crosswalk, lane_divider
+
+def bits(names):
+    """The masks_packed bits of these mask channels (bit k = channel k of the export's mask_channels)."""
+    return sum(1 << MASK_CHANNELS.index(n) for n in names)
+
+
+VEHICLE_BITS = bits(["car", "truck", "bus", "trailer", "construction_vehicle"])
+MARKING_BITS = bits(["crosswalk", "lane_divider"])
 
 
 def psnr(a, b, m=None):
@@ -40,6 +48,11 @@ def main():
     files = sorted(glob.glob(os.path.join(a.data, "shard_*.safetensors")))
     if not files:
         raise SystemExit(f"{a.data}: no shard_*.safetensors (a b2dr export-training folder)")
+    with open(os.path.join(a.data, "index.json")) as fh:
+        index = json.load(fh)
+    if list(index["mask_channels"]) != list(MASK_CHANNELS):
+        raise SystemExit(f"{a.data}: mask channels {index['mask_channels']} differ from the model's {MASK_CHANNELS}")
+    cameras = list(index["cameras"])
     stats = {}
     for k in [int(x) for x in a.shards.split(",")]:
         if k >= len(files):
@@ -57,7 +70,8 @@ def main():
                          "vehicle": torch.from_numpy((m & VEHICLE_BITS) > 0)}
                 g = ground_warp_grid(kk[i, c], c2e[i, c], e2g[i, c], pe2g[i, c], tgt.shape[1:], a.depth)
                 w = warp_image(prv, torch.from_numpy(g)[None])
-                group = ("front" if c == 0 else "other") + (" off-log" if np.abs(off[i]).sum() > 0 else " logged")
+                group = ("front" if cameras[c] == "CAM_FRONT" else "other") + \
+                    (" off-log" if np.abs(off[i]).sum() > 0 else " logged")
                 for name, img in [("blur 1", gaussian_blur(prv, 1.0)), ("warp + blur 0.5", gaussian_blur(w, 0.5)),
                                   ("warp + blur 1", gaussian_blur(w, 1.0))]:
                     for mn, mm in masks.items():

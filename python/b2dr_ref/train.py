@@ -253,9 +253,8 @@ class Batcher:
             if new:
                 es = [s for _, s in new]
                 x0 = self._encode(np.stack([s.target for s in es]), False)
-                zp = np.stack([s.prev for s in es])
-                zp = self._encode(zp, True, [self.grid(geometry(s)) for s in es]) if self.warp else \
-                    self._encode(zp, True)
+                zp = self._encode(np.stack([s.prev for s in es]), True,
+                                  [self.grid(geometry(s)) for s in es] if self.warp else None)
                 zr = self._encode(np.concatenate([s.refs for s in es]), False).reshape(len(es), 2, *x0.shape[-3:])
                 zp2 = self._encode(np.stack([s.prev2 for s in es]), True, self._hop1_grids(es)) if self.chain \
                     else None
