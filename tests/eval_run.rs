@@ -248,11 +248,87 @@ fn b2dr_loop_frames_with_a_warping_model_equal_standalone_renders() {
     common::assert_no_validation_errors();
 }
 
+/// A model that takes its previous frame from its references (b2dr.json prev_source "reference"): every frame,
+/// the first one included, is given its previous frame as an image: per camera the retrieved reference behind it
+/// along its axis (CAM_FRONT: the rear one; CAM_BACK_LEFT, which looks backwards: the front one), warped from
+/// that reference's pose, where that warp reaches `MIN_REFERENCE_COVERAGE` of the frame, else the frame rendered
+/// before (8-bit); each frame still equals a standalone render of its inputs.
+#[test]
+fn b2dr_loop_frames_with_a_reference_base_equal_standalone_renders() {
+    use b2dr::eval::sensors::as_8bit;
+    use b2dr::nn::b2dr_config::PrevSource;
+    let Some(ctx) = common::ctx() else { return };
+    let frames = loop_frames_vs_standalone_with(&ctx, 30.0, PrevSource::Reference);
+    let per = 3 * 56 * 104;
+    let mut front_took = 0;
+    for (k, f) in frames.iter().enumerate() {
+        let prev = f
+            .prev
+            .as_ref()
+            .expect("every frame gets its previous frame as an image");
+        assert_eq!(prev.len(), 2 * per);
+        assert_eq!(f.took_reference.len(), 2);
+        // camera c's reference j sits at ref_images[(2 c + j) per..]
+        for (c, j) in [(0, 1), (1, 0)] {
+            let mine = &prev[c * per..(c + 1) * per];
+            if f.took_reference[c] {
+                assert!(
+                    mine == &f.ref_images[(2 * c + j) * per..(2 * c + j + 1) * per],
+                    "frame {k} camera {c}"
+                );
+            } else if k > 0 {
+                let last = as_8bit(&frames[k - 1].image);
+                assert!(
+                    mine == &last[c * per..(c + 1) * per],
+                    "frame {k} camera {c}: the frame before"
+                );
+            }
+        }
+        // at the log's start there is nothing behind: both references are the one ahead
+        if !f.took_reference[0] || f.ref_images[..per] == f.ref_images[per..2 * per] {
+            continue;
+        }
+        front_took += 1;
+        // the grid warps the rear reference from its pose, metres behind the ego: most CAM_FRONT pixels find
+        // their source nearer the image centre than themselves
+        let g = f.prev_warp.as_ref().expect("a grid for every frame");
+        let (mut inward, mut with_source) = (0, 0);
+        for (i, v) in g[..2 * 56 * 104].chunks(2).enumerate() {
+            if v[0] == b2dr::ops::warp::NO_SOURCE {
+                continue;
+            }
+            with_source += 1;
+            let (x, y) = ((i % 104) as f32, (i / 104) as f32);
+            if (v[0] - 51.5).abs() + (v[1] - 27.5).abs() < (x - 51.5).abs() + (y - 27.5).abs() - 0.5
+            {
+                inward += 1;
+            }
+        }
+        assert!(
+            inward * 2 > with_source,
+            "frame {k}: {inward} of {with_source} CAM_FRONT pixels sample nearer the centre"
+        );
+    }
+    assert!(
+        front_took > 0,
+        "CAM_FRONT never started from a rear reference"
+    );
+    common::assert_no_validation_errors();
+}
+
 /// Runs 15 steps of builtin:town:2 with the small package (its prev_warp_max_depth set to `warp`), then replays
 /// every recorded frame's inputs through a standalone renderer and asserts the same image bit for bit.
 fn loop_frames_vs_standalone(
     ctx: &b2dr::vk::Context,
     warp: f64,
+) -> Vec<b2dr::eval::sensors::FrameRecord> {
+    loop_frames_vs_standalone_with(ctx, warp, b2dr::nn::b2dr_config::PrevSource::Previous)
+}
+
+fn loop_frames_vs_standalone_with(
+    ctx: &b2dr::vk::Context,
+    warp: f64,
+    source: b2dr::nn::b2dr_config::PrevSource,
 ) -> Vec<b2dr::eval::sensors::FrameRecord> {
     use b2dr::eval::sensors::{B2dr, B2drEngine};
     use b2dr::render::frame::{FrameInputs, Prev, RefInputs};
@@ -261,6 +337,7 @@ fn loop_frames_vs_standalone(
     let store = ImageStore::new(&sc, None);
     let mut pkg = b2dr_package::small_package();
     pkg.control_cfg.prev_warp_max_depth = warp;
+    pkg.control_cfg.prev_source = source;
     let mut engine = B2drEngine::new(
         ctx,
         pkg,

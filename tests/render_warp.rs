@@ -200,3 +200,62 @@ fn grid_matches_the_training_side() {
         "python: NaN (no source)"
     );
 }
+
+/// b2dr.json's `prev_source`: "previous" unless the package says otherwise, "reference" read and written back,
+/// refused without a warp (an unwarped reference does not line up with the current frame) and for other values.
+#[test]
+fn the_prev_source_key_is_read_checked_and_written() {
+    use b2dr::nn::b2dr_config::{B2drConfig, PrevSource};
+    use b2dr::nn::config::UNetConfig;
+    let base = B2drConfig::from_unet(&UNetConfig::b2dr_tiny(), vec![16, 32, 96, 256]);
+    assert_eq!(base.prev_source, PrevSource::Previous);
+    let mut v = base.to_json();
+    assert_eq!(v["prev_source"], "previous");
+    v.as_object_mut().unwrap().remove("prev_source");
+    assert_eq!(
+        B2drConfig::from_json(v.clone()).unwrap().prev_source,
+        PrevSource::Previous,
+        "an older package without the key"
+    );
+    v["prev_source"] = serde_json::json!("reference");
+    let e = format!("{:#}", B2drConfig::from_json(v.clone()).unwrap_err());
+    assert!(
+        e.contains("prev_source") && e.contains("prev_warp_max_depth"),
+        "{e}"
+    );
+    v["prev_warp_max_depth"] = serde_json::json!(30.0);
+    let c = B2drConfig::from_json(v.clone()).unwrap();
+    assert_eq!(c.prev_source, PrevSource::Reference);
+    assert_eq!(B2drConfig::from_json(c.to_json()).unwrap(), c);
+    for bad in [serde_json::json!("carried"), serde_json::json!(1)] {
+        v["prev_source"] = bad.clone();
+        let e = format!("{:#}", B2drConfig::from_json(v.clone()).unwrap_err());
+        assert!(e.contains("prev_source"), "{bad}: {e}");
+    }
+}
+
+/// The reference a camera starts from (`prev_source` "reference") is the one whose camera stands behind it
+/// along its optical axis: for a forward camera the reference behind the ego, for a backward one the reference
+/// ahead, whatever order they are given in; level: the rear one.
+#[test]
+fn the_reference_base_is_the_one_behind_the_camera() {
+    use b2dr::render::warp::reference_base_choice;
+    let at = |x: f64, y: f64| DMat4::from_translation(DVec3::new(x, y, 0.0));
+    let cur = at(100.0, 5.0);
+    let (ahead, behind) = (at(110.0, 5.0), at(92.0, 5.0));
+    let f = front();
+    assert_eq!(reference_base_choice(&f, &cur, [&ahead, &behind]), 1);
+    assert_eq!(reference_base_choice(&f, &cur, [&behind, &ahead]), 0);
+    // a camera looking backwards: the same rig turned by 180 degrees about the ego's z axis
+    let mut back = front();
+    back.cam2ego = DMat4::from_rotation_z(std::f64::consts::PI) * back.cam2ego;
+    assert_eq!(reference_base_choice(&back, &cur, [&ahead, &behind]), 0);
+    // a yawed ego: "behind" is along the camera's axis, not the global x axis
+    let yawed = DMat4::from_rotation_z(std::f64::consts::FRAC_PI_2);
+    let cur_y = at(0.0, 0.0) * yawed;
+    let (north, south) = (at(0.0, 12.0) * yawed, at(0.0, -7.0) * yawed);
+    assert_eq!(reference_base_choice(&f, &cur_y, [&north, &south]), 1);
+    // side by side (a lateral offset only): level, the rear one
+    let (left, right) = (at(100.0, 8.0), at(100.0, 2.0));
+    assert_eq!(reference_base_choice(&f, &cur, [&left, &right]), 1);
+}

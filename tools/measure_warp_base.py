@@ -39,6 +39,34 @@ def psnr(a, b, m=None):
     return float(10 * torch.log10(1 / d.mean()))
 
 
+def layout_masked(grid, cur_vehicle, prev_vehicle):
+    """The grid with NaN (keep the previous image's own pixel) where the current pixel is a vehicle
+    (``cur_vehicle`` (H, W) bool or None) or its source in the previous frame is one (``prev_vehicle`` (H, W) bool
+    or None, looked up at the nearest source pixel)."""
+    g = grid.copy()
+    drop = np.zeros(g.shape[:2], bool)
+    if cur_vehicle is not None:
+        drop |= cur_vehicle
+    if prev_vehicle is not None:
+        ok = np.isfinite(g).all(-1)
+        H, W = prev_vehicle.shape
+        x = np.clip(np.rint(np.nan_to_num(g[..., 0])), 0, W - 1).astype(int)
+        y = np.clip(np.rint(np.nan_to_num(g[..., 1])), 0, H - 1).astype(int)
+        drop |= ok & prev_vehicle[y, x]
+    g[drop] = np.nan
+    return g
+
+
+def inpaint(img, hole, sigma):
+    """(1, 3, H, W) image with the (H, W) bool ``hole`` pixels replaced by the Gaussian-weighted mean of the
+    pixels around them that are not holes (normalised convolution; a hole with no such pixel keeps its value)."""
+    keep = torch.from_numpy(~hole).float()[None, None]
+    num = gaussian_blur(img * keep, sigma)
+    den = gaussian_blur(keep, sigma)
+    fill = torch.where(den > 1e-3, num / den.clamp_min(1e-3), img)
+    return torch.where(torch.from_numpy(hole)[None, None], fill, img)
+
+
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("data")
@@ -61,6 +89,7 @@ def main():
         t, pv, mk = f.get_tensor("target"), f.get_tensor("prev"), f.get_tensor("masks_packed")
         kk, c2e = f.get_tensor("intrinsics"), f.get_tensor("cam2ego")
         e2g, pe2g, off = f.get_tensor("ego2global"), f.get_tensor("prev_ego2global"), f.get_tensor("offset")
+        pmk = f.get_tensor("prev_masks_packed") if "prev_masks_packed" in f.keys() else None
         for i in range(t.shape[0]):
             for c in range(t.shape[1]):
                 tgt = torch.from_numpy(t[i, c]).float() / 255
@@ -70,20 +99,39 @@ def main():
                          "vehicle": torch.from_numpy((m & VEHICLE_BITS) > 0)}
                 g = ground_warp_grid(kk[i, c], c2e[i, c], e2g[i, c], pe2g[i, c], tgt.shape[1:], a.depth)
                 w = warp_image(prv, torch.from_numpy(g)[None])
+                cur_v = (m & VEHICLE_BITS) > 0
+                bases = [("blur 1", gaussian_blur(prv, 1.0)), ("warp + blur 0.5", gaussian_blur(w, 0.5)),
+                         ("warp + blur 1", gaussian_blur(w, 1.0))]
+                variants = [("cur", cur_v, None)]
+                if pmk is not None:
+                    prev_v = (pmk[i, c] & VEHICLE_BITS) > 0
+                    variants += [("src", None, prev_v), ("cur+src", cur_v, prev_v)]
+                    ok = np.isfinite(g).all(-1)
+                    gx = np.clip(np.rint(np.nan_to_num(g[..., 0])), 0, prev_v.shape[1] - 1).astype(int)
+                    gy = np.clip(np.rint(np.nan_to_num(g[..., 1])), 0, prev_v.shape[0] - 1).astype(int)
+                    ghost = ok & prev_v[gy, gx] & ~cur_v
+                    masks["ghost"] = torch.from_numpy(ghost)
+                    for sg in (2.0, 4.0, 8.0):
+                        bases.append((f"warp, ghosts inpainted (sigma {sg:g}) + blur 0.5",
+                                      gaussian_blur(inpaint(w, ghost, sg), 0.5)))
+                for vn, cv, pv_ in variants:
+                    wm = warp_image(prv, torch.from_numpy(layout_masked(g, cv, pv_))[None])
+                    bases.append((f"warp, {vn} kept + blur 0.5", gaussian_blur(wm, 0.5)))
                 group = ("front" if cameras[c] == "CAM_FRONT" else "other") + \
                     (" off-log" if np.abs(off[i]).sum() > 0 else " logged")
-                for name, img in [("blur 1", gaussian_blur(prv, 1.0)), ("warp + blur 0.5", gaussian_blur(w, 0.5)),
-                                  ("warp + blur 1", gaussian_blur(w, 1.0))]:
+                for name, img in bases:
                     for mn, mm in masks.items():
                         v = psnr(tgt, img[0], mm)
                         if v is not None:
                             stats.setdefault((group, name, mn), []).append(v)
-    print(f"| samples | base | all px | lane-marking px | vehicle px |  (PSNR dB, depth cap {a.depth:g} m)")
-    print("|---|---|---|---|---|")
+    print(f"| samples | base | all px | lane-marking px | vehicle px | ghost px |  (PSNR dB, depth cap {a.depth:g} m;"
+          " ghost: not a vehicle now, a vehicle at the warp's source; a chain export only)")
+    print("|---|---|---|---|---|---|")
+    names = list(dict.fromkeys(k[1] for k in stats))
     for group in sorted({k[0] for k in stats}):
-        for name in ("blur 1", "warp + blur 0.5", "warp + blur 1"):
+        for name in names:
             row = [np.mean(stats[(group, name, mn)]) if (group, name, mn) in stats else float("nan")
-                   for mn in ("all", "marking", "vehicle")]
+                   for mn in ("all", "marking", "vehicle", "ghost")]
             n = len(stats[(group, name, "all")])
             print(f"| {group} ({n}) | {name} | " + " | ".join(f"{v:.2f}" for v in row) + " |")
 

@@ -43,6 +43,7 @@ MASK_CHANNELS = [
 # the previous-frame warp's depth cap, metres (b2dr_ref/warp.py); 0 turns the warp off
 MAX_WARP_DEPTH = 1000.0
 PE_POSITION_RANGE = [-61.2, -61.2, -10.0, 61.2, 61.2, 10.0]
+PREV_SOURCES = ("previous", "reference")
 
 # The B2D-R keys of controlnet/config.json and their defaults (contract section 5). None = derived (see __init__).
 B2DR_DEFAULTS: Dict[str, Any] = {
@@ -51,6 +52,7 @@ B2DR_DEFAULTS: Dict[str, Any] = {
     "prev_noise_max": 400,
     "prev_blur_sigma": 1.0,
     "prev_warp_max_depth": 0.0,
+    "prev_source": "previous",
     "ref_encoder_channels": None,
     "ref_attn": None,
     "pe_depth_num": 64,
@@ -248,6 +250,7 @@ class B2DRControlNetModel(ControlNetModel):
         prev_noise_max: int = 400,
         prev_blur_sigma: float = 1.0,
         prev_warp_max_depth: float = 0.0,
+        prev_source: str = "previous",
         ref_encoder_channels: Optional[Sequence[int]] = None,
         ref_attn: Optional[Sequence[str]] = None,
         pe_depth_num: int = 64,
@@ -304,6 +307,12 @@ class B2DRControlNetModel(ControlNetModel):
         if not 0.0 <= float(prev_warp_max_depth) <= MAX_WARP_DEPTH:
             raise ConfigError(f"{CLASS_NAME} config: prev_warp_max_depth must lie in [0, {MAX_WARP_DEPTH:g}] m "
                               "(0: no warp)")
+        # where a rollout's previous-frame input comes from (the engine's PrevSource): the frame rendered before,
+        # or a retrieved reference warped to the current pose (src/render/warp.rs reference_base_choice)
+        if prev_source not in PREV_SOURCES:
+            raise ConfigError(f"{CLASS_NAME} config: prev_source {prev_source!r} must be one of {PREV_SOURCES}")
+        if prev_source == "reference" and not float(prev_warp_max_depth) > 0:
+            raise ConfigError(f"{CLASS_NAME} config: prev_source \"reference\" needs prev_warp_max_depth > 0")
         if not 0.0 <= float(ref_dropout) <= 1.0:
             raise ConfigError(f"{CLASS_NAME} config: ref_dropout must lie in [0, 1]")
 

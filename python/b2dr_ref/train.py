@@ -709,6 +709,12 @@ def export(args):
     if args.prev_noise_level is not None:
         # the inference-time level only (training's n ~ U{0..max} is history): what the package's sampler uses
         ck["cfg"] = prev_overrides(ck["cfg"], args)
+    if getattr(args, "prev_source", None):
+        # an inference choice of the package (the weights are the same): a rollout's previous-frame input
+        if args.prev_source == "reference" and not float(ck["cfg"]["controlnet"].get("prev_warp_max_depth", 0)) > 0:
+            raise SystemExit("export --prev-source reference: the run does not warp its previous frame "
+                             "(--prev-warp-max-depth); an unwarped reference would not line up with the frame")
+        ck["cfg"] = dict(ck["cfg"], controlnet=dict(ck["cfg"]["controlnet"], prev_source=args.prev_source))
     cfg = ck["cfg"]
     unet, controlnet, use_ema = checkpoint_models(ck, ema=not args.no_ema)
     vae = load_vae(args.vae or ck["vae_path"])
@@ -766,6 +772,10 @@ def main(argv=None):
         p.add_argument("--prev-noise-level", type=int, default=None,
                        help="the previous frame's noise level at inference in the package's ControlNet config "
                             "(default: the run's)")
+        p.add_argument("--prev-source", default=None, choices=("previous", "reference"),
+                       help="the package's ControlNet key prev_source (default: the run's, \"previous\"): in a "
+                            "rollout the previous-frame input is the frame rendered before, or (\"reference\", a "
+                            "warping run only) a retrieved reference warped to the current pose")
         return export(p.parse_args(argv[1:]))
     if argv and argv[0] == "replace-vae":
         p = argparse.ArgumentParser(prog="python -m b2dr_ref.train replace-vae")

@@ -161,6 +161,13 @@ def test_config_rejects_unknown_key(tmp_path):
         B2DRControlNetModel.from_config(dict(cfg, conditioning_channels=3))
     with pytest.raises(ConfigError, match="ref_encoder_channels"):
         B2DRControlNetModel.from_config(dict(cfg, ref_encoder_channels=[8, 16, 32]))
+    # the previous frame's source: a reference needs the warp (the engine refuses the same)
+    with pytest.raises(ConfigError, match="prev_source"):
+        B2DRControlNetModel.from_config(dict(cfg, prev_source="carried"))
+    with pytest.raises(ConfigError, match="prev_warp_max_depth > 0"):
+        B2DRControlNetModel.from_config(dict(cfg, prev_source="reference"))
+    assert B2DRControlNetModel.from_config(dict(cfg, prev_source="reference", prev_warp_max_depth=30.0)) \
+        .config.prev_source == "reference"
     # a subset of locations works and numbers them in order
     m = B2DRControlNetModel.from_config(dict(cfg, ref_attn=["down.1", "mid"]))
     assert len(m.ref_attn_modules) == 2 and m.location_block(0) == 1
@@ -171,7 +178,7 @@ def test_config_rejects_unknown_key(tmp_path):
     assert d["_class_name"] == "B2DRControlNetModel"
     assert set(d) - {"_class_name", "_diffusers_version"} == set(PLAIN_KEYS) | {
         "mask_channels", "prev_noise_level", "prev_noise_max", "prev_blur_sigma", "prev_warp_max_depth",
-        "ref_encoder_channels",
+        "prev_source", "ref_encoder_channels",
         "ref_attn", "pe_depth_num", "pe_depth_start", "pe_position_range", "ref_dropout"}
     d["prev_noise_levl"] = 100
     p.write_text(json.dumps(d))

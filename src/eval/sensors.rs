@@ -11,13 +11,15 @@ use std::sync::Arc;
 use anyhow::{bail, ensure, Context as _, Result};
 use glam::{DMat4, DVec3};
 
+use crate::nn::b2dr_config::PrevSource;
+use crate::ops::warp::NO_SOURCE;
 use crate::projection::scene::{box_class, map_layer};
 use crate::projection::{Box3d, MapLayer, ProjectionConfig};
 use crate::render::frame::{FrameInputs, FrameRenderer, FrameShape, Prev, RefInputs};
 use crate::render::inputs;
 use crate::render::job::sampler_plan;
 use crate::render::package::{DeviceModel, ModelPackage};
-use crate::render::warp::ground_warp_grids;
+use crate::render::warp::{ground_warp_grid, ground_warp_grids, reference_base_choice};
 use crate::scene::camera::{Camera, CameraImage};
 use crate::scene::Scenario;
 use crate::sim::closed_loop::AgentRecord;
@@ -218,16 +220,25 @@ impl Sensors for LogReplay<'_> {
 }
 
 /// The references of each camera retrieved from the log at `e2g` (front and rear; one image twice when the
-/// log has images on one side only): the images `(N, 2, 3, H, W)` in [0, 1] and their PETR geometry.
+/// log has images on one side only).
+pub struct Retrieved {
+    /// `(N, 2, 3, H, W)` in [0, 1].
+    pub images: Vec<f32>,
+    /// Their PETR geometry.
+    pub geom: inputs::Geometry,
+    /// Per camera the ego2global of each reference image.
+    pub poses: Vec<[DMat4; 2]>,
+}
+
 pub fn references(
     store: &ImageStore,
     cfg: &crate::nn::b2dr_config::B2drConfig,
     cameras: &[Camera],
     size: (usize, usize),
     e2g: &DMat4,
-) -> Result<(Vec<f32>, inputs::Geometry)> {
+) -> Result<Retrieved> {
     let sc = store.world().scenario;
-    let (mut ref_imgs, mut geoms) = (vec![], vec![]);
+    let (mut ref_imgs, mut geoms, mut poses) = (vec![], vec![], vec![]);
     for c in cameras {
         let r = store.frame_index().retrieve(&sc.rig.frames, &c.name, e2g);
         let pick = |x: &Option<crate::projection::retrieval::Reference>| {
@@ -248,8 +259,83 @@ pub fn references(
             e2g,
             [&a.ego2global, &b.ego2global],
         )?);
+        poses.push([a.ego2global, b.ego2global]);
     }
-    Ok((ref_imgs, inputs::stack(&geoms)))
+    Ok(Retrieved {
+        images: ref_imgs,
+        geom: inputs::stack(&geoms),
+        poses,
+    })
+}
+
+/// The least fraction of a camera's pixels the warp of its chosen reference must reach (a source inside the
+/// reference image) for a model with `prev_source` "reference" to start from it. Retrieval is by position
+/// along the heading only: where the log turned, or on the side cameras, the reference can look elsewhere and
+/// most of the frame would keep the reference's own unwarped pixels; such a camera takes the fallback instead
+/// (the frame rendered before, as `prev_source` "previous" does). On the synthetic training scenarios'
+/// CAM_FRONT, 96 % of the chosen references reach over 94 % of the pixels; the side cameras mostly fall back.
+pub const MIN_REFERENCE_COVERAGE: f64 = 0.9;
+
+/// The previous-frame input of a model that takes it from its references (b2dr.json `prev_source`
+/// "reference"), per camera: the reference [`reference_base_choice`] picks of the two retrieved (`r`), warped
+/// from its pose to `e2g`, where that warp reaches at least [`MIN_REFERENCE_COVERAGE`] of the pixels, else the
+/// camera's slice of `fallback` (planar `(N, 3, H, W)` in [0, 1]) warped from `fallback_poses`. Returns the
+/// images, the warp grids `(N, H, W, 2)` and per camera whether it took the reference.
+pub fn reference_base(
+    cameras: &[Camera],
+    e2g: &DMat4,
+    r: &Retrieved,
+    size: (usize, usize),
+    max_depth: f64,
+    fallback: &[f32],
+    fallback_poses: &[DMat4],
+) -> Result<(Vec<f32>, Vec<f32>, Vec<bool>)> {
+    let per = 3 * size.0 * size.1;
+    let n = cameras.len();
+    ensure!(
+        r.images.len() == n * 2 * per && r.poses.len() == n,
+        "reference base: {} reference values and {} poses for {n} cameras of {}x{}",
+        r.images.len(),
+        r.poses.len(),
+        size.0,
+        size.1
+    );
+    ensure!(
+        fallback.len() == n * per && fallback_poses.len() == n,
+        "reference base: a fallback of {} values and {} poses for {n} cameras",
+        fallback.len(),
+        fallback_poses.len()
+    );
+    let (mut img, mut grids, mut took) = (Vec::with_capacity(n * per), vec![], vec![]);
+    for (i, c) in cameras.iter().enumerate() {
+        let j = reference_base_choice(c, e2g, [&r.poses[i][0], &r.poses[i][1]]);
+        let g = ground_warp_grid(c, e2g, &r.poses[i][j], size, max_depth)?;
+        let reached = g.chunks(2).filter(|v| v[0] != NO_SOURCE).count();
+        if reached as f64 >= MIN_REFERENCE_COVERAGE * (size.0 * size.1) as f64 {
+            img.extend_from_slice(&r.images[(2 * i + j) * per..(2 * i + j + 1) * per]);
+            grids.extend(g);
+            took.push(true);
+        } else {
+            img.extend_from_slice(&fallback[i * per..(i + 1) * per]);
+            grids.extend(ground_warp_grid(
+                c,
+                e2g,
+                &fallback_poses[i],
+                size,
+                max_depth,
+            )?);
+            took.push(false);
+        }
+    }
+    Ok((img, grids, took))
+}
+
+/// The renderer's output `(N, 3, H, W)` as the next frame reads it back: clamped to [0, 1] and rounded to 8 bits
+/// (what a planner is shown).
+pub fn as_8bit(img: &[f32]) -> Vec<f32> {
+    img.iter()
+        .map(|v| (v.clamp(0.0, 1.0) * 255.0).round() / 255.0)
+        .collect()
 }
 
 /// The B2D-R model on the device with its planned frame, kept across scenarios.
@@ -367,6 +453,8 @@ pub struct FrameRecord {
     pub eps_prev: Vec<f32>,
     /// The previous frame's warp grid (N, H, W, 2) (a model that warps it).
     pub prev_warp: Option<Vec<f32>>,
+    /// A `prev_source` "reference" model: per camera whether `prev` is its reference (else the fallback).
+    pub took_reference: Vec<bool>,
     /// The decoded frame (N, 3, H, W) in [0, 1].
     pub image: Vec<f32>,
 }
@@ -380,6 +468,10 @@ pub struct B2dr<'a> {
     frame: u64,
     /// Per camera the ego2global of the previous frame (what a warping model warps from).
     prev_poses: Vec<DMat4>,
+    /// The last frame's output (`as_8bit`), the fallback of a reference-source model's cameras.
+    last_output: Vec<f32>,
+    /// Per camera whether the last frame started from a reference (a `prev_source` "reference" model).
+    pub took_reference: Vec<bool>,
     times: Vec<(&'static str, f64)>,
     /// When set, every frame's inputs and output are kept (tests).
     pub record: Option<Vec<FrameRecord>>,
@@ -396,6 +488,8 @@ impl<'a> B2dr<'a> {
             map: map_layer(&sc.map),
             frame: 0,
             prev_poses: vec![],
+            last_output: vec![],
+            took_reference: vec![],
             times: vec![],
             record: None,
         })
@@ -437,9 +531,11 @@ impl Sensors for B2dr<'_> {
         )?;
         let t1 = std::time::Instant::now();
         let refs_on = self.engine.refs_and_prev;
+        let from_refs = self.engine.package.control_cfg.prev_source == PrevSource::Reference;
         let (mut ref_imgs, mut geom, mut prev) = (vec![], inputs::stack(&[]), vec![]);
+        let mut ref_warp: Option<Vec<f32>> = None;
         if refs_on {
-            (ref_imgs, geom) = references(
+            let r = references(
                 self.store,
                 &self.engine.package.control_cfg,
                 &self.cameras,
@@ -454,10 +550,29 @@ impl Sensors for B2dr<'_> {
                     prev.extend(planar(&recorded_pixels(self.store, img, size)?, size));
                     self.prev_poses.push(img.ego2global);
                 }
+            } else if from_refs {
+                prev = std::mem::take(&mut self.last_output);
             }
+            if from_refs {
+                // each camera starts from a logged image where its reference covers the frame, else from the
+                // frame before (the first frame: the recorded one); the input is given as an image every frame
+                let (img, grid, took) = reference_base(
+                    &self.cameras,
+                    &e2g,
+                    &r,
+                    size,
+                    self.engine.package.control_cfg.prev_warp_max_depth,
+                    &prev,
+                    &self.prev_poses,
+                )?;
+                (prev, ref_warp, self.took_reference) = (img, Some(grid), took);
+            }
+            (ref_imgs, geom) = (r.images, r.geom);
         }
         let max_depth = self.engine.package.control_cfg.prev_warp_max_depth;
-        let warp = if refs_on && max_depth > 0.0 {
+        let warp = if ref_warp.is_some() {
+            ref_warp
+        } else if refs_on && max_depth > 0.0 {
             Some(ground_warp_grids(
                 &self.cameras,
                 &poses,
@@ -474,9 +589,10 @@ impl Sensors for B2dr<'_> {
         let frame = self.frame;
         let r = self.engine.renderer()?;
         let (x_t, eps) = inputs::frame_noise(seed, frame, n, r.latent_size());
+        let fresh_prev = frame == 0 || from_refs;
         let prev_in = if !refs_on {
             Prev::None
-        } else if frame == 0 {
+        } else if fresh_prev {
             Prev::Image(&prev)
         } else {
             Prev::Carried
@@ -498,16 +614,20 @@ impl Sensors for B2dr<'_> {
             img.iter().all(|v| v.is_finite()),
             "the renderer produced NaN or infinite pixels"
         );
+        if from_refs {
+            self.last_output = as_8bit(&img);
+        }
         if let Some(rec) = self.record.as_mut() {
             rec.push(FrameRecord {
                 masks: masks.clone(),
-                prev: (refs_on && frame == 0).then(|| prev.clone()),
+                prev: (refs_on && fresh_prev).then(|| prev.clone()),
                 ref_images: ref_imgs.clone(),
                 pe_cur: geom.pe_cur.clone(),
                 pe_ref: geom.pe_ref.clone(),
                 x_t: x_t.clone(),
                 eps_prev: eps.clone(),
                 prev_warp: warp.clone(),
+                took_reference: self.took_reference.clone(),
                 image: img.clone(),
             });
         }

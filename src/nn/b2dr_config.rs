@@ -45,6 +45,29 @@ impl RefAttnAt {
 /// The largest previous-frame warp depth cap (metres; b2dr_ref/controlnet.py MAX_WARP_DEPTH).
 pub const MAX_WARP_DEPTH: f64 = 1000.0;
 
+/// What a B2D-R model is given as its previous frame (b2dr.json ControlNet key `prev_source`).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum PrevSource {
+    /// "previous": the frame rendered before (in the loop: the model's own last output, carried on the
+    /// device; the first frame and eval-render's single frames: the logged previous frame).
+    #[default]
+    Previous,
+    /// "reference": every frame's previous-frame input is one of its own retrieved references (a logged
+    /// image), the one whose camera stands farthest behind the current camera along its optical axis, warped
+    /// to the current pose (needs `prev_warp_max_depth` > 0). Nothing rendered is carried from frame to frame,
+    /// so a rollout cannot accumulate its own errors (`render::warp::reference_base`).
+    Reference,
+}
+
+impl PrevSource {
+    pub fn name(self) -> &'static str {
+        match self {
+            PrevSource::Previous => "previous",
+            PrevSource::Reference => "reference",
+        }
+    }
+}
+
 /// A B2D-R ControlNet config.
 #[derive(Clone, Debug, PartialEq)]
 pub struct B2drConfig {
@@ -59,6 +82,8 @@ pub struct B2drConfig {
     /// Metres: > 0 warps the previous frame to the current pose over the flat ground, rays capped at this depth
     /// (`render::warp`); 0: no warp.
     pub prev_warp_max_depth: f64,
+    /// Where the previous-frame input comes from in a rollout (the closed loop, eval-render's drift).
+    pub prev_source: PrevSource,
     pub ref_encoder_channels: Vec<usize>,
     pub ref_attn: Vec<RefAttnAt>,
     pub pe_depth_num: usize,
@@ -160,6 +185,25 @@ impl B2drConfig {
             (0.0..=MAX_WARP_DEPTH).contains(&prev_warp_max_depth),
             "{CLASS_NAME} config: key `prev_warp_max_depth` = {prev_warp_max_depth} must be in [0, \
              {MAX_WARP_DEPTH}] metres (0: no warp)"
+        );
+        let prev_source = match take(&mut m, "prev_source") {
+            None => PrevSource::Previous,
+            Some(v) => match v.as_str() {
+                Some("previous") => PrevSource::Previous,
+                Some("reference") => PrevSource::Reference,
+                _ => {
+                    return Err(err(
+                        "prev_source",
+                        &v,
+                        "expected \"previous\" or \"reference\"",
+                    ))
+                }
+            },
+        };
+        ensure!(
+            prev_source != PrevSource::Reference || prev_warp_max_depth > 0.0,
+            "{CLASS_NAME} config: key `prev_source` = \"reference\" needs `prev_warp_max_depth` > 0 (a reference \
+             was taken at another pose; unwarped it would not line up with the current frame)"
         );
         let ref_enc = take(&mut m, "ref_encoder_channels");
         let ref_attn_v = take(&mut m, "ref_attn");
@@ -269,6 +313,7 @@ impl B2drConfig {
             prev_noise_max,
             prev_blur_sigma,
             prev_warp_max_depth,
+            prev_source,
             ref_encoder_channels,
             ref_attn,
             pe_depth_num,
@@ -307,6 +352,7 @@ impl B2drConfig {
             prev_noise_max: 400,
             prev_blur_sigma: 1.0,
             prev_warp_max_depth: 0.0,
+            prev_source: PrevSource::Previous,
             ref_attn: (0..blocks)
                 .map(RefAttnAt::Down)
                 .chain([RefAttnAt::Mid])
@@ -361,6 +407,7 @@ impl B2drConfig {
         v["prev_noise_max"] = json!(self.prev_noise_max);
         v["prev_blur_sigma"] = json!(self.prev_blur_sigma);
         v["prev_warp_max_depth"] = json!(self.prev_warp_max_depth);
+        v["prev_source"] = json!(self.prev_source.name());
         v["ref_encoder_channels"] = json!(self.ref_encoder_channels);
         v["ref_attn"] = json!(self.ref_attn.iter().map(|a| a.name()).collect::<Vec<_>>());
         v["pe_depth_num"] = json!(self.pe_depth_num);

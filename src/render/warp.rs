@@ -89,3 +89,20 @@ pub fn ground_warp_grids(
     }
     Ok(out)
 }
+
+/// Which of a camera's two references (0: the front one, 1: the rear one, as retrieved) is its previous-frame
+/// base when the model takes it from the references (b2dr.json `prev_source` "reference"): the one whose camera
+/// centre lies farthest BEHIND the current camera along its optical axis, so that what the current camera sees
+/// lies ahead of it too (CAM_FRONT: the rear reference; CAM_BACK: the front one). Ties: the rear one.
+pub fn reference_base_choice(camera: &Camera, cur: &DMat4, refs: [&DMat4; 2]) -> usize {
+    let cam = |e2g: &DMat4| *e2g * camera.cam2ego;
+    let c = cam(cur);
+    let axis = c.z_axis.truncate();
+    let depth = |e2g: &DMat4| (cam(e2g).w_axis.truncate() - c.w_axis.truncate()).dot(axis);
+    // within a millimetre the two stand level: take the rear one
+    if depth(refs[0]) < depth(refs[1]) - 1e-3 {
+        0
+    } else {
+        1
+    }
+}

@@ -35,7 +35,8 @@ use serde::Serialize;
 
 use self::metrics::{IouCounts, PaletteClassifier};
 use self::scene::Deviation;
-use crate::eval::sensors::B2drEngine;
+use crate::eval::sensors::{reference_base, B2drEngine, Retrieved};
+use crate::nn::b2dr_config::PrevSource;
 use crate::projection::scene::map_layer;
 use crate::render::frame::{FrameInputs, FrameRenderer, Prev, RefInputs};
 use crate::render::inputs::{self, Geometry};
@@ -205,6 +206,9 @@ struct CaseInputs<'a> {
     refs: Option<&'a (Vec<f32>, Geometry)>,
     /// The previous frame's warp grid (a model that warps it).
     warp: Option<&'a [f32]>,
+    /// A model that takes its previous frame from its references: that frame and its grid, for the settings
+    /// with references (those without get `prev` / `warp`, the logged previous frame: no reference at all).
+    ref_prev: Option<(&'a [f32], &'a [f32])>,
     noise_id: u64,
 }
 
@@ -224,6 +228,35 @@ fn warp_grid(
     ground_warp_grids(cams, &vec![*cur; n], &vec![*prev; n], size, d).map(Some)
 }
 
+/// For a model that takes its previous frame from its references (b2dr.json `prev_source` "reference"): per
+/// camera the reference [`reference_base`] chooses (or, where it covers too little of the frame, `fallback`
+/// (planar) from `fallback_pose`) and the warp grids to `e2g`; None for any other model.
+fn reference_prev(
+    engine: &B2drEngine,
+    cams: &[Camera],
+    e2g: &glam::DMat4,
+    refs: &Retrieved,
+    size: (usize, usize),
+    fallback: &[f32],
+    fallback_pose: &glam::DMat4,
+) -> Result<Option<(Vec<f32>, Vec<f32>)>> {
+    let cfg = &engine.package.control_cfg;
+    if cfg.prev_source != PrevSource::Reference {
+        return Ok(None);
+    }
+    let n = cams.len();
+    let (img, g, _) = reference_base(
+        cams,
+        e2g,
+        refs,
+        size,
+        cfg.prev_warp_max_depth,
+        fallback,
+        &vec![*fallback_pose; n],
+    )?;
+    Ok(Some((img, g)))
+}
+
 /// Renders one setting of a case; per camera interleaved RGB8.
 fn render(
     r: &mut Renderers,
@@ -236,7 +269,11 @@ fn render(
 ) -> Result<Vec<Vec<u8>>> {
     let fr = r.get(s)?;
     let (x_t, eps) = inputs::frame_noise(seed, x.noise_id, n, fr.latent_size());
-    let prev = match (s.prev, carried, x.prev) {
+    let (prev_img, warp) = match (s.refs, x.ref_prev) {
+        (true, Some((p, g))) => (Some(p), Some(g)),
+        _ => (x.prev, x.warp),
+    };
+    let prev = match (s.prev, carried, prev_img) {
         (false, _, _) => Prev::None,
         (true, true, _) => Prev::Carried,
         (true, false, Some(p)) => Prev::Image(p),
@@ -256,7 +293,7 @@ fn render(
         refs,
         x_t: &x_t,
         eps_prev: &eps,
-        prev_warp: x.warp,
+        prev_warp: warp,
     })?;
     let img = fr.image()?;
     let per = 3 * size.0 * size.1;
@@ -448,6 +485,7 @@ pub fn eval_render(ctx: &Context, cfg: &EvalConfig, out: &Path) -> Result<Result
     };
     let default_w = pkg.meta.ref_guidance;
     let blur = pkg.control_cfg.prev_blur_sigma;
+    let from_refs = pkg.control_cfg.prev_source == PrevSource::Reference;
     let mk = |dt: DType, pkg| {
         B2drEngine::new(
             ctx,
@@ -543,14 +581,17 @@ pub fn eval_render(ctx: &Context, cfg: &EvalConfig, out: &Path) -> Result<Result
                 let gt = scene::truth(&store, &cams, &e2g, step, size)?;
                 let pgt = scene::truth(&store, &cams, &pe2g, pstep, size)?;
                 let masks = scene::masks(&sc, &map, &cams, &e2g, step, size)?;
-                let refs = scene::refs(&store, &main.package.control_cfg, &cams, &e2g, size)?;
+                let r = scene::refs(&store, &main.package.control_cfg, &cams, &e2g, size)?;
                 let prev = scene::planar_all(&pgt.rgb, size);
                 let warp = warp_grid(&main, &cams, &e2g, &pe2g, size)?;
+                let rp = reference_prev(&main, &cams, &e2g, &r, size, &prev, &pe2g)?;
+                let refs = (r.images, r.geom);
                 let x = CaseInputs {
                     masks: &masks,
                     prev: Some(&prev),
                     refs: Some(&refs),
                     warp: warp.as_deref(),
+                    ref_prev: rp.as_ref().map(|(p, g)| (&p[..], &g[..])),
                     noise_id: 1_000_000 + (fi as u64) * 64 + di as u64,
                 };
                 let t0 = truths.len();
@@ -599,24 +640,36 @@ pub fn eval_render(ctx: &Context, cfg: &EvalConfig, out: &Path) -> Result<Result
             let prev0 = scene::planar_all(&rec0, size);
             for s in &drift {
                 let mut bad = 0usize;
+                let mut last_out: Option<Vec<f32>> = None;
                 for fi in 1..=cfg.drift_frames {
                     let step = scene::frame_step(&sc, fi);
                     let e2g = sc.rig.frames[fi].ego2global;
                     let gt = scene::truth(&store, &cams, &e2g, step, size)?;
                     let masks = scene::masks(&sc, &map, &cams, &e2g, step, size)?;
-                    let refs = scene::refs(&store, &main.package.control_cfg, &cams, &e2g, size)?;
-                    // frame 1's previous frame is the recorded frame 0, later ones the last output
+                    let r = scene::refs(&store, &main.package.control_cfg, &cams, &e2g, size)?;
+                    // frame 1's previous frame is the recorded frame 0, later ones the last output (a model
+                    // that takes it from its references: a reference every frame, nothing carried)
                     let pe2g = sc.rig.frames[fi - 1].ego2global;
                     let warp = warp_grid(&main, &cams, &e2g, &pe2g, size)?;
+                    // a reference-source model's fallback: the last output (frame 1: the recorded frame 0)
+                    let last = match &last_out {
+                        Some(l) => l,
+                        None => &prev0,
+                    };
+                    let rp = reference_prev(&main, &cams, &e2g, &r, size, last, &pe2g)?;
+                    let refs = (r.images, r.geom);
                     let x = CaseInputs {
                         masks: &masks,
                         prev: Some(&prev0),
                         refs: Some(&refs),
                         warp: warp.as_deref(),
+                        ref_prev: rp.as_ref().map(|(p, g)| (&p[..], &g[..])),
                         noise_id: fi as u64,
                     };
+                    let carried = fi > 1 && !from_refs;
                     let fr_bad = {
-                        let imgs = render(&mut rs, s, &x, fi > 1, cfg.seed, size, n)?;
+                        let imgs = render(&mut rs, s, &x, carried, cfg.seed, size, n)?;
+                        last_out = Some(scene::planar_all(&imgs, size));
                         let raw = rs.get(s)?.image()?;
                         let t0 = truths.len();
                         for k in 0..n {

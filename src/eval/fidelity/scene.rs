@@ -4,11 +4,11 @@
 use anyhow::{ensure, Context as _, Result};
 use glam::DMat4;
 
-use crate::eval::sensors::{planar, recorded_pixels, references};
+use crate::eval::sensors::{planar, recorded_pixels, references, Retrieved};
 use crate::nn::b2dr_config::B2drConfig;
 use crate::projection::scene::boxes_at;
 use crate::projection::{MapLayer, ProjectionConfig};
-use crate::render::inputs::{self, Geometry};
+use crate::render::inputs;
 use crate::scene::camera::{Camera, CameraImage};
 use crate::scene::geometry::Pose2;
 use crate::scene::import::ego2global;
@@ -105,14 +105,14 @@ pub fn masks(
     )
 }
 
-/// The references retrieved from the log at `e2g` (images and geometry).
+/// The references retrieved from the log at `e2g` (images, geometry and their poses).
 pub fn refs(
     store: &ImageStore,
     cfg: &B2drConfig,
     cams: &[Camera],
     e2g: &DMat4,
     size: (usize, usize),
-) -> Result<(Vec<f32>, Geometry)> {
+) -> Result<Retrieved> {
     references(store, cfg, cams, size, e2g)
 }
 

@@ -531,9 +531,9 @@ fn rollout(
                 None => Prev::Carried,
             },
             refs: Some(RefInputs {
-                images: &refs.0,
-                pe_cur: refs.1.pe_cur.iter().map(|v| &v[..]).collect(),
-                pe_ref: refs.1.pe_ref.iter().map(|v| &v[..]).collect(),
+                images: &refs.images,
+                pe_cur: refs.geom.pe_cur.iter().map(|v| &v[..]).collect(),
+                pe_ref: refs.geom.pe_ref.iter().map(|v| &v[..]).collect(),
             }),
             x_t: &x_t,
             eps_prev: &eps,
@@ -668,7 +668,8 @@ pub fn bench_trade(ctx: &Context, cfg: &TradeConfig, out: &Path) -> Result<Trade
             v.push(FrameData {
                 masks: scene::masks(&sc, &map, &cams, &e2g, step, *s)?,
                 prev: scene::planar_all(&pgt.rgb, *s),
-                refs: scene::refs(&store, &pkg.control_cfg, &cams, &e2g, *s)?,
+                refs: scene::refs(&store, &pkg.control_cfg, &cams, &e2g, *s)
+                    .map(|r| (r.images, r.geom))?,
             });
         }
     }
