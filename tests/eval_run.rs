@@ -250,9 +250,10 @@ fn b2dr_loop_frames_with_a_warping_model_equal_standalone_renders() {
 
 /// A model that takes its previous frame from its references (b2dr.json prev_source "reference"): every frame,
 /// the first one included, is given its previous frame as an image: per camera the retrieved reference behind it
-/// along its axis (CAM_FRONT: the rear one; CAM_BACK_LEFT, which looks backwards: the front one), warped from
-/// that reference's pose, where that warp reaches `MIN_REFERENCE_COVERAGE` of the frame, else the frame rendered
-/// before (8-bit); each frame still equals a standalone render of its inputs.
+/// along its axis (CAM_FRONT: the rear one, which it must take at least once; CAM_BACK_LEFT, which looks
+/// backwards: the front one when it takes one, which at this reach it may never do: tests/render_warp.rs checks
+/// the backward choice), warped from that reference's pose, where that warp reaches `MIN_REFERENCE_COVERAGE` of
+/// the frame, else the frame rendered before (8-bit); each frame still equals a standalone render of its inputs.
 #[test]
 fn b2dr_loop_frames_with_a_reference_base_equal_standalone_renders() {
     use b2dr::eval::sensors::as_8bit;

@@ -39,20 +39,25 @@ def psnr(a, b, m=None):
     return float(10 * torch.log10(1 / d.mean()))
 
 
+def at_source(grid, mask):
+    """(H, W) bool: the pixels whose warp source (``grid`` (H, W, 2), NaN: none) falls on ``mask`` (H, W) bool of
+    the source image, looked up at the nearest source pixel."""
+    ok = np.isfinite(grid).all(-1)
+    H, W = mask.shape
+    x = np.clip(np.rint(np.nan_to_num(grid[..., 0])), 0, W - 1).astype(int)
+    y = np.clip(np.rint(np.nan_to_num(grid[..., 1])), 0, H - 1).astype(int)
+    return ok & mask[y, x]
+
+
 def layout_masked(grid, cur_vehicle, prev_vehicle):
     """The grid with NaN (keep the previous image's own pixel) where the current pixel is a vehicle
-    (``cur_vehicle`` (H, W) bool or None) or its source in the previous frame is one (``prev_vehicle`` (H, W) bool
-    or None, looked up at the nearest source pixel)."""
+    (``cur_vehicle`` (H, W) bool or None) or its source in the previous frame is one (``prev_vehicle`` or None)."""
     g = grid.copy()
     drop = np.zeros(g.shape[:2], bool)
     if cur_vehicle is not None:
         drop |= cur_vehicle
     if prev_vehicle is not None:
-        ok = np.isfinite(g).all(-1)
-        H, W = prev_vehicle.shape
-        x = np.clip(np.rint(np.nan_to_num(g[..., 0])), 0, W - 1).astype(int)
-        y = np.clip(np.rint(np.nan_to_num(g[..., 1])), 0, H - 1).astype(int)
-        drop |= ok & prev_vehicle[y, x]
+        drop |= at_source(g, prev_vehicle)
     g[drop] = np.nan
     return g
 
@@ -106,10 +111,7 @@ def main():
                 if pmk is not None:
                     prev_v = (pmk[i, c] & VEHICLE_BITS) > 0
                     variants += [("src", None, prev_v), ("cur+src", cur_v, prev_v)]
-                    ok = np.isfinite(g).all(-1)
-                    gx = np.clip(np.rint(np.nan_to_num(g[..., 0])), 0, prev_v.shape[1] - 1).astype(int)
-                    gy = np.clip(np.rint(np.nan_to_num(g[..., 1])), 0, prev_v.shape[0] - 1).astype(int)
-                    ghost = ok & prev_v[gy, gx] & ~cur_v
+                    ghost = at_source(g, prev_v) & ~cur_v
                     masks["ghost"] = torch.from_numpy(ghost)
                     for sg in (2.0, 4.0, 8.0):
                         bases.append((f"warp, ghosts inpainted (sigma {sg:g}) + blur 0.5",

@@ -37,6 +37,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."
 from b2dr_ref.controlnet import MASK_CHANNELS  # noqa: E402
 from b2dr_ref.frame import gaussian_blur  # noqa: E402
 from b2dr_ref.warp import ground_warp_grid, warp_image  # noqa: E402
+from measure_warp_base import at_source, inpaint  # noqa: E402  (this folder, on sys.path as the script's own)
 
 VEHICLES = ["car", "truck", "bus", "trailer", "construction_vehicle"]
 MARKINGS = ["crosswalk", "lane_divider"]
@@ -45,26 +46,6 @@ MARKINGS = ["crosswalk", "lane_divider"]
 def channel_any(masks, names):
     """(15, H, W) {0,1} layout -> (H, W) bool: any of the named channels."""
     return np.asarray(masks)[[MASK_CHANNELS.index(n) for n in names]].max(0) > 0
-
-
-def ghost_hole(grid, prev_vehicle, cur_vehicle):
-    """(H, W) bool: the pixels with a warp source (``grid`` (H, W, 2), NaN: none) that falls on a vehicle of the
-    previous layout (nearest pixel) while the current pixel is not one."""
-    ok = np.isfinite(grid).all(-1)
-    H, W = prev_vehicle.shape
-    x = np.clip(np.rint(np.nan_to_num(grid[..., 0])), 0, W - 1).astype(int)
-    y = np.clip(np.rint(np.nan_to_num(grid[..., 1])), 0, H - 1).astype(int)
-    return ok & prev_vehicle[y, x] & ~cur_vehicle
-
-
-def inpaint(img, hole, sigma):
-    """(1, 3, H, W) with the ``hole`` (H, W) pixels replaced by the Gaussian-weighted mean of the non-hole pixels
-    around them (normalised convolution); a hole with no such pixel near keeps its value."""
-    keep = torch.from_numpy(~hole).float()[None, None]
-    num = gaussian_blur(img * keep, sigma)
-    den = gaussian_blur(keep, sigma)
-    fill = torch.where(den > 1e-3, num / den.clamp_min(1e-3), img)
-    return torch.where(torch.from_numpy(hole)[None, None], fill, img)
 
 
 def psnr(a, b, m=None):
@@ -132,7 +113,7 @@ def main():
         tgt = torch.from_numpy(s.target).float() / 255
         cur_v, cur_m = channel_any(s.masks, VEHICLES), channel_any(s.masks, MARKINGS)
         grid = ground_warp_grid(s.k, s.cam2ego, s.ego2global, s.prev_ego2global, tgt.shape[1:], depth)
-        hole = ghost_hole(grid, channel_any(s.prev_masks, VEHICLES), cur_v)
+        hole = at_source(grid, channel_any(s.prev_masks, VEHICLES)) & ~cur_v
         shots["truth"][f] = tgt
         for v in variants:
             prev = own[v] if own[v] is not None else torch.from_numpy(s.prev).float()[None] / 255
