@@ -317,6 +317,35 @@ fn b2dr_loop_frames_with_a_reference_base_equal_standalone_renders() {
     common::assert_no_validation_errors();
 }
 
+/// A "composite" model (b2dr.json prev_source): a camera that takes its reference is given the composite
+/// already warped (a grid that keeps every pixel: tests/prev_base.rs checks its pixels), one that falls back
+/// the frame before with its warp; each frame still equals a standalone render of its inputs.
+#[test]
+fn b2dr_loop_frames_with_a_composite_base_equal_standalone_renders() {
+    use b2dr::nn::b2dr_config::PrevSource;
+    use b2dr::ops::warp::NO_SOURCE;
+    let Some(ctx) = common::ctx() else { return };
+    let frames = loop_frames_vs_standalone_with(&ctx, 30.0, PrevSource::Composite);
+    let hw = 56 * 104;
+    let mut took = 0;
+    for (k, f) in frames.iter().enumerate() {
+        assert!(
+            f.prev.is_some(),
+            "frame {k}: the previous frame as an image"
+        );
+        let g = f.prev_warp.as_ref().expect("a grid for every frame");
+        for (c, &t) in f.took_reference.iter().enumerate() {
+            let unwarped = g[c * 2 * hw..(c + 1) * 2 * hw]
+                .iter()
+                .all(|&v| v == NO_SOURCE);
+            assert_eq!(unwarped, t, "frame {k} camera {c}: took its reference {t}");
+            took += t as usize;
+        }
+    }
+    assert!(took > 0, "no camera ever took its reference");
+    common::assert_no_validation_errors();
+}
+
 /// Runs 15 steps of builtin:town:2 with the small package (its prev_warp_max_depth set to `warp`), then replays
 /// every recorded frame's inputs through a standalone renderer and asserts the same image bit for bit.
 fn loop_frames_vs_standalone(

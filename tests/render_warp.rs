@@ -201,7 +201,8 @@ fn grid_matches_the_training_side() {
     );
 }
 
-/// b2dr.json's `prev_source`: "previous" unless the package says otherwise, "reference" read and written back,
+/// b2dr.json's `prev_source`: "previous" unless the package says otherwise, "reference" and "composite" read and
+/// written back,
 /// refused without a warp (an unwarped reference does not line up with the current frame) and for other values.
 #[test]
 fn the_prev_source_key_is_read_checked_and_written() {
@@ -217,16 +218,23 @@ fn the_prev_source_key_is_read_checked_and_written() {
         PrevSource::Previous,
         "an older package without the key"
     );
-    v["prev_source"] = serde_json::json!("reference");
-    let e = format!("{:#}", B2drConfig::from_json(v.clone()).unwrap_err());
-    assert!(
-        e.contains("prev_source") && e.contains("prev_warp_max_depth"),
-        "{e}"
-    );
-    v["prev_warp_max_depth"] = serde_json::json!(30.0);
-    let c = B2drConfig::from_json(v.clone()).unwrap();
-    assert_eq!(c.prev_source, PrevSource::Reference);
-    assert_eq!(B2drConfig::from_json(c.to_json()).unwrap(), c);
+    for (name, want) in [
+        ("reference", PrevSource::Reference),
+        ("composite", PrevSource::Composite),
+    ] {
+        v["prev_warp_max_depth"] = serde_json::json!(0.0);
+        v["prev_source"] = serde_json::json!(name);
+        let e = format!("{:#}", B2drConfig::from_json(v.clone()).unwrap_err());
+        assert!(
+            e.contains("prev_source") && e.contains("prev_warp_max_depth") && e.contains(name),
+            "{e}"
+        );
+        v["prev_warp_max_depth"] = serde_json::json!(30.0);
+        let c = B2drConfig::from_json(v.clone()).unwrap();
+        assert_eq!(c.prev_source, want);
+        assert!(want.from_references());
+        assert_eq!(B2drConfig::from_json(c.to_json()).unwrap(), c);
+    }
     for bad in [serde_json::json!("carried"), serde_json::json!(1)] {
         v["prev_source"] = bad.clone();
         let e = format!("{:#}", B2drConfig::from_json(v.clone()).unwrap_err());

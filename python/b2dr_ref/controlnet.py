@@ -43,7 +43,7 @@ MASK_CHANNELS = [
 # the previous-frame warp's depth cap, metres (b2dr_ref/warp.py); 0 turns the warp off
 MAX_WARP_DEPTH = 1000.0
 PE_POSITION_RANGE = [-61.2, -61.2, -10.0, 61.2, 61.2, 10.0]
-PREV_SOURCES = ("previous", "reference")
+PREV_SOURCES = ("previous", "reference", "composite")
 
 # The B2D-R keys of controlnet/config.json and their defaults (contract section 5). None = derived (see __init__).
 B2DR_DEFAULTS: Dict[str, Any] = {
@@ -308,11 +308,12 @@ class B2DRControlNetModel(ControlNetModel):
             raise ConfigError(f"{CLASS_NAME} config: prev_warp_max_depth must lie in [0, {MAX_WARP_DEPTH:g}] m "
                               "(0: no warp)")
         # where a rollout's previous-frame input comes from (the engine's PrevSource): the frame rendered before,
-        # or a retrieved reference warped to the current pose (src/render/warp.rs reference_base_choice)
+        # or a retrieved reference warped to the current pose (src/render/warp.rs reference_base_choice), or that
+        # reference with the agents' pixels from the frame rendered before (src/eval/prev_base.rs)
         if prev_source not in PREV_SOURCES:
             raise ConfigError(f"{CLASS_NAME} config: prev_source {prev_source!r} must be one of {PREV_SOURCES}")
-        if prev_source == "reference" and not float(prev_warp_max_depth) > 0:
-            raise ConfigError(f"{CLASS_NAME} config: prev_source \"reference\" needs prev_warp_max_depth > 0")
+        if prev_source != "previous" and not float(prev_warp_max_depth) > 0:
+            raise ConfigError(f"{CLASS_NAME} config: prev_source {prev_source!r} needs prev_warp_max_depth > 0")
         if not 0.0 <= float(ref_dropout) <= 1.0:
             raise ConfigError(f"{CLASS_NAME} config: ref_dropout must lie in [0, 1]")
 

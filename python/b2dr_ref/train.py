@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from . import nano
-from .controlnet import B2DR_DEFAULTS, MAX_WARP_DEPTH, B2DRControlNetModel, MASK_CHANNELS
+from .controlnet import B2DR_DEFAULTS, MAX_WARP_DEPTH, PREV_SOURCES, B2DRControlNetModel, MASK_CHANNELS
 from .fastpath import AUTOCASTS, PLAIN, FastPath, Prefetcher
 from .frame import SD15_SCHEDULE, gaussian_blur
 from .package import X0_BASES
@@ -711,8 +711,8 @@ def export(args):
         ck["cfg"] = prev_overrides(ck["cfg"], args)
     if getattr(args, "prev_source", None):
         # an inference choice of the package (the weights are the same): a rollout's previous-frame input
-        if args.prev_source == "reference" and not float(ck["cfg"]["controlnet"].get("prev_warp_max_depth", 0)) > 0:
-            raise SystemExit("export --prev-source reference: the run does not warp its previous frame "
+        if args.prev_source != "previous" and not float(ck["cfg"]["controlnet"].get("prev_warp_max_depth", 0)) > 0:
+            raise SystemExit(f"export --prev-source {args.prev_source}: the run does not warp its previous frame "
                              "(--prev-warp-max-depth); an unwarped reference would not line up with the frame")
         ck["cfg"] = dict(ck["cfg"], controlnet=dict(ck["cfg"]["controlnet"], prev_source=args.prev_source))
     cfg = ck["cfg"]
@@ -772,10 +772,11 @@ def main(argv=None):
         p.add_argument("--prev-noise-level", type=int, default=None,
                        help="the previous frame's noise level at inference in the package's ControlNet config "
                             "(default: the run's)")
-        p.add_argument("--prev-source", default=None, choices=("previous", "reference"),
+        p.add_argument("--prev-source", default=None, choices=PREV_SOURCES,
                        help="the package's ControlNet key prev_source (default: the run's, \"previous\"): in a "
                             "rollout the previous-frame input is the frame rendered before, or (\"reference\", a "
-                            "warping run only) a retrieved reference warped to the current pose")
+                            "warping run only) a retrieved reference warped to the current pose, or "
+                            "(\"composite\") that reference with the agents' pixels from the frame rendered before")
         return export(p.parse_args(argv[1:]))
     if argv and argv[0] == "replace-vae":
         p = argparse.ArgumentParser(prog="python -m b2dr_ref.train replace-vae")

@@ -164,10 +164,11 @@ def test_config_rejects_unknown_key(tmp_path):
     # the previous frame's source: a reference needs the warp (the engine refuses the same)
     with pytest.raises(ConfigError, match="prev_source"):
         B2DRControlNetModel.from_config(dict(cfg, prev_source="carried"))
-    with pytest.raises(ConfigError, match="prev_warp_max_depth > 0"):
-        B2DRControlNetModel.from_config(dict(cfg, prev_source="reference"))
-    assert B2DRControlNetModel.from_config(dict(cfg, prev_source="reference", prev_warp_max_depth=30.0)) \
-        .config.prev_source == "reference"
+    for src in ("reference", "composite"):
+        with pytest.raises(ConfigError, match="prev_warp_max_depth > 0"):
+            B2DRControlNetModel.from_config(dict(cfg, prev_source=src))
+        assert B2DRControlNetModel.from_config(dict(cfg, prev_source=src, prev_warp_max_depth=30.0)) \
+            .config.prev_source == src
     # a subset of locations works and numbers them in order
     m = B2DRControlNetModel.from_config(dict(cfg, ref_attn=["down.1", "mid"]))
     assert len(m.ref_attn_modules) == 2 and m.location_block(0) == 1

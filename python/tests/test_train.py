@@ -359,12 +359,14 @@ def test_export_round_trip(vae_run, tmp_path):
     assert not os.path.exists(str(tmp_path / "zero"))
     # the previous frame's source is the run's ("previous") unless export says; a reference needs a warping run
     assert cfg["prev_source"] == "previous"
-    with pytest.raises(SystemExit, match="does not warp"):
-        T.main(["export", "--run", run, "--out", str(tmp_path / "ref"), "--prev-source", "reference"])
+    for src in ("reference", "composite"):
+        with pytest.raises(SystemExit, match=f"--prev-source {src}: the run does not warp"):
+            T.main(["export", "--run", run, "--out", str(tmp_path / src), "--prev-source", src])
     ck["cfg"]["controlnet"]["prev_warp_max_depth"] = 30.0
     torch.save(ck, os.path.join(run, T.CKPT))
-    T.main(["export", "--run", run, "--out", str(tmp_path / "ref"), "--prev-source", "reference"])
-    assert load_package(str(tmp_path / "ref")).controlnet.config.prev_source == "reference"
+    for src in ("reference", "composite"):
+        T.main(["export", "--run", run, "--out", str(tmp_path / src), "--prev-source", src])
+        assert load_package(str(tmp_path / src)).controlnet.config.prev_source == src
 
 
 def test_pe_vectorised_matches_pe_py():

@@ -7,6 +7,7 @@ pub mod chart;
 pub mod compare;
 pub mod fidelity;
 pub mod planner_data;
+pub mod prev_base;
 pub mod run;
 pub mod sensors;
 pub mod trade;

@@ -11,15 +11,14 @@ use std::sync::Arc;
 use anyhow::{bail, ensure, Context as _, Result};
 use glam::{DMat4, DVec3};
 
-use crate::nn::b2dr_config::PrevSource;
-use crate::ops::warp::NO_SOURCE;
+use crate::eval::prev_base::{agents_for, reference_base, AgentPixels};
 use crate::projection::scene::{box_class, map_layer};
 use crate::projection::{Box3d, MapLayer, ProjectionConfig};
 use crate::render::frame::{FrameInputs, FrameRenderer, FrameShape, Prev, RefInputs};
 use crate::render::inputs;
 use crate::render::job::sampler_plan;
 use crate::render::package::{DeviceModel, ModelPackage};
-use crate::render::warp::{ground_warp_grid, ground_warp_grids, reference_base_choice};
+use crate::render::warp::ground_warp_grids;
 use crate::scene::camera::{Camera, CameraImage};
 use crate::scene::Scenario;
 use crate::sim::closed_loop::AgentRecord;
@@ -228,6 +227,8 @@ pub struct Retrieved {
     pub geom: inputs::Geometry,
     /// Per camera the ego2global of each reference image.
     pub poses: Vec<[DMat4; 2]>,
+    /// Per camera the log frame (index into the rig's frames) of each reference image.
+    pub frames: Vec<[usize; 2]>,
 }
 
 /// [`Retrieved`] of `cameras` at `e2g`, at the render size `size`.
@@ -239,17 +240,19 @@ pub fn references(
     e2g: &DMat4,
 ) -> Result<Retrieved> {
     let sc = store.world().scenario;
-    let (mut ref_imgs, mut geoms, mut poses) = (vec![], vec![], vec![]);
+    let (mut ref_imgs, mut geoms, mut poses, mut frames) = (vec![], vec![], vec![], vec![]);
     for c in cameras {
         let r = store.frame_index().retrieve(&sc.rig.frames, &c.name, e2g);
         let pick = |x: &Option<crate::projection::retrieval::Reference>| {
-            x.as_ref().map(|r| &sc.rig.frames[r.frame].images[r.image])
+            x.as_ref()
+                .map(|r| (&sc.rig.frames[r.frame].images[r.image], r.frame))
         };
-        let (a, b) = match (pick(&r.front), pick(&r.rear)) {
+        let ((a, fa), (b, fb)) = match (pick(&r.front), pick(&r.rear)) {
             (Some(a), Some(b)) => (a, b),
             (Some(a), None) | (None, Some(a)) => (a, a),
             (None, None) => bail!("no recorded image of {} to retrieve", c.name),
         };
+        frames.push([fa, fb]);
         for img in [a, b] {
             ref_imgs.extend(planar(&recorded_pixels(store, img, size)?, size));
         }
@@ -266,70 +269,8 @@ pub fn references(
         images: ref_imgs,
         geom: inputs::stack(&geoms),
         poses,
+        frames,
     })
-}
-
-/// The least fraction of a camera's pixels the warp of its chosen reference must reach (a source inside the
-/// reference image) for a model with `prev_source` "reference" to start from it. Retrieval is by position
-/// along the heading only: where the log turned, or on the side cameras, the reference can look elsewhere and
-/// most of the frame would keep the reference's own unwarped pixels; such a camera takes the fallback instead
-/// (the frame rendered before, as `prev_source` "previous" does). Measured on the training export's references
-/// (2-15 m away): 95 % of CAM_FRONT's chosen references reach at least 94 % of the pixels, 3.5 % under 60 %; the
-/// side cameras' medians are 59-79 %, so they mostly fall back.
-pub const MIN_REFERENCE_COVERAGE: f64 = 0.9;
-
-/// The previous-frame input of a model that takes it from its references (b2dr.json `prev_source`
-/// "reference"), per camera: the reference [`reference_base_choice`] picks of the two retrieved (`r`), warped
-/// from its pose to `e2g`, where that warp reaches at least [`MIN_REFERENCE_COVERAGE`] of the pixels, else the
-/// camera's slice of `fallback` (planar `(N, 3, H, W)` in [0, 1]) warped from `fallback_poses`. Returns the
-/// images, the warp grids `(N, H, W, 2)` and per camera whether it took the reference.
-pub fn reference_base(
-    cameras: &[Camera],
-    e2g: &DMat4,
-    r: &Retrieved,
-    size: (usize, usize),
-    max_depth: f64,
-    fallback: &[f32],
-    fallback_poses: &[DMat4],
-) -> Result<(Vec<f32>, Vec<f32>, Vec<bool>)> {
-    let per = 3 * size.0 * size.1;
-    let n = cameras.len();
-    ensure!(
-        r.images.len() == n * 2 * per && r.poses.len() == n,
-        "reference base: {} reference values and {} poses for {n} cameras of {}x{}",
-        r.images.len(),
-        r.poses.len(),
-        size.0,
-        size.1
-    );
-    ensure!(
-        fallback.len() == n * per && fallback_poses.len() == n,
-        "reference base: a fallback of {} values and {} poses for {n} cameras",
-        fallback.len(),
-        fallback_poses.len()
-    );
-    let (mut img, mut grids, mut took) = (Vec::with_capacity(n * per), vec![], vec![]);
-    for (i, c) in cameras.iter().enumerate() {
-        let j = reference_base_choice(c, e2g, [&r.poses[i][0], &r.poses[i][1]]);
-        let g = ground_warp_grid(c, e2g, &r.poses[i][j], size, max_depth)?;
-        let reached = g.chunks(2).filter(|v| v[0] != NO_SOURCE).count();
-        if reached as f64 >= MIN_REFERENCE_COVERAGE * (size.0 * size.1) as f64 {
-            img.extend_from_slice(&r.images[(2 * i + j) * per..(2 * i + j + 1) * per]);
-            grids.extend(g);
-            took.push(true);
-        } else {
-            img.extend_from_slice(&fallback[i * per..(i + 1) * per]);
-            grids.extend(ground_warp_grid(
-                c,
-                e2g,
-                &fallback_poses[i],
-                size,
-                max_depth,
-            )?);
-            took.push(false);
-        }
-    }
-    Ok((img, grids, took))
 }
 
 /// The renderer's output `(N, 3, H, W)` as the next frame reads it back: clamped to [0, 1] and rounded to 8 bits
@@ -533,7 +474,8 @@ impl Sensors for B2dr<'_> {
         )?;
         let t1 = std::time::Instant::now();
         let refs_on = self.engine.refs_and_prev;
-        let from_refs = self.engine.package.control_cfg.prev_source == PrevSource::Reference;
+        let source = self.engine.package.control_cfg.prev_source;
+        let from_refs = source.from_references();
         let (mut ref_imgs, mut geom, mut prev) = (vec![], inputs::stack(&[]), vec![]);
         let mut ref_warp: Option<Vec<f32>> = None;
         if refs_on {
@@ -558,6 +500,11 @@ impl Sensors for B2dr<'_> {
             if from_refs {
                 // each camera starts from a logged image where its reference covers the frame, else from the
                 // frame before (the first frame: the recorded one); the input is given as an image every frame
+                let refs_agents = agents_for(source, sc, &self.cameras, &r, size)?;
+                let agents = refs_agents.as_ref().map(|a| AgentPixels {
+                    masks: &masks,
+                    refs: a,
+                });
                 let (img, grid, took) = reference_base(
                     &self.cameras,
                     &e2g,
@@ -566,6 +513,7 @@ impl Sensors for B2dr<'_> {
                     self.engine.package.control_cfg.prev_warp_max_depth,
                     &prev,
                     &self.prev_poses,
+                    agents.as_ref(),
                 )?;
                 (prev, ref_warp, self.took_reference) = (img, Some(grid), took);
             }

@@ -55,8 +55,13 @@ pub enum PrevSource {
     /// "reference": every frame's previous-frame input is one of its own retrieved references (a logged
     /// image), the one whose camera stands farthest behind the current camera along its optical axis, warped
     /// to the current pose (needs `prev_warp_max_depth` > 0). Nothing rendered is carried from frame to frame,
-    /// so a rollout cannot accumulate its own errors (`render::warp::reference_base`).
+    /// so a rollout cannot accumulate its own errors (`eval::prev_base::reference_base`).
     Reference,
+    /// "composite": as "reference" for the scenery, but where the current layout or the reference's own logged
+    /// agents hold a vehicle or a person, the pixels of the frame rendered before (warped to the current pose):
+    /// a reference keeps showing the log's agents where the simulation has moved them
+    /// (`eval::prev_base::reference_base`). Needs `prev_warp_max_depth` > 0.
+    Composite,
 }
 
 impl PrevSource {
@@ -64,7 +69,13 @@ impl PrevSource {
         match self {
             PrevSource::Previous => "previous",
             PrevSource::Reference => "reference",
+            PrevSource::Composite => "composite",
         }
+    }
+
+    /// Whether the previous-frame input starts from a retrieved reference ("reference", "composite").
+    pub fn from_references(self) -> bool {
+        self != PrevSource::Previous
     }
 }
 
@@ -191,19 +202,21 @@ impl B2drConfig {
             Some(v) => match v.as_str() {
                 Some("previous") => PrevSource::Previous,
                 Some("reference") => PrevSource::Reference,
+                Some("composite") => PrevSource::Composite,
                 _ => {
                     return Err(err(
                         "prev_source",
                         &v,
-                        "expected \"previous\" or \"reference\"",
+                        "expected \"previous\", \"reference\" or \"composite\"",
                     ))
                 }
             },
         };
         ensure!(
-            prev_source != PrevSource::Reference || prev_warp_max_depth > 0.0,
-            "{CLASS_NAME} config: key `prev_source` = \"reference\" needs `prev_warp_max_depth` > 0 (a reference \
-             was taken at another pose; unwarped it would not line up with the current frame)"
+            !prev_source.from_references() || prev_warp_max_depth > 0.0,
+            "{CLASS_NAME} config: key `prev_source` = \"{}\" needs `prev_warp_max_depth` > 0 (a reference \
+             was taken at another pose; unwarped it would not line up with the current frame)",
+            prev_source.name()
         );
         let ref_enc = take(&mut m, "ref_encoder_channels");
         let ref_attn_v = take(&mut m, "ref_attn");

@@ -35,8 +35,8 @@ use serde::Serialize;
 
 use self::metrics::{IouCounts, PaletteClassifier};
 use self::scene::Deviation;
-use crate::eval::sensors::{reference_base, B2drEngine, Retrieved};
-use crate::nn::b2dr_config::PrevSource;
+use crate::eval::prev_base::{agents_for, reference_base, AgentPixels};
+use crate::eval::sensors::{B2drEngine, Retrieved};
 use crate::projection::scene::map_layer;
 use crate::render::frame::{FrameInputs, FrameRenderer, Prev, RefInputs};
 use crate::render::inputs::{self, Geometry};
@@ -228,23 +228,29 @@ fn warp_grid(
     ground_warp_grids(cams, &vec![*cur; n], &vec![*prev; n], size, d).map(Some)
 }
 
-/// For a model that takes its previous frame from its references (b2dr.json `prev_source` "reference"): per
-/// camera the reference [`reference_base`] chooses (or, where it covers too little of the frame, `fallback`
-/// (planar) from `fallback_pose`) and the warp grids to `e2g`; None for any other model.
+/// For a model that takes its previous frame from its references (b2dr.json `prev_source` "reference" or
+/// "composite"): per camera the reference [`reference_base`] chooses (or, where it covers too little of the
+/// frame, `fallback` (planar) from `fallback_pose`; "composite": the fallback also where `masks` or the
+/// reference's logged agents hold one) and the warp grids to `e2g`; None for any other model.
+#[allow(clippy::too_many_arguments)]
 fn reference_prev(
     engine: &B2drEngine,
+    sc: &crate::scene::Scenario,
     cams: &[Camera],
     e2g: &glam::DMat4,
     refs: &Retrieved,
+    masks: &[f32],
     size: (usize, usize),
     fallback: &[f32],
     fallback_pose: &glam::DMat4,
 ) -> Result<Option<(Vec<f32>, Vec<f32>)>> {
     let cfg = &engine.package.control_cfg;
-    if cfg.prev_source != PrevSource::Reference {
+    if !cfg.prev_source.from_references() {
         return Ok(None);
     }
     let n = cams.len();
+    let ra = agents_for(cfg.prev_source, sc, cams, refs, size)?;
+    let agents = ra.as_ref().map(|a| AgentPixels { masks, refs: a });
     let (img, g, _) = reference_base(
         cams,
         e2g,
@@ -253,6 +259,7 @@ fn reference_prev(
         cfg.prev_warp_max_depth,
         fallback,
         &vec![*fallback_pose; n],
+        agents.as_ref(),
     )?;
     Ok(Some((img, g)))
 }
@@ -485,7 +492,7 @@ pub fn eval_render(ctx: &Context, cfg: &EvalConfig, out: &Path) -> Result<Result
     };
     let default_w = pkg.meta.ref_guidance;
     let blur = pkg.control_cfg.prev_blur_sigma;
-    let from_refs = pkg.control_cfg.prev_source == PrevSource::Reference;
+    let from_refs = pkg.control_cfg.prev_source.from_references();
     let mk = |dt: DType, pkg| {
         B2drEngine::new(
             ctx,
@@ -584,7 +591,7 @@ pub fn eval_render(ctx: &Context, cfg: &EvalConfig, out: &Path) -> Result<Result
                 let r = scene::refs(&store, &main.package.control_cfg, &cams, &e2g, size)?;
                 let prev = scene::planar_all(&pgt.rgb, size);
                 let warp = warp_grid(&main, &cams, &e2g, &pe2g, size)?;
-                let rp = reference_prev(&main, &cams, &e2g, &r, size, &prev, &pe2g)?;
+                let rp = reference_prev(&main, &sc, &cams, &e2g, &r, &masks, size, &prev, &pe2g)?;
                 let refs = (r.images, r.geom);
                 let x = CaseInputs {
                     masks: &masks,
@@ -656,7 +663,8 @@ pub fn eval_render(ctx: &Context, cfg: &EvalConfig, out: &Path) -> Result<Result
                         Some(l) => l,
                         None => &prev0,
                     };
-                    let rp = reference_prev(&main, &cams, &e2g, &r, size, last, &pe2g)?;
+                    let rp =
+                        reference_prev(&main, &sc, &cams, &e2g, &r, &masks, size, last, &pe2g)?;
                     let refs = (r.images, r.geom);
                     let x = CaseInputs {
                         masks: &masks,
