@@ -172,10 +172,10 @@ pub fn reference_base(
         let g = ground_warp_grid(c, e2g, &r.poses[i][j], size, max_depth)?;
         let reached = g.chunks(2).filter(|v| v[0] != NO_SOURCE).count();
         let own = &fallback[i * per..(i + 1) * per];
-        let gf = ground_warp_grid(c, e2g, &fallback_poses[i], size, max_depth)?;
+        let own_grid = || ground_warp_grid(c, e2g, &fallback_poses[i], size, max_depth);
         if (reached as f64) < MIN_REFERENCE_COVERAGE * hw as f64 {
             img.extend_from_slice(own);
-            grids.extend(gf);
+            grids.extend(own_grid()?);
             took.push(false);
             continue;
         }
@@ -195,7 +195,10 @@ pub fn reference_base(
             .map(|p| logged[p] > 0.0 || (0..BoxClass::ALL.len()).any(|ch| cur[ch * hw + p] > 0.5))
             .collect();
         let held = dilate(&held, size, AGENT_MARGIN_PX);
-        let (rw, fw) = (warp(reference, &g, 3, size), warp(own, &gf, 3, size));
+        let (rw, fw) = (
+            warp(reference, &g, 3, size),
+            warp(own, &own_grid()?, 3, size),
+        );
         img.extend((0..per).map(|k| if held[k % hw] { fw[k] } else { rw[k] }));
         grids.extend(std::iter::repeat_n(NO_SOURCE, hw * 2));
     }

@@ -396,7 +396,8 @@ pub struct FrameRecord {
     pub eps_prev: Vec<f32>,
     /// The previous frame's warp grid (N, H, W, 2) (a model that warps it).
     pub prev_warp: Option<Vec<f32>>,
-    /// A `prev_source` "reference" model: per camera whether `prev` is its reference (else the fallback).
+    /// A `prev_source` "reference" / "composite" model: per camera whether `prev` is (built on) its reference
+    /// (else the fallback).
     pub took_reference: Vec<bool>,
     /// The decoded frame (N, 3, H, W) in [0, 1].
     pub image: Vec<f32>,
