@@ -179,7 +179,11 @@ fn composite_base_takes_the_agents_from_the_frame_before() {
             must > 50,
             "frame {fi}: only {must} agent pixels: pick a busier frame"
         );
-        assert!(from_before >= must);
+        // the rest is the reference's warp: a base taken wholly from the frame before fails here
+        assert!(
+            from_before < hw / 2,
+            "frame {fi}: {from_before} of {hw} pixels from the frame before"
+        );
     }
     assert!(
         checked >= 2,
